@@ -1,0 +1,46 @@
+import cv2
+import numpy as np
+
+from vespro import se3
+from vespro.camera import CameraIntrinsics, project_points, undistort_pixels
+
+
+def test_projection_matches_opencv_with_distortion():
+    rng = np.random.default_rng(0)
+    K = np.array([[600.0, 0.0, 321.0], [0, 590.0, 238.0], [0, 0, 1]])
+    dist = np.array([-0.21, 0.09, 0.001, -0.0015, -0.02])
+    intr = CameraIntrinsics(640, 480, K, dist)
+    T = se3.transform_from_rt(se3.exp_so3([0.2, -0.1, 0.3]), [0.05, -0.02, 0.9])
+    P = rng.uniform(-0.1, 0.1, size=(200, 3))
+    uv, z = project_points(intr, T, P)
+    rvec, _ = cv2.Rodrigues(T[:3, :3])
+    ref, _ = cv2.projectPoints(P, rvec, T[:3, 3], K, dist)
+    np.testing.assert_allclose(uv, ref.reshape(-1, 2), atol=1e-9)
+    assert np.all(z > 0)
+
+
+def test_undistort_inverts_distortion():
+    intr = CameraIntrinsics(640, 480, [[600, 0, 320], [0, 600, 240], [0, 0, 1]], [-0.2, 0.05, 0.001, 0.001, 0])
+    T = np.eye(4)
+    P = np.array([[x, y, 1.0] for x in np.linspace(-0.4, 0.4, 5) for y in np.linspace(-0.3, 0.3, 5)])
+    uv, _ = project_points(intr, T, P)
+    ideal = P[:, :2] * 600 + [320, 240]
+    np.testing.assert_allclose(undistort_pixels(intr, uv), ideal, atol=1e-6)
+
+
+def test_from_fovy_matches_mujoco_convention():
+    intr = CameraIntrinsics.from_fovy(640, 480, 45.0)
+    # The example recording (made outside the project) uses the same model.
+    assert abs(intr.fy - 579.411255) < 1e-5 and intr.cx == 319.5 and intr.cy == 239.5
+
+
+def test_points_behind_camera_are_nan():
+    intr = CameraIntrinsics.from_fovy(64, 48, 60)
+    uv, z = project_points(intr, np.eye(4), [[0, 0, -1.0], [0, 0, 1.0]])
+    assert np.all(np.isnan(uv[0])) and np.all(np.isfinite(uv[1]))
+
+
+def test_skew_is_rejected():
+    import pytest
+    with pytest.raises(ValueError, match="skew"):
+        CameraIntrinsics(640, 480, [[600, 0.5, 320], [0, 600, 240], [0, 0, 1]])

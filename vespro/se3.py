@@ -1,0 +1,226 @@
+"""Rigid transforms, rotations and quaternions.
+
+Conventions (shared/STYLE.md):
+
+- ``T_a_b`` is a (4, 4) float64 array, the pose of frame b in frame a:
+  ``p_a = T_a_b @ p_b``.
+- Quaternions are scalar first ``(w, x, y, z)``, Hamilton product, unit norm.
+  SciPy's ``Rotation`` is scalar last: conversions happen here and are named
+  ``q_xyzw`` where they occur.
+- A pose on disk or on the wire is 7 numbers ``x y z qw qx qy qz`` ("pq").
+- Rotation vectors (axis * angle, rad) parametrise small rotations; ``exp_so3``
+  and ``log_so3`` map between them and rotation matrices.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+__all__ = [
+    "check_transform",
+    "transform_from_pq",
+    "pq_from_transform",
+    "transform_from_rt",
+    "invert_transform",
+    "matrix_from_quat",
+    "quat_from_matrix",
+    "quat_multiply",
+    "quat_conjugate",
+    "quat_normalize",
+    "quat_canonical",
+    "quat_from_rotvec",
+    "rotvec_from_quat",
+    "skew",
+    "exp_so3",
+    "log_so3",
+    "rotation_angle",
+    "transform_points",
+    "pose_error",
+]
+
+
+def check_transform(T: np.ndarray, name: str = "T", atol: float = 1e-6) -> np.ndarray:
+    """Validate a homogeneous transform at a module boundary.
+
+    Parameters
+    ----------
+    T : array_like, shape (4, 4)
+    name : str
+        Used in the error message.
+    atol : float
+        Tolerance on orthonormality of the rotation block and on the last row.
+
+    Returns
+    -------
+    T : ndarray, shape (4, 4), float64
+
+    Raises
+    ------
+    ValueError
+        Wrong shape, non-finite values, a rotation block that is not a proper
+        rotation, or a last row that is not ``[0, 0, 0, 1]``.
+    """
+    T = np.asarray(T, dtype=float)
+    if T.shape != (4, 4):
+        raise ValueError(f"{name}: expected shape (4, 4), got {T.shape}")
+    if not np.all(np.isfinite(T)):
+        raise ValueError(f"{name}: contains non-finite values")
+    R = T[:3, :3]
+    if not np.allclose(R @ R.T, np.eye(3), atol=atol) or np.linalg.det(R) < 0:
+        raise ValueError(f"{name}: rotation block is not a proper rotation matrix")
+    if not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0], atol=atol):
+        raise ValueError(f"{name}: last row must be [0, 0, 0, 1], got {T[3]}")
+    return T
+
+
+def quat_normalize(q: np.ndarray) -> np.ndarray:
+    """Unit quaternion(s), shape (..., 4); raises on a zero or non-finite input."""
+    q = np.asarray(q, dtype=float)
+    n = np.linalg.norm(q, axis=-1, keepdims=True)
+    if not np.all(np.isfinite(q)) or np.any(n < 1e-12):
+        raise ValueError(f"quaternion cannot be normalised: {q}")
+    return q / n
+
+
+def quat_canonical(q: np.ndarray) -> np.ndarray:
+    """Flip sign so that ``w >= 0`` (the same rotation), shape (..., 4)."""
+    q = np.asarray(q, dtype=float)
+    sign = np.where(q[..., :1] < 0.0, -1.0, 1.0)
+    return q * sign
+
+
+def matrix_from_quat(q: np.ndarray) -> np.ndarray:
+    """Rotation matrix from a unit quaternion.
+
+    Parameters
+    ----------
+    q : array_like, shape (4,) or (N, 4)
+        ``(w, x, y, z)``; normalised here.
+
+    Returns
+    -------
+    R : ndarray, shape (3, 3) or (N, 3, 3)
+    """
+    q = quat_normalize(q)
+    q_xyzw = np.roll(q, -1, axis=-1)
+    return Rotation.from_quat(q_xyzw).as_matrix()
+
+
+def quat_from_matrix(R: np.ndarray) -> np.ndarray:
+    """Unit quaternion ``(w, x, y, z)`` with ``w >= 0`` from rotation matrix/matrices."""
+    q_xyzw = Rotation.from_matrix(np.asarray(R, dtype=float)).as_quat()
+    return quat_canonical(np.roll(q_xyzw, 1, axis=-1))
+
+
+def quat_multiply(q1: np.ndarray, q2: np.ndarray) -> np.ndarray:
+    """Hamilton product ``q1 * q2`` (rotation q2 first, then q1), shape (..., 4)."""
+    w1, x1, y1, z1 = np.moveaxis(np.asarray(q1, dtype=float), -1, 0)
+    w2, x2, y2, z2 = np.moveaxis(np.asarray(q2, dtype=float), -1, 0)
+    return np.stack(
+        [
+            w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
+            w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
+            w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
+            w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2,
+        ],
+        axis=-1,
+    )
+
+
+def quat_conjugate(q: np.ndarray) -> np.ndarray:
+    """Conjugate (the inverse for a unit quaternion), shape (..., 4)."""
+    q = np.asarray(q, dtype=float)
+    return q * np.array([1.0, -1.0, -1.0, -1.0])
+
+
+def quat_from_rotvec(v: np.ndarray) -> np.ndarray:
+    """Unit quaternion from rotation vector(s) (rad), shape (..., 3) -> (..., 4)."""
+    q_xyzw = Rotation.from_rotvec(np.asarray(v, dtype=float)).as_quat()
+    return np.roll(q_xyzw, 1, axis=-1)
+
+
+def rotvec_from_quat(q: np.ndarray) -> np.ndarray:
+    """Rotation vector (rad, angle in [0, pi]) from unit quaternion(s)."""
+    q = quat_normalize(q)
+    return Rotation.from_quat(np.roll(q, -1, axis=-1)).as_rotvec()
+
+
+def skew(v: np.ndarray) -> np.ndarray:
+    """Cross-product matrix: ``skew(a) @ b == np.cross(a, b)``; shape (3,) -> (3, 3)."""
+    x, y, z = v
+    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+
+
+def exp_so3(v: np.ndarray) -> np.ndarray:
+    """Rotation matrix of the rotation vector ``v`` (rad), shape (3,) -> (3, 3)."""
+    return Rotation.from_rotvec(np.asarray(v, dtype=float)).as_matrix()
+
+
+def log_so3(R: np.ndarray) -> np.ndarray:
+    """Rotation vector (rad) of a rotation matrix, shape (3, 3) -> (3,)."""
+    return Rotation.from_matrix(np.asarray(R, dtype=float)).as_rotvec()
+
+
+def rotation_angle(R: np.ndarray) -> np.ndarray:
+    """Geodesic angle (rad, in [0, pi]) of rotation matrix/matrices."""
+    R = np.asarray(R, dtype=float)
+    tr = np.trace(R, axis1=-2, axis2=-1)
+    # arccos is ill-conditioned near 0: use the antisymmetric part as well.
+    s = np.stack(
+        [R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]],
+        axis=-1,
+    )
+    return np.arctan2(0.5 * np.linalg.norm(s, axis=-1), 0.5 * (tr - 1.0))
+
+
+def transform_from_rt(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """4x4 transform from rotation (3, 3) and translation (3,)."""
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = t
+    return T
+
+
+def transform_from_pq(pq: np.ndarray) -> np.ndarray:
+    """4x4 transform from ``[x, y, z, qw, qx, qy, qz]``.
+
+    Raises
+    ------
+    ValueError
+        Not 7 finite numbers, or a zero quaternion.
+    """
+    pq = np.asarray(pq, dtype=float)
+    if pq.shape != (7,):
+        raise ValueError(f"pose must be 7 numbers x y z qw qx qy qz, got shape {pq.shape}")
+    if not np.all(np.isfinite(pq)):
+        raise ValueError(f"pose contains non-finite values: {pq}")
+    return transform_from_rt(matrix_from_quat(pq[3:]), pq[:3])
+
+
+def pq_from_transform(T: np.ndarray) -> np.ndarray:
+    """``[x, y, z, qw, qx, qy, qz]`` (``qw >= 0``) from a 4x4 transform."""
+    T = np.asarray(T, dtype=float)
+    return np.concatenate([T[:3, 3], quat_from_matrix(T[:3, :3])])
+
+
+def invert_transform(T: np.ndarray) -> np.ndarray:
+    """Inverse of a rigid transform: ``invert_transform(T_a_b) == T_b_a``."""
+    R = T[:3, :3]
+    Ti = np.eye(4)
+    Ti[:3, :3] = R.T
+    Ti[:3, 3] = -R.T @ T[:3, 3]
+    return Ti
+
+
+def transform_points(T_a_b: np.ndarray, P_b: np.ndarray) -> np.ndarray:
+    """Map points from frame b to frame a: (N, 3) -> (N, 3)."""
+    P_b = np.asarray(P_b, dtype=float)
+    return P_b @ T_a_b[:3, :3].T + T_a_b[:3, 3]
+
+
+def pose_error(T_est: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
+    """Position error (m) and geodesic orientation error (rad) between two poses."""
+    dp = float(np.linalg.norm(T_est[:3, 3] - T_true[:3, 3]))
+    da = float(rotation_angle(T_est[:3, :3].T @ T_true[:3, :3]))
+    return dp, da
