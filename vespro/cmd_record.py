@@ -1,0 +1,162 @@
+"""``vespro record``: write a recording of a simulated scenario."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+
+DEFAULT_DISTORTION = (-0.22, 0.09, 0.0006, -0.0004, -0.015)
+
+
+def object_mesh_path(name_or_path: str) -> Path:
+    """A CAD file: an existing path, or a model name in ``models/objects``."""
+    p = Path(name_or_path)
+    if p.is_file():
+        return p
+    from .sim.scene import MODELS_DIR
+
+    for ext in (".stl", ".obj", ".ply"):
+        q = MODELS_DIR / "objects" / f"{name_or_path}{ext}"
+        if q.is_file():
+            return q
+    names = sorted(x.stem for x in (MODELS_DIR / "objects").iterdir() if x.suffix in (".stl", ".obj", ".ply"))
+    raise SystemExit(f"vespro: no object {name_or_path!r}; known objects: {', '.join(names)} (or give a mesh path)")
+
+
+def rig_path(name_or_path: str) -> Path:
+    """A rig file: an existing path, or a standard rig name in ``cameras/``."""
+    p = Path(name_or_path)
+    if p.is_file():
+        return p
+    from .sim.rigs import CAMERAS_DIR
+
+    q = CAMERAS_DIR / f"{name_or_path}.yaml"
+    if q.is_file():
+        return q
+    names = sorted(x.stem for x in CAMERAS_DIR.glob("*.yaml"))
+    raise SystemExit(f"vespro: no rig {name_or_path!r}; standard rigs: {', '.join(names)} (or give a cameras.yaml path)")
+
+
+def _resolution(s: str) -> tuple[int, int]:
+    try:
+        w, h = (int(x) for x in s.lower().split("x"))
+        assert w > 0 and h > 0
+    except (ValueError, AssertionError):
+        raise argparse.ArgumentTypeError(f"resolution must look like 640x480, got {s!r}") from None
+    return w, h
+
+
+def _dropout(s: str):
+    from .sim.cell import CameraDropout
+
+    try:
+        cam, t0, t1 = s.split(":")
+        return CameraDropout(cam, float(t0), float(t1))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--drop takes CAMERA:T0:T1 (seconds), got {s!r}") from None
+
+
+def _distortion(s: str):
+    try:
+        v = tuple(float(x) for x in s.split(","))
+        assert len(v) == 5
+    except (ValueError, AssertionError):
+        raise argparse.ArgumentTypeError(f"--distortion-coeffs takes k1,k2,p1,p2,k3, got {s!r}") from None
+    return v
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser(
+        "record",
+        help="simulate the cell and write a recording (shared/spec/recording.md)",
+        description=(
+            "Simulate the robotic cell (MuJoCo physics at 500 Hz, cameras at --rate) and write a "
+            "recording: frames of every rig camera, the rig, the object model, measured eye-in-hand "
+            "camera poses, and ground truth in groundtruth.csv (for evaluators only)."
+        ),
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
+    p.add_argument("out", type=Path, help="recording folder to create")
+    p.add_argument("--object", default="bracket", help="object name in models/objects (box, lblock, bracket) or a mesh path (metres)")
+    p.add_argument("--rig", default="fixed2", help="standard rig in cameras/ (fixed1, fixed2, fixed3, hand, hybrid) or a cameras.yaml path")
+    p.add_argument("--motion", default="conveyor", choices=["conveyor", "sinusoid", "random", "static"],
+                   help="conveyor: on the belt; sinusoid: free 6-DoF sinusoids; random: random smooth 6-DoF; static")
+    p.add_argument("--frames", type=int, default=78, help="number of capture instants")
+    p.add_argument("--rate", type=float, default=26.0, help="capture rate, Hz")
+    p.add_argument("--resolution", type=_resolution, help="image size WxH (scales the rig's intrinsics)")
+    p.add_argument("--speed", type=float, help="belt speed in m/s (conveyor, default 0.1) or frequency scale of free motions (default 1)")
+    p.add_argument("--amplitude", type=float, help="free motions: position amplitude per axis, m (default 0.05)")
+    p.add_argument("--rot-amplitude-deg", type=float, help="free motions: rotation amplitude per axis, degrees (default 17)")
+    p.add_argument("--stop-time", type=float, help="conveyor: time (s) at which the belt stops smoothly")
+    p.add_argument("--noise", type=float, default=0.0, metavar="SIGMA_PX",
+                   help="geometric pixel noise: std (px) of a smooth random displacement of image features")
+    p.add_argument("--intensity-noise", type=float, default=0.0, metavar="SIGMA", help="sensor noise, grey levels")
+    p.add_argument("--blur", type=float, default=0.0, metavar="SIGMA_PX", help="Gaussian blur sigma, px")
+    p.add_argument("--distortion", action="store_true",
+                   help=f"give every camera plumb_bob lens distortion {DEFAULT_DISTORTION} (written to cameras.yaml, applied to images)")
+    p.add_argument("--distortion-coeffs", type=_distortion, help="with --distortion: k1,k2,p1,p2,k3")
+    p.add_argument("--occluder", action="store_true",
+                   help="a paddle passes in front of the first fixed camera for 1.5 s from 40%% of the run")
+    p.add_argument("--drop", type=_dropout, action="append", default=[], metavar="CAM:T0:T1",
+                   help="no images from CAM between T0 and T1 seconds (repeatable)")
+    p.add_argument("--arm", default="home", choices=["home", "watch"],
+                   help="home: arm parked; watch: flange hovers over the working area (eye-in-hand view)")
+    p.add_argument("--encoder-noise", type=float, default=0.0, help="joint sensor noise, rad")
+    p.add_argument("--seed", type=int, default=0, help="random seed (noise, random motion)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing recording folder")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(func=run)
+
+
+def build_config(args) -> tuple:
+    """Cell configuration, motion and object name from parsed arguments."""
+    from .rig import Rig, RigCamera, load_rig
+    from .camera import CameraIntrinsics
+    from .sim.cell import CellConfig, OccluderSweep
+    from .sim.imaging import ImageEffects
+    from .sim.motion import make_motion
+
+    mesh = object_mesh_path(args.object)
+    rig = load_rig(rig_path(args.rig))
+    cams = []
+    for c in rig:
+        intr = c.intrinsics
+        if args.resolution:
+            intr = intr.scaled(args.resolution[0] / intr.width)
+            if intr.height != args.resolution[1]:
+                raise SystemExit(f"vespro: resolution {args.resolution} does not keep the aspect ratio of camera {c.name}")
+        if args.distortion:
+            intr = CameraIntrinsics(intr.width, intr.height, intr.K, args.distortion_coeffs or DEFAULT_DISTORTION)
+        cams.append(RigCamera(c.name, intr, c.mount, c.T_world_camera, c.link, c.T_link_camera))
+    rig = Rig(tuple(cams))
+    if any(not c.is_fixed for c in rig) and args.arm == "home":
+        args.arm = "watch"  # an eye-in-hand camera on a parked arm sees nothing useful
+    duration = args.frames / args.rate
+    occluders = ()
+    if args.occluder:
+        fixed = [c.name for c in rig if c.is_fixed]
+        if not fixed:
+            raise SystemExit("vespro: --occluder needs a fixed camera in the rig")
+        occluders = (OccluderSweep(fixed[0], 0.4 * duration, min(1.5, 0.5 * duration)),)
+    rot = None if args.rot_amplitude_deg is None else float(np.deg2rad(args.rot_amplitude_deg))
+    motion = make_motion(args.motion, speed=args.speed, amplitude=args.amplitude, rot_amplitude=rot,
+                         seed=args.seed, stop_time=args.stop_time)
+    config = CellConfig(
+        object_mesh=mesh, rig=rig, rate_hz=args.rate,
+        effects=ImageEffects(noise_px=args.noise, intensity_noise=args.intensity_noise, blur_px=args.blur),
+        arm=args.arm, encoder_noise=args.encoder_noise, occluders=occluders, dropouts=tuple(args.drop),
+        seed=args.seed,
+    )
+    return config, motion, mesh.stem
+
+
+def run(args) -> int:
+    from .sim.record import record
+
+    config, motion, name = build_config(args)
+    out = record(args.out, config, motion, args.frames, name, overwrite=args.overwrite,
+                 progress=not args.no_progress)
+    print(f"wrote {out} ({args.frames} frames, cameras {', '.join(config.rig.names)})")
+    return 0

@@ -1,0 +1,308 @@
+"""Recordings on disk: the format of shared/spec/recording.md, version 1.
+
+::
+
+    <recording>/
+      meta.yaml            format, version, rate_hz, model, object
+      cameras.yaml         the rig (see vespro.rig)
+      model.<stl|obj|ply>  the object's CAD model, metres
+      frames.csv           index,t[,<cam>.x,<cam>.y,<cam>.z,<cam>.qw,<cam>.qx,<cam>.qy,<cam>.qz ...]
+      groundtruth.csv      optional; written and read by vespro.groundtruth only
+      frames/<camera>/<index:06d>.png
+
+:class:`Recording` reads everything a tracker may use and nothing else: it
+never opens ``groundtruth.csv`` (see :mod:`vespro.groundtruth`, for evaluators).
+:class:`RecordingWriter` writes the same layout.
+
+Errors name the file and the field (:class:`RecordingError`). A missing or
+unreadable image is not an error: :meth:`Recording.image` returns None and
+counts it, and the tracker does without that camera for that instant.
+"""
+
+from __future__ import annotations
+
+import csv
+import shutil
+from pathlib import Path
+
+import cv2
+import numpy as np
+import yaml
+
+from .frames import FrameSet
+from .rig import Rig, RigError, load_rig, save_rig
+from .se3 import pq_from_transform, transform_from_pq
+
+__all__ = ["RecordingError", "Recording", "RecordingWriter", "FORMAT", "VERSION", "MODEL_EXTS", "pose_columns"]
+
+FORMAT = "vespro-recording"
+VERSION = 1
+MODEL_EXTS = (".stl", ".obj", ".ply")
+POSE_FIELDS = ("x", "y", "z", "qw", "qx", "qy", "qz")
+
+
+class RecordingError(ValueError):
+    """A recording is missing a file or has a malformed one; the message names file and field."""
+
+
+def pose_columns(name: str) -> list[str]:
+    """``frames.csv`` column names of an eye-in-hand camera's pose."""
+    return [f"{name}.{f}" for f in POSE_FIELDS]
+
+
+def _fmt(x: float) -> str:
+    return f"{x:.9f}"
+
+
+class Recording:
+    """A recording opened for reading (tracker side).
+
+    Parameters
+    ----------
+    path : str or Path
+        The recording folder.
+
+    Attributes
+    ----------
+    path : Path
+    meta : dict
+        Parsed ``meta.yaml``.
+    rig : Rig
+    model_path : Path
+    rate_hz : float
+    object_name : str
+    index : ndarray, shape (N,), int
+    t : ndarray, shape (N,), float
+        Capture times, s.
+    missing : dict[str, int]
+        Per camera, how many images were missing or unreadable so far.
+
+    Raises
+    ------
+    RecordingError
+        Missing folder or required file, or a malformed field.
+    """
+
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+        if not self.path.is_dir():
+            raise RecordingError(f"{self.path}: recording folder not found")
+        self.meta = self._read_meta()
+        try:
+            self.rig: Rig = load_rig(self.path / "cameras.yaml")
+        except RigError as e:
+            raise RecordingError(str(e)) from None
+        self.model_path = self._model_path()
+        self.index, self.t, self._eih = self._read_frames()
+        self.missing = {c.name: 0 for c in self.rig}
+
+    # -- parsing -----------------------------------------------------------
+    def _read_meta(self) -> dict:
+        p = self.path / "meta.yaml"
+        if not p.is_file():
+            raise RecordingError(f"{p}: missing (every recording needs meta.yaml)")
+        try:
+            meta = yaml.safe_load(p.read_text())
+        except yaml.YAMLError as e:
+            raise RecordingError(f"{p}: not valid YAML: {e}") from None
+        if not isinstance(meta, dict):
+            raise RecordingError(f"{p}: expected a mapping of fields, got {type(meta).__name__}")
+        for key in ("format", "version", "rate_hz", "model"):
+            if key not in meta:
+                raise RecordingError(f"{p}: missing field '{key}'")
+        if meta["format"] != FORMAT:
+            raise RecordingError(f"{p}: field 'format' must be '{FORMAT}', got {meta['format']!r}")
+        if meta["version"] != VERSION:
+            raise RecordingError(f"{p}: field 'version': this reader knows version {VERSION}, got {meta['version']!r}")
+        rate = meta["rate_hz"]
+        if isinstance(rate, bool) or not isinstance(rate, (int, float)) or not np.isfinite(rate) or rate <= 0:
+            raise RecordingError(f"{p}: field 'rate_hz' must be a positive number, got {rate!r}")
+        if not isinstance(meta["model"], str) or not meta["model"]:
+            raise RecordingError(f"{p}: field 'model' must be a file name, got {meta['model']!r}")
+        return meta
+
+    def _model_path(self) -> Path:
+        rel = self.meta["model"]
+        p = (self.path / rel)
+        if Path(rel).is_absolute() or ".." in Path(rel).parts:
+            raise RecordingError(f"{self.path / 'meta.yaml'}: field 'model' must be a path inside the recording, got {rel!r}")
+        if p.suffix.lower() not in MODEL_EXTS:
+            raise RecordingError(f"{self.path / 'meta.yaml'}: field 'model': {rel!r} is not one of {MODEL_EXTS}")
+        if not p.is_file():
+            raise RecordingError(f"{p}: model file named by meta.yaml field 'model' is missing")
+        return p
+
+    def _read_frames(self):
+        p = self.path / "frames.csv"
+        if not p.is_file():
+            raise RecordingError(f"{p}: missing (every recording needs frames.csv)")
+        with open(p, newline="") as f:
+            rows = list(csv.reader(f))
+        if not rows:
+            raise RecordingError(f"{p}: empty (expected a header row 'index,t,...')")
+        header = [h.strip() for h in rows[0]]
+        if header[:2] != ["index", "t"]:
+            raise RecordingError(f"{p}: header must start with 'index,t', got {','.join(header[:2])!r}")
+        col = {h: i for i, h in enumerate(header)}
+        eih_cols = {}
+        for cam in self.rig.eye_in_hand:
+            names = pose_columns(cam.name)
+            missing = [n for n in names if n not in col]
+            if missing:
+                raise RecordingError(f"{p}: eye_in_hand camera '{cam.name}' needs column(s) {', '.join(missing)}")
+            eih_cols[cam.name] = [col[n] for n in names]
+        body = [r for r in rows[1:] if r and any(x.strip() for x in r)]
+        if not body:
+            raise RecordingError(f"{p}: no frames (only a header)")
+        n = len(body)
+        index = np.empty(n, dtype=np.int64)
+        t = np.empty(n)
+        eih = {name: np.empty((n, 4, 4)) for name in eih_cols}
+        for k, r in enumerate(body):
+            line = k + 2
+            if len(r) < len(header):
+                raise RecordingError(f"{p}: line {line}: expected {len(header)} fields, got {len(r)}")
+            try:
+                index[k] = int(r[0])
+            except ValueError:
+                raise RecordingError(f"{p}: line {line}: field 'index' is not an integer: {r[0]!r}") from None
+            if index[k] != k:
+                raise RecordingError(f"{p}: line {line}: field 'index' must be {k} (indices start at 0 and increase by one), got {index[k]}")
+            try:
+                t[k] = float(r[1])
+            except ValueError:
+                raise RecordingError(f"{p}: line {line}: field 't' is not a number: {r[1]!r}") from None
+            if not np.isfinite(t[k]) or (k > 0 and t[k] < t[k - 1]):
+                raise RecordingError(f"{p}: line {line}: field 't' must be finite and non-decreasing, got {r[1]!r}")
+            for name, cols in eih_cols.items():
+                try:
+                    pq = np.array([float(r[c]) for c in cols])
+                except ValueError:
+                    raise RecordingError(f"{p}: line {line}: pose of camera '{name}' has a non-number") from None
+                if not np.all(np.isfinite(pq)) or abs(np.linalg.norm(pq[3:]) - 1.0) > 1e-3:
+                    raise RecordingError(f"{p}: line {line}: pose of camera '{name}' must be finite with a unit quaternion")
+                eih[name][k] = transform_from_pq(pq)
+        for a in eih.values():
+            a.setflags(write=False)
+        return index, t, eih
+
+    # -- access --------------------------------------------------------------
+    def __len__(self) -> int:
+        return len(self.index)
+
+    @property
+    def rate_hz(self) -> float:
+        return float(self.meta["rate_hz"])
+
+    @property
+    def object_name(self) -> str:
+        return str(self.meta.get("object", self.model_path.stem))
+
+    def image_path(self, camera: str, index: int) -> Path:
+        return self.path / "frames" / camera / f"{index:06d}.png"
+
+    def image(self, camera: str, index: int) -> np.ndarray | None:
+        """The image of ``camera`` at ``index`` (grey or BGR uint8), or None if missing/unreadable."""
+        p = self.image_path(camera, index)
+        img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED) if p.is_file() else None
+        if img is not None and img.dtype != np.uint8:
+            img = None  # the spec allows 8-bit only
+        if img is not None and img.ndim == 3 and img.shape[2] == 4:
+            img = cv2.cvtColor(img, cv2.COLOR_BGRA2BGR)
+        intr = self.rig[camera].intrinsics
+        if img is not None and img.shape[:2] != (intr.height, intr.width):
+            img = None  # wrong size for the rig: unusable, never rescaled silently
+        if img is None:
+            self.missing[camera] += 1
+        return img
+
+    def T_world_camera(self, camera: str, index: int) -> np.ndarray:
+        """Camera pose at ``index``: the rig's for fixed cameras, frames.csv's for eye-in-hand."""
+        cam = self.rig[camera]
+        return cam.T_world_camera if cam.is_fixed else self._eih[camera][index]
+
+    def frameset(self, index: int) -> FrameSet:
+        """All cameras' frames at ``index`` (images decoded now)."""
+        images = {c.name: self.image(c.name, index) for c in self.rig}
+        poses = {name: a[index] for name, a in self._eih.items()}
+        return FrameSet(int(index), int(round(self.t[index] * 1e9)), images, poses)
+
+    def __iter__(self):
+        for i in range(len(self)):
+            yield self.frameset(i)
+
+
+class RecordingWriter:
+    """Write a recording in the spec's layout.
+
+    Parameters
+    ----------
+    path : Path
+        Folder to create (must not exist or be empty, unless ``overwrite``).
+    rig : Rig
+    model_src : Path
+        CAD file to copy in as ``model.<ext>``.
+    rate_hz : float
+    object_name : str
+    overwrite : bool
+    """
+
+    def __init__(self, path: str | Path, rig: Rig, model_src: str | Path, rate_hz: float, object_name: str,
+                 overwrite: bool = False, extra_meta: dict | None = None):
+        self.path = Path(path)
+        if self.path.exists() and any(self.path.iterdir()):
+            if not overwrite:
+                raise FileExistsError(f"{self.path}: exists and is not empty (use overwrite)")
+            shutil.rmtree(self.path)
+        self.path.mkdir(parents=True, exist_ok=True)
+        self.rig = rig
+        model_src = Path(model_src)
+        ext = model_src.suffix.lower()
+        if ext not in MODEL_EXTS:
+            raise ValueError(f"{model_src}: model must be one of {MODEL_EXTS}")
+        shutil.copyfile(model_src, self.path / f"model{ext}")
+        meta = {"format": FORMAT, "version": VERSION, "rate_hz": float(rate_hz), "model": f"model{ext}",
+                "object": object_name}
+        meta.update(extra_meta or {})
+        (self.path / "meta.yaml").write_text(yaml.safe_dump(meta, sort_keys=False))
+        save_rig(rig, self.path / "cameras.yaml")
+        for c in rig:
+            (self.path / "frames" / c.name).mkdir(parents=True, exist_ok=True)
+        self._eih = [c.name for c in rig.eye_in_hand]
+        self._frames = open(self.path / "frames.csv", "w", newline="")
+        self._csv = csv.writer(self._frames, lineterminator="\n")
+        self._csv.writerow(["index", "t"] + [c for n in self._eih for c in pose_columns(n)])
+        self._next = 0
+        self._t0_ns: int | None = None
+
+    def write(self, fs: FrameSet) -> None:
+        """Append one frame set (indices must follow 0, 1, 2, ...)."""
+        if fs.index != self._next:
+            raise ValueError(f"frame set index {fs.index} out of order (expected {self._next})")
+        if self._t0_ns is None:
+            self._t0_ns = fs.t_ns
+        for c in self.rig:
+            img = fs.images.get(c.name)
+            if img is not None:
+                if not cv2.imwrite(str(self.path / "frames" / c.name / f"{fs.index:06d}.png"), img):
+                    raise OSError(f"could not write image of camera {c.name} at index {fs.index}")
+        row = [str(fs.index), _fmt((fs.t_ns - self._t0_ns) * 1e-9)]
+        for name in self._eih:
+            row += [_fmt(v) for v in pq_from_transform(fs.T_world_camera[name])]
+        self._csv.writerow(row)
+        self._next += 1
+
+    @property
+    def t0_ns(self) -> int | None:
+        """Stamp of frame 0 (times in frames.csv are relative to it)."""
+        return self._t0_ns
+
+    def close(self) -> None:
+        if not self._frames.closed:
+            self._frames.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()

@@ -1,0 +1,132 @@
+"""From a MuJoCo render to the image a real camera of the rig would deliver.
+
+MuJoCo renders an ideal centred pinhole (:func:`vespro.sim.scene.render_intrinsics`).
+:class:`ImagePipeline` turns it into the rig camera's image:
+
+1. geometry: every output pixel samples the render where its ray hits, using the
+   rig camera's matrix and plumb_bob distortion (one ``cv2.remap``);
+2. pixel noise ``noise_px``: a random, smooth displacement field (new each frame)
+   with standard deviation ``noise_px`` per axis and a correlation length of a
+   few pixels, folded into the same remap. Image features (corners) move by it
+   almost rigidly within their neighbourhood while distant features move
+   independently: the "Gaussian pixel noise" of a feature detector, made in the
+   image rather than added to detections, so detectors see it;
+3. optional Gaussian blur (``blur_px``, sigma in pixels) and sensor noise
+   (``intensity_noise``, sigma in grey levels).
+
+Output is 8-bit BGR, as OpenCV and the recording format expect.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from ..camera import CameraIntrinsics, undistort_pixels
+
+__all__ = ["ImageEffects", "ImagePipeline"]
+
+
+@dataclass(frozen=True)
+class ImageEffects:
+    """Image degradations; all zero means an exact pinhole/distortion image.
+
+    Attributes
+    ----------
+    noise_px : float
+        Std of the geometric pixel noise per axis, px.
+    noise_corr_px : float
+        Correlation length (Gaussian sigma) of the displacement field, px.
+    blur_px : float
+        Gaussian blur sigma, px (0: none).
+    intensity_noise : float
+        Std of additive sensor noise, grey levels (0: none).
+    """
+
+    noise_px: float = 0.0
+    noise_corr_px: float = 6.0
+    blur_px: float = 0.0
+    intensity_noise: float = 0.0
+
+    def __post_init__(self):
+        for k in ("noise_px", "noise_corr_px", "blur_px", "intensity_noise"):
+            v = getattr(self, k)
+            if not np.isfinite(v) or v < 0:
+                raise ValueError(f"{k} must be a finite number >= 0, got {v}")
+
+
+class ImagePipeline:
+    """Per-camera post-processing of rendered frames.
+
+    Parameters
+    ----------
+    intr : CameraIntrinsics
+        The rig camera.
+    render : CameraIntrinsics
+        The centred pinhole MuJoCo renders for it.
+    effects : ImageEffects
+    """
+
+    def __init__(self, intr: CameraIntrinsics, render: CameraIntrinsics, effects: ImageEffects = ImageEffects()):
+        self.intr = intr
+        self.render = render
+        self.effects = effects
+        self.identity = intr is render or (
+            intr.width == render.width and intr.height == render.height
+            and np.allclose(intr.K, render.K) and not intr.has_distortion
+        )
+        if self.identity:
+            u, v = np.meshgrid(np.arange(intr.width, dtype=np.float32), np.arange(intr.height, dtype=np.float32))
+            self.map_x, self.map_y = u, v
+        else:
+            u, v = np.meshgrid(np.arange(intr.width, dtype=np.float64), np.arange(intr.height, dtype=np.float64))
+            uv = np.stack([u.ravel(), v.ravel()], axis=1)
+            ideal = undistort_pixels(intr, uv)  # ideal pixels of the rig camera matrix
+            xn = (ideal[:, 0] - intr.cx) / intr.fx
+            yn = (ideal[:, 1] - intr.cy) / intr.fy
+            self.map_x = (render.fx * xn + render.cx).reshape(intr.height, intr.width).astype(np.float32)
+            self.map_y = (render.fy * yn + render.cy).reshape(intr.height, intr.width).astype(np.float32)
+
+    def _displacement(self, rng: np.random.Generator) -> np.ndarray:
+        h, w = self.intr.height, self.intr.width
+        e = self.effects
+        field = rng.standard_normal((h, w, 2)).astype(np.float32)
+        field = cv2.GaussianBlur(field, (0, 0), e.noise_corr_px, borderType=cv2.BORDER_REFLECT)
+        std = field.reshape(-1, 2).std(axis=0)
+        return field * (e.noise_px / np.maximum(std, 1e-12)).astype(np.float32)
+
+    def apply(self, render_rgb: np.ndarray, rng: np.random.Generator | None = None) -> np.ndarray:
+        """Rig-camera image from a MuJoCo render.
+
+        Parameters
+        ----------
+        render_rgb : ndarray, shape (H_r, W_r, 3), uint8
+            MuJoCo's RGB render at the ``render`` intrinsics.
+        rng : numpy Generator, optional
+            Needed when any noise is on.
+
+        Returns
+        -------
+        ndarray, shape (H, W, 3), uint8, BGR
+        """
+        bgr = cv2.cvtColor(render_rgb, cv2.COLOR_RGB2BGR)
+        e = self.effects
+        noisy = e.noise_px > 0 or e.intensity_noise > 0
+        if noisy and rng is None:
+            raise ValueError("image noise needs a random generator")
+        if e.noise_px > 0:
+            d = self._displacement(rng)
+            out = cv2.remap(bgr, self.map_x + d[..., 0], self.map_y + d[..., 1], cv2.INTER_LINEAR,
+                            borderMode=cv2.BORDER_REPLICATE)
+        elif not self.identity:
+            out = cv2.remap(bgr, self.map_x, self.map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        else:
+            out = bgr
+        if e.blur_px > 0:
+            out = cv2.GaussianBlur(out, (0, 0), e.blur_px)
+        if e.intensity_noise > 0:
+            n = rng.normal(0.0, e.intensity_noise, out.shape).astype(np.float32)
+            out = np.clip(out.astype(np.float32) + n, 0, 255).astype(np.uint8)
+        return out

@@ -1,0 +1,189 @@
+"""Build the simulated cell for a given object and camera rig.
+
+``models/cell.xml`` holds the static cell (arm, conveyor, table, lights and the
+reference cameras). At run time this module adds, with MuJoCo's ``MjSpec``:
+
+- the tracked object as a mocap body named ``object`` with the CAD mesh
+  (object frame = body frame; MuJoCo re-centres the mesh inside the geom, not
+  the body, so the body pose is the CAD frame's pose);
+- an occluder paddle (mocap body ``occluder``), parked out of sight;
+- one render camera per rig camera, named ``rig_<name>``: fixed cameras in the
+  world at ``T_world_camera``, eye-in-hand cameras on their ``link`` body at
+  ``T_link_camera``. MuJoCo cameras look along -z with y up (``camera_gl``);
+  ``R_camera_camera_gl = diag(1, -1, -1)`` converts, here and nowhere else.
+
+The render camera is an ideal centred pinhole; :mod:`vespro.sim.imaging` maps its
+image to the rig camera's intrinsics and distortion.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import mujoco
+import numpy as np
+
+from ..camera import CameraIntrinsics
+from ..rig import Rig, RigCamera
+from ..se3 import quat_from_matrix
+
+__all__ = ["MODELS_DIR", "CELL_XML", "T_CAMERA_GL", "render_intrinsics", "SceneSpec", "build_cell"]
+
+MODELS_DIR = Path(__file__).resolve().parents[2] / "models"
+CELL_XML = MODELS_DIR / "cell.xml"
+
+#: ``T_camera_camera_gl``: from MuJoCo's camera frame to the OpenCV optical frame.
+T_CAMERA_GL = np.diag([1.0, -1.0, -1.0, 1.0])
+
+#: Where parked mocap bodies wait (below the floor, out of every view).
+PARK_POS = np.array([0.0, 0.0, -5.0])
+
+BELT_TOP_Z = 0.50
+BELT_CENTER_X = 0.90
+WORK_POINT = np.array([0.90, 0.0, 0.55])
+
+
+def render_intrinsics(intr: CameraIntrinsics, margin: float = 1.0) -> tuple[CameraIntrinsics, float]:
+    """The centred square-pixel pinhole MuJoCo renders for a rig camera.
+
+    Parameters
+    ----------
+    intr : CameraIntrinsics
+        The rig camera (any focal lengths, principal point, distortion).
+    margin : float
+        Extra field of view factor (>= 1).
+
+    Returns
+    -------
+    render : CameraIntrinsics
+        Centred pinhole, focal length = max(fx, fy) (no loss of sampling density),
+        sized to cover every pixel of the rig image once undistorted.
+    fovy_deg : float
+        MuJoCo ``fovy`` of that render camera.
+    """
+    if not intr.has_distortion and abs(intr.fx - intr.fy) < 1e-6 * intr.fx \
+            and abs(intr.cx - (intr.width - 1) / 2) < 1e-6 and abs(intr.cy - (intr.height - 1) / 2) < 1e-6:
+        fovy = float(np.rad2deg(2 * np.arctan(0.5 * intr.height / intr.fy)))
+        return intr, fovy
+    from ..camera import undistort_pixels
+
+    w, h = intr.width, intr.height
+    # Undistort a dense border of the rig image: its extent bounds what must be rendered.
+    s = np.linspace(0, 1, 64)
+    border = np.concatenate([
+        np.stack([s * (w - 1), np.zeros_like(s)], 1), np.stack([s * (w - 1), np.full_like(s, h - 1)], 1),
+        np.stack([np.zeros_like(s), s * (h - 1)], 1), np.stack([np.full_like(s, w - 1), s * (h - 1)], 1),
+    ])
+    ideal = undistort_pixels(intr, border)
+    xn = (ideal[:, 0] - intr.cx) / intr.fx
+    yn = (ideal[:, 1] - intr.cy) / intr.fy
+    f = max(intr.fx, intr.fy)
+    half_w = margin * f * np.max(np.abs(xn)) + 2.0
+    half_h = margin * f * np.max(np.abs(yn)) + 2.0
+    rw, rh = int(np.ceil(2 * half_w)), int(np.ceil(2 * half_h))
+    K = np.array([[f, 0, (rw - 1) / 2], [0, f, (rh - 1) / 2], [0, 0, 1]])
+    fovy = float(np.rad2deg(2 * np.arctan(0.5 * rh / f)))
+    return CameraIntrinsics(rw, rh, K), fovy
+
+
+@dataclass(frozen=True)
+class SceneSpec:
+    """What goes into the cell.
+
+    Attributes
+    ----------
+    object_mesh : Path
+        CAD file of the tracked object, metres.
+    rig : Rig
+        Cameras to add as render cameras.
+    object_rgba : tuple
+        Object colour (light metal grey against the dark belt by default).
+    markers : int
+        Number of small marker spheres (mocap bodies ``marker_<i>``) for tests.
+    occluder_size : tuple
+        Half-sizes (m) of the occluder paddle box.
+    """
+
+    object_mesh: Path
+    rig: Rig
+    object_rgba: tuple = (0.60, 0.62, 0.66, 1.0)
+    markers: int = 0
+    marker_radius: float = 0.004
+    occluder_size: tuple = (0.12, 0.012, 0.16)
+
+
+def _camera_pose_gl(cam: RigCamera) -> tuple[np.ndarray, np.ndarray]:
+    T = cam.T_world_camera if cam.is_fixed else cam.T_link_camera
+    T_gl = T @ T_CAMERA_GL
+    return T_gl[:3, 3].copy(), quat_from_matrix(T_gl[:3, :3])
+
+
+def build_cell(spec: SceneSpec) -> tuple[mujoco.MjModel, dict]:
+    """Compile the cell with the object, occluder, markers and rig cameras.
+
+    Returns
+    -------
+    model : mujoco.MjModel
+    info : dict
+        ``render``: {camera name: (render CameraIntrinsics, MuJoCo camera name)}.
+
+    Raises
+    ------
+    ValueError
+        An eye-in-hand camera names a link that is not a body of the cell, or the
+        object mesh is missing.
+    """
+    mesh_path = Path(spec.object_mesh).resolve()
+    if not mesh_path.is_file():
+        raise ValueError(f"object mesh not found: {mesh_path}")
+    s = mujoco.MjSpec.from_file(str(CELL_XML))
+    s.add_mesh(name="object_mesh", file=str(mesh_path))
+    mat = s.add_material(name="object_mat")
+    mat.rgba = list(spec.object_rgba)
+    mat.specular = 0.35
+    mat.shininess = 0.4
+
+    wb = s.worldbody
+    obj = wb.add_body(name="object", mocap=True, pos=PARK_POS.tolist())
+    obj.add_geom(
+        name="object_geom", type=mujoco.mjtGeom.mjGEOM_MESH, meshname="object_mesh",
+        material="object_mat", contype=0, conaffinity=0, group=2,
+    )
+    occ = wb.add_body(name="occluder", mocap=True, pos=(PARK_POS + [1.0, 0, 0]).tolist())
+    occ.add_geom(
+        name="occluder_geom", type=mujoco.mjtGeom.mjGEOM_BOX, size=list(spec.occluder_size),
+        rgba=[0.20, 0.30, 0.55, 1.0], contype=0, conaffinity=0, group=2,
+    )
+    if spec.markers:
+        mmat = s.add_material(name="marker_mat")
+        mmat.rgba = [1.0, 0.0, 0.0, 1.0]
+        mmat.emission = 1.0  # uniformly bright: its image centroid has no shading bias
+        mmat.specular = 0.0
+    for i in range(spec.markers):
+        mk = wb.add_body(name=f"marker_{i}", mocap=True, pos=(PARK_POS + [0, 0.1 * (i + 1), 0]).tolist())
+        mk.add_geom(
+            type=mujoco.mjtGeom.mjGEOM_SPHERE, size=[spec.marker_radius, 0, 0],
+            material="marker_mat", contype=0, conaffinity=0, group=2,
+        )
+
+    render = {}
+    for cam in spec.rig:
+        rintr, fovy = render_intrinsics(cam.intrinsics)
+        pos, quat = _camera_pose_gl(cam)
+        if cam.is_fixed:
+            parent = wb
+        else:
+            parent = s.body(cam.link)
+            if parent is None:
+                raise ValueError(f"camera {cam.name!r}: link {cam.link!r} is not a body of the cell")
+        mj_name = f"rig_{cam.name}"
+        parent.add_camera(name=mj_name, pos=pos.tolist(), quat=quat.tolist(), fovy=fovy)
+        render[cam.name] = (rintr, mj_name)
+
+    max_w = max([r.width for r, _ in render.values()] + [640])
+    max_h = max([r.height for r, _ in render.values()] + [480])
+    s.visual.global_.offwidth = max(int(s.visual.global_.offwidth), max_w)
+    s.visual.global_.offheight = max(int(s.visual.global_.offheight), max_h)
+    model = s.compile()
+    return model, {"render": render}
