@@ -1,0 +1,49 @@
+"""The imaging pipeline's pixel noise moves image features as documented."""
+
+import cv2
+import numpy as np
+import pytest
+
+from vespro.camera import CameraIntrinsics
+from vespro.sim.imaging import ImageEffects, ImagePipeline
+
+
+def _checker(h=480, w=640, sq=40):
+    y, x = np.mgrid[0:h, 0:w]
+    img = (((x // sq) + (y // sq)) % 2 * 160 + 40).astype(np.uint8)
+    return np.dstack([img] * 3)
+
+
+def test_pixel_noise_moves_corners_with_the_stated_std():
+    intr = CameraIntrinsics.from_fovy(640, 480, 40)
+    img = _checker()
+    truth = np.array([[x - 0.5, y - 0.5] for x in range(80, 600, 40) for y in range(80, 440, 40)], np.float32)
+    rng = np.random.default_rng(0)
+    crit = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 50, 1e-4)
+
+    def detect(pipeline):
+        grey = cv2.cvtColor(pipeline.apply(img, rng), cv2.COLOR_BGR2GRAY)
+        return cv2.cornerSubPix(grey, truth.reshape(-1, 1, 2).copy(), (5, 5), (-1, -1), crit).reshape(-1, 2)
+
+    clean = detect(ImagePipeline(intr, intr))
+    noisy = ImagePipeline(intr, intr, ImageEffects(noise_px=0.5))
+    d = np.concatenate([detect(noisy) - clean for _ in range(4)])
+    std = d.std(axis=0)
+    # 4 x 117 corners: the sample std is within ~5% of the true one; allow 20% for the
+    # refinement window averaging the (smooth) field over its 11x11 pixels.
+    assert np.all(np.abs(std - 0.5) < 0.1), std
+    assert np.all(np.abs(d.mean(axis=0)) < 0.06)
+    # Independent between distant corners (the field's correlation length is 6 px).
+    dx = d[:117, 0]
+    assert abs(np.corrcoef(dx[:-1], dx[1:])[0, 1]) < 0.3
+
+
+def test_sensor_noise_and_validation():
+    intr = CameraIntrinsics.from_fovy(64, 48, 40)
+    p = ImagePipeline(intr, intr, ImageEffects(intensity_noise=3.0))
+    out = p.apply(np.full((48, 64, 3), 100, np.uint8), np.random.default_rng(1))
+    assert abs(out.astype(float).std() - 3.0) < 0.4
+    with pytest.raises(ValueError, match="random generator"):
+        p.apply(np.zeros((48, 64, 3), np.uint8))
+    with pytest.raises(ValueError, match="noise_px"):
+        ImageEffects(noise_px=-1)
