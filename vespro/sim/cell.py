@@ -87,6 +87,8 @@ class CellConfig:
     markers : int
         Number of marker spheres (tests).
     seed : int
+    scene_extras : tuple of callables
+        Passed to :class:`~vespro.sim.scene.SceneSpec` ``extras``.
     """
 
     object_mesh: Path
@@ -99,6 +101,7 @@ class CellConfig:
     dropouts: tuple = ()
     markers: int = 0
     seed: int = 0
+    scene_extras: tuple = ()
 
     def __post_init__(self):
         if self.arm not in ARM_MODES:
@@ -129,7 +132,8 @@ class SimCell:
         self.config = config
         self.motion = motion
         self.clock = clock or SimClock()
-        self.model, info = build_cell(SceneSpec(Path(config.object_mesh), config.rig, markers=config.markers))
+        self.model, info = build_cell(SceneSpec(Path(config.object_mesh), config.rig, markers=config.markers,
+                                                extras=tuple(config.scene_extras)))
         self.data = mujoco.MjData(self.model)
         home = self.model.key("home").id
         mujoco.mj_resetDataKeyframe(self.model, self.data, home)

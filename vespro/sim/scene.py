@@ -103,6 +103,9 @@ class SceneSpec:
         Number of small marker spheres (mocap bodies ``marker_<i>``) for tests.
     occluder_size : tuple
         Half-sizes (m) of the occluder paddle box.
+    extras : tuple of callables
+        Each is called as ``f(spec: mujoco.MjSpec)`` before compiling, to add
+        bodies of its own (a calibration board, a second part...).
     """
 
     object_mesh: Path
@@ -111,6 +114,7 @@ class SceneSpec:
     markers: int = 0
     marker_radius: float = 0.004
     occluder_size: tuple = (0.12, 0.012, 0.16)
+    extras: tuple = ()
 
 
 def _camera_pose_gl(cam: RigCamera) -> tuple[np.ndarray, np.ndarray]:
@@ -166,6 +170,9 @@ def build_cell(spec: SceneSpec) -> tuple[mujoco.MjModel, dict]:
             type=mujoco.mjtGeom.mjGEOM_SPHERE, size=[spec.marker_radius, 0, 0],
             material="marker_mat", contype=0, conaffinity=0, group=2,
         )
+
+    for extra in spec.extras:
+        extra(s)
 
     render = {}
     for cam in spec.rig:

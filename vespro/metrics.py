@@ -1,0 +1,101 @@
+"""Pose accuracy metrics against ground truth: pure functions, arrays in and out.
+
+Error convention (shared with the EKF and ``poses.csv``): position error
+``p_true - p_est`` (world, m) and orientation error ``log(R_true @ R_est.T)``
+(world-frame rotation vector, rad).
+
+ADD / ADD-S follow Hinterstoisser et al. (2012); MSSD / MSPD follow the BOP
+challenge (Hodan et al., 2020).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+from scipy.stats import chi2
+
+from .camera import CameraIntrinsics, project_points
+from .se3 import invert_transform, log_so3, rotation_angle, transform_points
+
+__all__ = [
+    "pose_error_vector", "position_errors", "rotation_errors", "add", "add_s", "mssd", "mspd",
+    "nees", "nees_band", "rmse", "recall",
+]
+
+
+def pose_error_vector(T_est: np.ndarray, T_true: np.ndarray) -> np.ndarray:
+    """6-vector ``[p_true - p_est, log(R_true R_est^T)]`` (m, rad)."""
+    return np.concatenate([T_true[:3, 3] - T_est[:3, 3], log_so3(T_true[:3, :3] @ T_est[:3, :3].T)])
+
+
+def position_errors(T_est: np.ndarray, T_true: np.ndarray) -> np.ndarray:
+    """Euclidean position errors (m), shapes (N, 4, 4) -> (N,)."""
+    return np.linalg.norm(T_est[:, :3, 3] - T_true[:, :3, 3], axis=1)
+
+
+def rotation_errors(T_est: np.ndarray, T_true: np.ndarray) -> np.ndarray:
+    """Geodesic orientation errors (rad), shapes (N, 4, 4) -> (N,)."""
+    R = np.einsum("nji,njk->nik", T_est[:, :3, :3], T_true[:, :3, :3])
+    return rotation_angle(R)
+
+
+def add(T_est: np.ndarray, T_true: np.ndarray, P_object: np.ndarray) -> float:
+    """Average distance of model points (m): mean ||T_est p - T_true p||."""
+    return float(np.mean(np.linalg.norm(transform_points(T_est, P_object) - transform_points(T_true, P_object), axis=1)))
+
+
+def add_s(T_est: np.ndarray, T_true: np.ndarray, P_object: np.ndarray) -> float:
+    """ADD for symmetric objects (m): mean distance to the closest true-pose point."""
+    tree = cKDTree(transform_points(T_true, P_object))
+    d, _ = tree.query(transform_points(T_est, P_object))
+    return float(np.mean(d))
+
+
+def mssd(T_est: np.ndarray, T_true: np.ndarray, P_object: np.ndarray, symmetries=None) -> float:
+    """Maximum symmetry-aware surface distance (m).
+
+    ``symmetries``: list of (4, 4) object-frame transforms S with the object
+    looking the same under ``T_true @ S``; identity alone when None.
+    """
+    syms = [np.eye(4)] if symmetries is None else list(symmetries)
+    Pe = transform_points(T_est, P_object)
+    return float(min(np.max(np.linalg.norm(Pe - transform_points(T_true @ S, P_object), axis=1)) for S in syms))
+
+
+def mspd(T_est_cam: np.ndarray, T_true_cam: np.ndarray, P_object: np.ndarray, intr: CameraIntrinsics,
+         symmetries=None) -> float:
+    """Maximum symmetry-aware projection distance (px), poses in the camera frame."""
+    syms = [np.eye(4)] if symmetries is None else list(symmetries)
+    ue, _ = project_points(intr, T_est_cam, P_object)
+    return float(min(np.max(np.linalg.norm(ue - project_points(intr, T_true_cam @ S, P_object)[0], axis=1))
+                     for S in syms))
+
+
+def nees(T_est: np.ndarray, T_true: np.ndarray, P6: np.ndarray) -> float:
+    """Normalised estimation error squared of one pose with its 6x6 covariance."""
+    e = pose_error_vector(T_est, T_true)
+    return float(e @ np.linalg.solve(P6, e))
+
+
+def nees_band(dof: int = 6, probability: float = 0.95) -> tuple[float, float]:
+    """Two-sided chi-square band a consistent filter's NEES falls in with ``probability``."""
+    a = (1.0 - probability) / 2
+    return float(chi2.ppf(a, dof)), float(chi2.ppf(1 - a, dof))
+
+
+def rmse(x: np.ndarray) -> float:
+    x = np.asarray(x, dtype=float)
+    return float(np.sqrt(np.mean(x * x))) if x.size else float("nan")
+
+
+def recall(errors: np.ndarray, thresholds) -> float:
+    """BOP-style average recall: fraction of errors below each threshold, averaged."""
+    e = np.asarray(errors, dtype=float)
+    if e.size == 0:
+        return 0.0
+    return float(np.mean([np.mean(e < th) for th in thresholds]))
+
+
+def camera_pose(T_world_camera: np.ndarray, T_world_object: np.ndarray) -> np.ndarray:
+    """``T_camera_object``."""
+    return invert_transform(T_world_camera) @ T_world_object
