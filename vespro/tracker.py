@@ -1,0 +1,378 @@
+"""The multi-camera pose tracker: one EKF fed by windowed corner measurements.
+
+Per capture instant (:meth:`Tracker.process`):
+
+1. predict the error-state EKF to the capture stamp (dt from stamps);
+2. per camera with an image: ask the BSP visibility which model corners the
+   camera sees at the predicted pose, and project them with their Jacobians;
+3. choose a small, well-spread set of features (information-greedy by
+   default, jointly over the cameras; the classic quality index as the
+   alternative);
+4. extract corners only in windows around the predicted positions, sized from
+   each feature's predicted innovation covariance;
+5. one stacked update with all cameras' measurements, outliers gated one by one;
+6. decide the status: ``tracking``, or ``lost`` when the measurements stop
+   supporting the estimate (too few accepted features, persistently large
+   innovations, or an exploding covariance). A lost track is never published
+   as ``tracking``.
+
+Fixed cameras use their rig pose; eye-in-hand cameras the pose measured at that
+instant (``FrameSet.T_world_camera``). The tracker never sees ground truth. It
+starts from an explicit pose (:meth:`Tracker.start`) or from an
+``initializer(frameset) -> InitResult | None`` hook.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from .bsp import load_or_build_bsp
+from .ekf import PoseEKF
+from .ekf import Status as EKFStatus
+from .extraction import extract_corners, window_half_sizes
+from .frames import FrameSet
+from .model import Model
+from .projection import project_with_jacobian
+from .rig import Rig
+from .selection import select_information_joint, select_quality
+from .se3 import invert_transform
+from .visibility import query_visibility
+
+__all__ = ["TrackerConfig", "CameraObservation", "TrackerOutput", "InitResult", "Tracker"]
+
+STATUS_TRACKING = "tracking"
+STATUS_INITIALIZING = "initializing"
+STATUS_LOST = "lost"
+
+
+@dataclass(frozen=True)
+class TrackerConfig:
+    """Tracker settings.
+
+    Attributes
+    ----------
+    features_per_camera : int
+        Features selected per camera and frame.
+    selection : str
+        ``"information"`` (greedy log-det of the pose information, joint over
+        cameras) or ``"quality"`` (the classic spread/angle/border index).
+    sigma_px : float
+        Measurement noise std of a corner, px.
+    q_acc, q_alpha : float
+        Process noise spectral densities (m^2/s^3, rad^2/s^3).
+    gate_prob : float
+        Innovation gate probability (chi-square, 2 dof per point).
+    init_sigma_pos, init_sigma_rot : float
+        Initial pose std (m, rad) when started from a given pose.
+    init_sigma_vel, init_sigma_angvel : float
+        Initial velocity std (m/s, rad/s).
+    window_sigma : float
+        Window half-size in predicted innovation std.
+    min_accepted : int
+        Fewer accepted features than this in a frame counts as a bad frame.
+    max_mean_nis : float
+        A mean normalised innovation (2 dof, expected 2) above this is a bad frame.
+    lost_after : int
+        Consecutive bad frames before the track is declared lost.
+    max_pos_std : float
+        Position std (m) beyond which the track is lost.
+    """
+
+    features_per_camera: int = 8
+    selection: str = "information"
+    sigma_px: float = 0.5
+    q_acc: float = 0.05
+    q_alpha: float = 0.5
+    gate_prob: float = 0.999
+    init_sigma_pos: float = 0.01
+    init_sigma_rot: float = 0.05
+    init_sigma_vel: float = 0.2
+    init_sigma_angvel: float = 1.0
+    window_sigma: float = 3.0
+    min_accepted: int = 4
+    max_mean_nis: float = 12.0
+    lost_after: int = 4
+    max_pos_std: float = 0.02
+
+    def __post_init__(self):
+        if self.selection not in ("information", "quality"):
+            raise ValueError(f"selection must be 'information' or 'quality', got {self.selection!r}")
+        if self.features_per_camera < 3:
+            raise ValueError("need at least 3 features per camera")
+
+
+@dataclass(frozen=True)
+class InitResult:
+    """A starting pose from an initialiser (or a user).
+
+    Attributes
+    ----------
+    T_world_object : ndarray (4, 4)
+    cov6 : ndarray (6, 6) or None
+        Pose covariance; the config's initial sigmas when None.
+    velocity : ndarray (6,) or None
+    """
+
+    T_world_object: np.ndarray
+    cov6: np.ndarray | None = None
+    velocity: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class CameraObservation:
+    """What one camera contributed in one frame (for diagnostics and overlays).
+
+    Attributes
+    ----------
+    name : str
+    has_image : bool
+    n_visible : int
+    feature_ids : ndarray (K,)
+        Selected model corner indices.
+    uv_pred : ndarray (K, 2)
+        Their predicted pixels.
+    half_size : ndarray (K,)
+        Search window half-sizes, px.
+    uv_meas : ndarray (K, 2)
+        Measured pixels (NaN where not found).
+    accepted : ndarray (K,), bool
+        Used by the update (found and within the gate).
+    """
+
+    name: str
+    has_image: bool
+    n_visible: int = 0
+    feature_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
+    uv_pred: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    half_size: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    uv_meas: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    accepted: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+
+
+@dataclass(frozen=True)
+class TrackerOutput:
+    """The tracker's estimate at one capture instant.
+
+    Attributes
+    ----------
+    index : int
+    t_ns : int
+        Capture stamp of the frame set.
+    status : str
+        ``tracking``, ``initializing`` or ``lost``.
+    T_world_object : ndarray (4, 4) or None
+        None unless tracking.
+    velocity : ndarray (6,) or None
+        ``[v, w]``, world frame (m/s, rad/s).
+    cov6 : ndarray (6, 6) or None
+        Pose covariance ``[position, orientation]``.
+    observations : tuple[CameraObservation, ...]
+    n_accepted : int
+    mean_nis : float
+    time_ms : float
+        Processing time of this frame (images already decoded).
+    stage_ms : dict
+        Time per stage: visibility, selection, extraction, update.
+    """
+
+    index: int
+    t_ns: int
+    status: str
+    T_world_object: np.ndarray | None = None
+    velocity: np.ndarray | None = None
+    cov6: np.ndarray | None = None
+    observations: tuple = ()
+    n_accepted: int = 0
+    mean_nis: float = float("nan")
+    time_ms: float = 0.0
+    stage_ms: dict = field(default_factory=dict)
+
+
+class Tracker:
+    """Multi-camera model-based pose tracker.
+
+    Parameters
+    ----------
+    rig : Rig
+    model : Model
+        The tracked object's CAD model (features).
+    config : TrackerConfig
+    initializer : callable, optional
+        ``initializer(frameset) -> InitResult | None``: called while not
+        tracking; None means "not yet".
+    bsp_cache_dir : path, optional
+    """
+
+    def __init__(self, rig: Rig, model: Model, config: TrackerConfig = TrackerConfig(),
+                 initializer: Callable[[FrameSet], InitResult | None] | None = None, bsp_cache_dir=None):
+        self.rig = rig
+        self.model = model
+        self.config = config
+        self.initializer = initializer
+        self.tree = load_or_build_bsp(model, cache_dir=bsp_cache_dir)
+        self.ekf: PoseEKF | None = None
+        self.status = STATUS_INITIALIZING
+        self._t_ns: int | None = None
+        self._bad = 0
+        self.frames = 0
+        self.lost_events = 0
+
+    # -- starting and stopping ----------------------------------------------
+    def start(self, init: InitResult, t_ns: int) -> None:
+        """Start (or restart) the filter from a pose at capture time ``t_ns``."""
+        c = self.config
+        P0 = np.diag(np.r_[np.full(3, c.init_sigma_pos**2), np.full(3, c.init_sigma_rot**2),
+                           np.full(3, c.init_sigma_vel**2), np.full(3, c.init_sigma_angvel**2)])
+        if init.cov6 is not None:
+            P0[:6, :6] = init.cov6
+        v = w = None
+        if init.velocity is not None:
+            v, w = init.velocity[:3], init.velocity[3:]
+        self.ekf = PoseEKF(init.T_world_object, P0, q_acc=c.q_acc, q_alpha=c.q_alpha, sigma_px=c.sigma_px,
+                           gate_prob=c.gate_prob, v=v, w=w)
+        self._t_ns = t_ns
+        self._bad = 0
+        self.status = STATUS_TRACKING
+
+    def _lose(self) -> None:
+        self.ekf = None
+        self.status = STATUS_LOST
+        self.lost_events += 1
+
+    # -- one frame ------------------------------------------------------------
+    def process(self, fs: FrameSet) -> TrackerOutput:
+        """Estimate the pose at the frame set's capture instant."""
+        t0 = time.perf_counter()
+        self.frames += 1
+        if self.ekf is None:
+            init = self.initializer(fs) if self.initializer is not None else None
+            if init is None:
+                status = STATUS_INITIALIZING if self.status != STATUS_LOST else STATUS_LOST
+                return TrackerOutput(fs.index, fs.t_ns, status, time_ms=(time.perf_counter() - t0) * 1e3)
+            self.start(init, fs.t_ns)
+        out = self._track(fs)
+        return TrackerOutput(**{**out.__dict__, "time_ms": (time.perf_counter() - t0) * 1e3})
+
+    def _camera_pose(self, fs: FrameSet, name: str) -> np.ndarray | None:
+        cam = self.rig[name]
+        if cam.is_fixed:
+            return cam.T_world_camera
+        return fs.T_world_camera.get(name)
+
+    def _track(self, fs: FrameSet) -> TrackerOutput:
+        c = self.config
+        ekf = self.ekf
+        stage = {"visibility": 0.0, "selection": 0.0, "extraction": 0.0, "update": 0.0}
+        dt = (fs.t_ns - self._t_ns) * 1e-9
+        if dt > 0:
+            ekf.predict(dt)
+            self._t_ns = fs.t_ns
+        T_pred = ekf.pose()
+        P6 = ekf.pose_covariance()
+
+        # Visibility and projection per camera.
+        t = time.perf_counter()
+        cands, per_cam = [], []
+        for cam in self.rig:
+            img = fs.images.get(cam.name)
+            T_wc = self._camera_pose(fs, cam.name)
+            if img is None or T_wc is None:
+                per_cam.append(None)
+                continue
+            T_co = invert_transform(T_wc) @ T_pred
+            vis = query_visibility(self.model, self.tree, T_co, cam.intrinsics)
+            if vis.indices.size == 0:
+                per_cam.append((cam, img, T_wc, vis, None, None))
+                continue
+            uv, depth, J = project_with_jacobian(cam.intrinsics, T_wc, T_pred, vis.points)
+            per_cam.append((cam, img, T_wc, vis, uv, J))
+            cands.append((len(per_cam) - 1, uv, J, vis))
+        stage["visibility"] = time.perf_counter() - t
+
+        # Selection.
+        t = time.perf_counter()
+        chosen = {}
+        if cands:
+            if c.selection == "information":
+                picks = select_information_joint(
+                    [(uv, J, vis.view_angle, (self.rig.cameras[k].intrinsics.width, self.rig.cameras[k].intrinsics.height))
+                     for k, uv, J, vis in cands],
+                    P6=P6, k_per_camera=c.features_per_camera, sigma_px=c.sigma_px)
+                for (k, *_), sel in zip(cands, picks):
+                    chosen[k] = np.asarray(sel, dtype=int)
+            else:
+                for k, uv, J, vis in cands:
+                    intr = self.rig.cameras[k].intrinsics
+                    chosen[k] = np.asarray(select_quality(
+                        uv, vis.view_angle, vis.silhouette_distance, (intr.width, intr.height),
+                        k=c.features_per_camera), dtype=int)
+        stage["selection"] = time.perf_counter() - t
+
+        # Windowed extraction.
+        t = time.perf_counter()
+        zs, hs, Js, owners = [], [], [], []
+        obs = []
+        R = c.sigma_px**2 * np.eye(2)
+        for k, entry in enumerate(per_cam):
+            cam = self.rig.cameras[k]
+            if entry is None:
+                obs.append(CameraObservation(cam.name, fs.images.get(cam.name) is not None))
+                continue
+            _, img, T_wc, vis, uv, J = entry
+            sel = chosen.get(k, np.zeros(0, int))
+            if sel.size == 0:
+                obs.append(CameraObservation(cam.name, True, int(vis.indices.size)))
+                continue
+            Jk = J[sel]
+            S = np.einsum("kij,jl,kml->kim", Jk, P6, Jk) + R
+            half = window_half_sizes(S, n_sigma=c.window_sigma)
+            ext = extract_corners(img, uv[sel], half)
+            found = ext.found
+            zs.append(ext.uv[found])
+            hs.append(uv[sel][found])
+            Js.append(Jk[found])
+            owners.append((len(obs), np.flatnonzero(found)))
+            obs.append(CameraObservation(cam.name, True, int(vis.indices.size), vis.indices[sel], uv[sel], half,
+                                         ext.uv, np.zeros(sel.size, bool)))
+        stage["extraction"] = time.perf_counter() - t
+
+        # Update.
+        t = time.perf_counter()
+        n_acc, mean_nis = 0, float("nan")
+        if zs:
+            z, h, Jp = np.concatenate(zs), np.concatenate(hs), np.concatenate(Js)
+        else:
+            z = h = np.zeros((0, 2))
+            Jp = np.zeros((0, 2, 6))
+        if len(z):
+            res = ekf.update(z, h, Jp)
+            if res.status == EKFStatus.OK:
+                n_acc = res.n_accepted
+                nis = res.nis[res.accepted]
+                mean_nis = float(np.mean(nis)) if nis.size else float("nan")
+                # Mark accepted features per camera.
+                offset = 0
+                obs = list(obs)
+                for oi, found_idx in owners:
+                    acc = np.zeros(obs[oi].feature_ids.size, bool)
+                    acc[found_idx] = res.accepted[offset:offset + found_idx.size]
+                    offset += found_idx.size
+                    obs[oi] = CameraObservation(**{**obs[oi].__dict__, "accepted": acc})
+        stage["update"] = time.perf_counter() - t
+
+        # Status.
+        bad = n_acc < c.min_accepted or (np.isfinite(mean_nis) and mean_nis > c.max_mean_nis)
+        self._bad = self._bad + 1 if bad else 0
+        pos_std = float(np.sqrt(np.max(np.linalg.eigvalsh(ekf.pose_covariance()[:3, :3]))))
+        T = ekf.pose()
+        if not np.all(np.isfinite(T)) or pos_std > c.max_pos_std or self._bad >= c.lost_after:
+            self._lose()
+            return TrackerOutput(fs.index, fs.t_ns, STATUS_LOST, observations=tuple(obs), n_accepted=n_acc,
+                                 mean_nis=mean_nis, stage_ms={k: v * 1e3 for k, v in stage.items()})
+        vel = np.concatenate([ekf.velocity(), ekf.angular_velocity()])
+        return TrackerOutput(fs.index, fs.t_ns, STATUS_TRACKING, T, vel, ekf.pose_covariance(), tuple(obs),
+                             n_acc, mean_nis, stage_ms={k: v * 1e3 for k, v in stage.items()})
