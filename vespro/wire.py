@@ -359,13 +359,19 @@ class CobsError(ValueError):
 def cobs_encode(data: bytes) -> bytes:
     """COBS-encode ``data``; the result contains no zero byte (no delimiter added)."""
     out = bytearray()
-    for block in bytes(data).split(b"\x00"):
+    blocks = bytes(data).split(b"\x00")
+    last = len(blocks) - 1
+    for i, block in enumerate(blocks):
+        full = len(block) > 0 and len(block) % 254 == 0
         while len(block) >= 254:
             out.append(255)
             out += block[:254]
             block = block[254:]
-        out.append(len(block) + 1)
-        out += block
+        # A final run of exactly k*254 bytes needs no closing code byte (the
+        # 0xFF code already says "no zero follows").
+        if not (i == last and full):
+            out.append(len(block) + 1)
+            out += block
     return bytes(out)
 
 
