@@ -607,7 +607,13 @@ class Decoder:
         self.seq_resets = 0
 
     def reset_stream(self) -> None:
-        """Forget partial data and sequence state (new connection); counters stay."""
+        """Start a new stream (a new connection); counters stay.
+
+        A partial frame left from the old stream is dropped and counted as
+        rejected (``"length"``: truncated); sequence tracking starts over.
+        """
+        if self._buf and not self._skipping:
+            self.rejected["length"] += 1
         self._buf.clear()
         self._skipping = False
         self._last_pose_seq = None

@@ -163,6 +163,33 @@ def test_reconnects_after_server_restart():
         pub.close()
 
 
+def test_partial_frame_from_a_dead_connection_does_not_spoil_the_next():
+    srv = socket.socket()
+    srv.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    srv.bind(("127.0.0.1", 0))
+    srv.listen(4)
+    rx = PoseReceiver("socket://127.0.0.1:%d" % srv.getsockname()[1], backoff_min_s=0.001)
+    poses = make_poses(2, seed=7)
+    try:
+        assert poll_until(rx, lambda: rx.state == LinkState.CONNECTED)
+        conn, _ = srv.accept()
+        conn.sendall(wire.encode(poses[0])[:100])    # dies mid-frame
+        assert poll_until(rx, lambda: rx.stats().bytes_in == 100)
+        conn.close()
+        assert poll_until(rx, lambda: rx.stats().disconnects == 1)
+        assert poll_until(rx, lambda: rx.state == LinkState.CONNECTED)
+        conn, _ = srv.accept()
+        conn.sendall(wire.encode(poses[1]))          # no leading 0x00 from this peer
+        got: list = []
+        assert poll_until(rx, lambda: got == [poses[1]], got)
+        st = rx.stats()
+        assert st.rejected["length"] == 1 and st.rejected_total == 1   # the truncated frame
+        conn.close()
+    finally:
+        rx.close()
+        srv.close()
+
+
 def test_backoff_schedule_with_no_server():
     port = free_port()
     rx = PoseReceiver(f"socket://127.0.0.1:{port}", backoff_min_s=0.05, backoff_max_s=0.2)

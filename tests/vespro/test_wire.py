@@ -448,3 +448,14 @@ def test_fuzz_tape_builds_the_damage_it_claims():
     # The flipped frame keeps its delimiter; garbage has none, so the first
     # copy of the dup is lost and the second is recovered.
     assert expected == [POOL[3], POOL[7]]
+
+
+def test_reset_stream_drops_and_counts_a_partial_frame():
+    f = encode(HeartbeatMsg(1, 2))
+    dec = Decoder()
+    assert dec.feed(f[:5]) == []
+    dec.reset_stream()
+    assert dec.feed(f) == [HeartbeatMsg(1, 2)]      # not merged with the stale bytes
+    assert dec.rejected["length"] == 1 and dec.stats().rejected_total == 1
+    dec.reset_stream()                               # nothing partial: nothing counted
+    assert dec.stats().rejected_total == 1
