@@ -420,7 +420,7 @@ FUZZ = settings(deadline=None, database=None, derandomize=True,
 
 
 @settings(FUZZ, max_examples=6000)
-@given(tape=st.binary(min_size=1, max_size=160), cuts=st.binary(max_size=8))
+@given(tape=st.binary(min_size=1, max_size=96), cuts=st.binary(max_size=8))
 def test_fuzz_mutated_streams(tape, cuts):
     stream, expected = _build(_ops_from_tape(tape))
     dec = Decoder()
@@ -431,7 +431,7 @@ def test_fuzz_mutated_streams(tape, cuts):
 
 
 @settings(FUZZ, max_examples=4000)
-@given(data=st.binary(max_size=1500), cuts=st.binary(max_size=8))
+@given(data=st.binary(max_size=600), cuts=st.binary(max_size=8))
 def test_fuzz_random_bytes(data, cuts):
     dec = Decoder()
     out = _feed_chunked(dec, data, cuts)
