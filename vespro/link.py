@@ -35,7 +35,6 @@ Design
 
 from __future__ import annotations
 
-import dataclasses
 import enum
 import errno
 import os
@@ -47,7 +46,7 @@ from collections import deque
 from dataclasses import dataclass
 from typing import Callable
 
-from vespro.wire import HeartbeatMsg, HelloMsg, PoseMsg, encode
+from vespro.wire import HeartbeatMsg, HelloMsg, encode
 
 __all__ = ["PosePublisher", "PublishStatus", "LinkStats", "SinkStats"]
 
@@ -318,9 +317,7 @@ class PosePublisher:
         if self._closed:
             return PublishStatus.CLOSED
         try:
-            if self._stamp and isinstance(msg, (PoseMsg, HeartbeatMsg)):
-                msg = dataclasses.replace(msg, t_send_ns=self._clock_ns())
-            frame = encode(msg)
+            frame = encode(msg, self._clock_ns() if self._stamp else None)
         except Exception:
             with self._lock:
                 self._errors += 1

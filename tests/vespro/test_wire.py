@@ -459,3 +459,15 @@ def test_reset_stream_drops_and_counts_a_partial_frame():
     assert dec.rejected["length"] == 1 and dec.stats().rejected_total == 1
     dec.reset_stream()                               # nothing partial: nothing counted
     assert dec.stats().rejected_total == 1
+
+
+def test_encode_with_send_time_override():
+    m = PoseMsg(**_pose_kwargs())
+    (out,) = Decoder().feed(encode(m, t_send_ns=987654321))
+    assert out.t_send_ns == 987654321 and out.t_capture_ns == m.t_capture_ns
+    assert encode(m, t_send_ns=m.t_send_ns) == encode(m)
+    (hb,) = Decoder().feed(encode(HeartbeatMsg(3, 4), t_send_ns=-5))
+    assert hb == HeartbeatMsg(3, -5)
+    assert encode(HelloMsg(1.0, ()), t_send_ns=1) == encode(HelloMsg(1.0, ()))  # HELLO has no stamp
+    with pytest.raises(ValueError):
+        encode(m, t_send_ns=2**63)
