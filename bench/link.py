@@ -131,12 +131,13 @@ def _spawn(target, *args):
 
 def _stack_run(pub, rx_url, n: int, period_ns: int):
     """Returns (latencies_ns, frames/s)."""
+    poses = [make_pose(i) for i in range(n)]   # built beforehand, like the raw row's bytes
     proc, conn = _spawn(_stack_child, rx_url, n)
     t0 = time.monotonic_ns()
     for i in range(n):
         if period_ns:
             wait_until(t0 + i * period_ns)
-        pub.publish(make_pose(i))
+        pub.publish(poses[i])
     lat, t_done, rejected = conn.recv()
     proc.join(5)
     drops = pub.stats().drops
@@ -231,8 +232,8 @@ def codec_us(n: int = 5000) -> tuple[float, float]:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--frames", type=int, default=2000, help="paced frames per latency run")
-    ap.add_argument("--period-us", type=int, default=500, help="pacing of the latency runs")
+    ap.add_argument("--frames", type=int, default=1000, help="paced frames per latency run")
+    ap.add_argument("--period-us", type=int, default=2000, help="pacing of the latency runs (500 Hz; the tracker sends 26 Hz)")
     ap.add_argument("--burst", type=int, default=20000, help="frames per throughput run")
     args = ap.parse_args(argv)
     period = args.period_us * 1000

@@ -36,7 +36,6 @@ Design
 from __future__ import annotations
 
 import enum
-import errno
 import os
 import selectors
 import socket
@@ -148,7 +147,8 @@ def _socket_writer(sock: socket.socket) -> Callable[[memoryview], int]:
     return write
 
 
-def _serial_writer(port) -> Callable[[memoryview], int]:
+def _serial_writer(port) -> tuple[Callable[[memoryview], int], int | None]:
+    """A non-blocking write function for ``port`` and its file descriptor (or None)."""
     fd = None
     try:
         fd = port.fileno()
@@ -163,13 +163,13 @@ def _serial_writer(port) -> Callable[[memoryview], int]:
             except (BlockingIOError, InterruptedError):
                 return 0
 
-        return write_fd
+        return write_fd, fd
 
     def write_port(mv: memoryview) -> int:
         n = port.write(bytes(mv))
         return len(mv) if n is None else int(n)
 
-    return write_port
+    return write_port, None
 
 
 class PosePublisher:
@@ -231,6 +231,8 @@ class PosePublisher:
         self._serial_sink: _Sink | None = None
         self._reopen_at_ns = 0
         self._reopen_ns = 1_000_000_000
+        self._serial_fd: int | None = None
+        self._serial_fd_watched = False
         self._last_hello_ns = 0
         # counters
         self._frames_published = 0
@@ -297,7 +299,8 @@ class PosePublisher:
         return serial.serial_for_url(self._serial_url, timeout=0, write_timeout=None, **self._serial_kwargs)
 
     def _attach_serial(self) -> None:
-        self._serial_sink = _Sink(str(self._serial_url or self._port), _serial_writer(self._port), self._max_pending)
+        write, self._serial_fd = _serial_writer(self._port)
+        self._serial_sink = _Sink(str(self._serial_url or self._port), write, self._max_pending)
         self._serial_sink.offer(b"\x00" + self._hello_frame)
         self._last_hello_ns = self._clock_ns()
 
@@ -369,6 +372,8 @@ class PosePublisher:
                 except Exception:
                     pass
                 self._listener.close()
+            self._serial_fd_watched = False
+            self._sel.close()
             if self._port is not None and self._serial_url is not None:
                 try:
                     self._port.close()
@@ -480,6 +485,20 @@ class PosePublisher:
                 self._sel.modify(sock, want, sink)
                 self._masks[sock] = want
 
+    def _watch_serial_fd(self) -> None:
+        """Have select() report the port writable while bytes wait for it."""
+        sink = self._serial_sink
+        want = sink is not None and self._serial_fd is not None and bool(sink.pending) and not sink.dead
+        if want and not self._serial_fd_watched:
+            self._sel.register(self._serial_fd, selectors.EVENT_WRITE, "serial")
+            self._serial_fd_watched = True
+        elif not want and self._serial_fd_watched:
+            try:
+                self._sel.unregister(self._serial_fd)
+            except Exception:
+                pass
+            self._serial_fd_watched = False
+
     def _service_serial(self, now_ns: int) -> None:
         sink = self._serial_sink
         if sink is None:
@@ -497,6 +516,7 @@ class PosePublisher:
             self._closed_totals[0] += sink.frames_sent
             self._closed_totals[1] += sink.bytes_sent
             self._closed_totals[2] += sink.drops
+            self._watch_serial_fd()
             self._serial_sink = None
             if self._serial_url is not None:   # ours: close and reopen later
                 try:
@@ -513,7 +533,10 @@ class PosePublisher:
         while not self._closed:
             with self._lock:
                 self._update_masks()
-                serial_busy = self._serial_sink is not None and bool(self._serial_sink.pending)
+                self._watch_serial_fd()
+                # A port without a descriptor cannot be watched: poll it.
+                serial_busy = (self._serial_sink is not None and bool(self._serial_sink.pending)
+                               and not self._serial_fd_watched)
             timeout = 0.005 if serial_busy else 0.1
             try:
                 events = self._sel.select(timeout)
@@ -531,6 +554,8 @@ class PosePublisher:
                             pass
                     elif key.data == "listen":
                         self._accept()
+                    elif key.data == "serial":
+                        pass  # flushed by _service_serial below
                     else:
                         self._service_client(key.fileobj, mask)
                 now = self._clock_ns()
