@@ -120,6 +120,9 @@ class _TcpTransport:
             raise ConnectionError("peer closed the connection")
         return data
 
+    def fileno(self) -> int | None:
+        return None if self.sock is None else self.sock.fileno()
+
     def close(self) -> None:
         if self.sock is not None:
             try:
@@ -148,6 +151,9 @@ class _SerialTransport:
 
     def read(self, n: int) -> bytes:
         return self.port.read(n)
+
+    def fileno(self) -> int | None:
+        return None if self.port is None else self.port.fileno()
 
     def close(self) -> None:
         if self.port is not None:
@@ -275,6 +281,13 @@ class PoseReceiver:
         if pose is None:
             return None, NO_POSE_AGE_NS
         return pose, (now - t_rx) + (pose.t_send_ns - pose.t_capture_ns)
+
+    def fileno(self) -> int | None:
+        """Descriptor of the open link (for ``select``), or None when there is none."""
+        try:
+            return self._transport.fileno()
+        except Exception:
+            return None
 
     def stats(self) -> ReceiverStats:
         d = self._decoder.stats()

@@ -425,16 +425,17 @@ def cobs_decode(enc: bytes) -> bytes:
 
 def _body(msg: Message, t_send_ns: int | None) -> tuple[int, bytes]:
     if isinstance(msg, PoseMsg):
-        cov = msg.cov[_TRIU]
+        floats = (msg.p_world_object.tolist() + msg.q_world_object.tolist() + msg.v_world_object.tolist()
+                  + msg.w_world_object.tolist() + msg.cov[_TRIU].tolist())
+        # Construction already refused non-finite values; checked again here
+        # because nothing non-finite may ever leave this module.
+        if not all(map(math.isfinite, floats)):
+            raise ValueError("POSE contains non-finite values")
         body = _POSE_BODY.pack(
             msg.seq,
             msg.t_capture_ns,
             msg.t_send_ns if t_send_ns is None else t_send_ns,
-            *msg.p_world_object.tolist(),
-            *msg.q_world_object.tolist(),
-            *msg.v_world_object.tolist(),
-            *msg.w_world_object.tolist(),
-            *cov.tolist(),
+            *floats,
             msg.object_id,
             int(msg.status),
         )

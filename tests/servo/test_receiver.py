@@ -287,3 +287,13 @@ def test_serial_device_that_vanishes_is_reopened_quietly():
 def test_bad_socket_url_is_a_setup_error():
     with pytest.raises(ValueError):
         PoseReceiver("socket://127.0.0.1")
+
+
+def test_fileno_follows_the_link(pty_pair):
+    _, name = pty_pair
+    rx = PoseReceiver(name)
+    assert rx.fileno() is None                 # not opened before the first poll
+    rx.poll()
+    assert isinstance(rx.fileno(), int)
+    rx.close()
+    assert rx.fileno() is None

@@ -471,3 +471,10 @@ def test_encode_with_send_time_override():
     assert encode(HelloMsg(1.0, ()), t_send_ns=1) == encode(HelloMsg(1.0, ()))  # HELLO has no stamp
     with pytest.raises(ValueError):
         encode(m, t_send_ns=2**63)
+
+
+def test_encode_rechecks_finiteness_even_if_construction_is_bypassed():
+    m = PoseMsg(**_pose_kwargs())
+    object.__setattr__(m, "w_world_object", np.array([0, np.nan, 0], dtype=np.float32))
+    with pytest.raises(ValueError):
+        encode(m)
