@@ -314,3 +314,25 @@ def test_max_clients_refuses_extra_connections(tcp_pub):
     assert b.recv(10) == b""       # closed by the server
     a.close()
     b.close()
+
+
+def test_serial_port_that_fails_is_closed_and_retried_without_raising():
+    master, slave = pty.openpty()
+    tty.setraw(slave)
+    pub = PosePublisher.serial(HELLO, os.ttyname(slave), reopen_period_s=0.01, heartbeat_period_s=0,
+                               hello_period_s=0)
+    try:
+        poses = make_poses(50, seed=9)
+        assert pub.publish(poses[0]) == PublishStatus.OK
+        os.close(master)                    # the other end disappears: writes now fail (EIO)
+        os.close(slave)
+        statuses = []
+        for p in poses[1:]:
+            statuses.append(pub.publish(p))
+            if statuses[-1] == PublishStatus.NO_SINK:
+                break
+        assert wait_for(lambda: pub.stats().errors >= 2)   # the write error, then failed reopens
+        assert pub.publish(poses[-1]) == PublishStatus.NO_SINK
+        assert pub.stats().sinks == ()
+    finally:
+        pub.close()
