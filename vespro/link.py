@@ -531,36 +531,46 @@ class PosePublisher:
 
     def _run(self) -> None:
         while not self._closed:
-            with self._lock:
-                self._update_masks()
-                self._watch_serial_fd()
-                # A port without a descriptor cannot be watched: poll it.
-                serial_busy = (self._serial_sink is not None and bool(self._serial_sink.pending)
-                               and not self._serial_fd_watched)
-            timeout = 0.005 if serial_busy else 0.1
             try:
-                events = self._sel.select(timeout)
-            except OSError:
-                events = []
-            if self._closed:
-                break
-            with self._lock:
-                for key, mask in events:
-                    if key.data == "wake":
-                        try:
-                            while self._wake_r.recv(4096):
-                                pass
-                        except OSError:
+                self._run_once()
+            except Exception:
+                # The I/O thread must outlive any surprise (a socket closed
+                # under it, a selector error): count it and carry on.
+                with self._lock:
+                    self._errors += 1
+                time.sleep(0.01)
+
+    def _run_once(self) -> None:
+        with self._lock:
+            self._update_masks()
+            self._watch_serial_fd()
+            # A port without a descriptor cannot be watched: poll it.
+            serial_busy = (self._serial_sink is not None and bool(self._serial_sink.pending)
+                           and not self._serial_fd_watched)
+        timeout = 0.005 if serial_busy else 0.1
+        try:
+            events = self._sel.select(timeout)
+        except OSError:
+            events = []
+        if self._closed:
+            return
+        with self._lock:
+            for key, mask in events:
+                if key.data == "wake":
+                    try:
+                        while self._wake_r.recv(4096):
                             pass
-                    elif key.data == "listen":
-                        self._accept()
-                    elif key.data == "serial":
-                        pass  # flushed by _service_serial below
-                    else:
-                        self._service_client(key.fileobj, mask)
-                now = self._clock_ns()
-                if self._serial_url is not None or self._serial_sink is not None:
-                    self._service_serial(now)
-                hb_due = self._heartbeat_ns > 0 and now - self._last_publish_ns >= self._heartbeat_ns
-            if hb_due:
-                self.heartbeat()
+                    except OSError:
+                        pass
+                elif key.data == "listen":
+                    self._accept()
+                elif key.data == "serial":
+                    pass  # flushed by _service_serial below
+                else:
+                    self._service_client(key.fileobj, mask)
+            now = self._clock_ns()
+            if self._serial_url is not None or self._serial_sink is not None:
+                self._service_serial(now)
+            hb_due = self._heartbeat_ns > 0 and now - self._last_publish_ns >= self._heartbeat_ns
+        if hb_due:
+            self.heartbeat()
