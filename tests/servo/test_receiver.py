@@ -297,3 +297,15 @@ def test_fileno_follows_the_link(pty_pair):
     assert isinstance(rx.fileno(), int)
     rx.close()
     assert rx.fileno() is None
+
+
+def test_servo_side_imports_only_vespro_wire():
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    code = ("import sys, servo.receiver; "
+            "print(sorted(m for m in sys.modules if m.split('.')[0] in ('vespro', 'scipy', 'cv2', 'mujoco')))")
+    root = Path(__file__).resolve().parents[2]
+    out = subprocess.run([sys.executable, "-c", code], cwd=root, capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "['vespro', 'vespro.wire']"
