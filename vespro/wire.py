@@ -45,7 +45,7 @@ Position and quaternion are float64; velocities and covariance are float32:
 float32's relative rounding (6e-8) is far below the relative uncertainty of a
 velocity estimate or of a covariance, its range covers any variance in m^2 or
 rad^2 that matters (values under ~1e-38 lose precision, under 1e-45 become 0),
-and float64 would add 96 B per frame (45 % more line time). A
+and float64 would add 108 B per frame (55 % more line time). A
 :class:`PoseMsg` stores them as float32 already, so what you construct is bit
 for bit what the receiver decodes.
 
