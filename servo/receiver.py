@@ -1,0 +1,350 @@
+"""Control side of the link: receive poses from the vision PC without blocking.
+
+Imports only pyserial and ``vespro.wire`` (the servo side's one dependency on
+the vision code). The 500 Hz loop calls :meth:`PoseReceiver.poll` once per
+tick (cheap when nothing arrived) and :meth:`PoseReceiver.latest` whenever it
+needs the pose::
+
+    rx = PoseReceiver("socket://192.168.10.2:5555")   # or "/dev/ttyUSB0", a pty path, "loop://"
+    while running:
+        rx.poll(now_ns)
+        pose, age_ns = rx.latest(now_ns)
+        ...
+
+Neither call raises or blocks: a missing peer is a state
+(``LinkState.DISCONNECTED``), and the receiver reconnects by itself with
+exponential backoff after the peer goes away (a killed and restarted server,
+an unplugged adapter).
+
+``socket://host:port`` URLs (pyserial's syntax) are handled here with a
+non-blocking connect, because pyserial's socket handler connects with a
+blocking call (up to 5 s on an unreachable host), which would stall the loop.
+Every other URL or device path is opened with ``serial.serial_for_url`` and
+read with ``timeout=0``.
+
+Age of a pose
+-------------
+The vision and control PCs have different monotonic clocks, so the capture
+stamp cannot be compared with ``now_ns`` directly. ``latest`` estimates the
+age since capture as ``(now_ns - t_receive_ns) + (t_send_ns - t_capture_ns)``:
+time since arrival on this clock plus the vision-side latency on that one. The
+transport delay (about 17 ms for a POSE frame at 115200 baud, well under 1 ms
+on TCP loopback or a LAN) is not included.
+"""
+
+from __future__ import annotations
+
+import enum
+import errno
+import select
+import socket
+import time
+from dataclasses import dataclass
+from typing import Callable
+from urllib.parse import urlsplit
+
+from vespro.wire import Decoder, HelloMsg, PoseMsg
+
+__all__ = ["PoseReceiver", "LinkState", "ReceiverStats", "NO_POSE_AGE_NS"]
+
+# Age reported when there is no pose at all: larger than any staleness limit.
+NO_POSE_AGE_NS = 2**63 - 1
+
+
+class LinkState(enum.IntEnum):
+    DISCONNECTED = 0   # waiting for the next (re)connect attempt
+    CONNECTING = 1     # TCP connect in progress
+    CONNECTED = 2
+
+
+@dataclass(frozen=True)
+class ReceiverStats:
+    """Counters of a :class:`PoseReceiver` (cumulative over reconnects)."""
+
+    state: LinkState
+    connects: int        # successful opens / connects
+    disconnects: int     # links lost (EOF, error, idle timeout)
+    open_failures: int   # failed open / connect attempts
+    bytes_in: int
+    frames_ok: int
+    poses: int
+    rejected: dict       # by reason, see vespro.wire.REJECT_REASONS
+    seq_gaps: int
+    seq_duplicates: int
+    seq_resets: int
+
+    @property
+    def rejected_total(self) -> int:
+        return sum(self.rejected.values())
+
+
+class _TcpTransport:
+    """Non-blocking TCP client for ``socket://host:port``."""
+
+    def __init__(self, host: str, port: int):
+        # Resolving a name may block, so it happens once, at set-up.
+        self._addrs = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
+        self.sock: socket.socket | None = None
+
+    def start(self) -> bool:
+        """Begin connecting; True when already connected."""
+        family, stype, proto, _, addr = self._addrs[0]
+        s = socket.socket(family, stype, proto)
+        s.setblocking(False)
+        err = s.connect_ex(addr)
+        self.sock = s
+        if err == 0:
+            return True
+        if err in (errno.EINPROGRESS, errno.EWOULDBLOCK, errno.EALREADY, errno.EINTR):
+            return False
+        raise OSError(err, errno.errorcode.get(err, "connect failed"))
+
+    def finish(self) -> bool:
+        """True once connected; raises OSError when the connect failed."""
+        _, w, _ = select.select([], [self.sock], [], 0)
+        if not w:
+            return False
+        err = self.sock.getsockopt(socket.SOL_SOCKET, socket.SO_ERROR)
+        if err:
+            raise OSError(err, errno.errorcode.get(err, "connect failed"))
+        self.sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        return True
+
+    def read(self, n: int) -> bytes:
+        """Up to ``n`` bytes, b"" when none; raises ConnectionError on EOF."""
+        try:
+            data = self.sock.recv(n)
+        except (BlockingIOError, InterruptedError):
+            return b""
+        if not data:
+            raise ConnectionError("peer closed the connection")
+        return data
+
+    def fileno(self) -> int | None:
+        return None if self.sock is None else self.sock.fileno()
+
+    def close(self) -> None:
+        if self.sock is not None:
+            try:
+                self.sock.close()
+            except OSError:
+                pass
+            self.sock = None
+
+
+class _SerialTransport:
+    """Any pyserial URL or device path, read with ``timeout=0``."""
+
+    def __init__(self, url: str, baudrate: int):
+        self._url = url
+        self._baudrate = baudrate
+        self.port = None
+
+    def start(self) -> bool:
+        import serial
+
+        self.port = serial.serial_for_url(self._url, baudrate=self._baudrate, timeout=0)
+        return True
+
+    def finish(self) -> bool:
+        return True
+
+    def read(self, n: int) -> bytes:
+        return self.port.read(n)
+
+    def fileno(self) -> int | None:
+        return None if self.port is None else self.port.fileno()
+
+    def close(self) -> None:
+        if self.port is not None:
+            try:
+                self.port.close()
+            except Exception:
+                pass
+            self.port = None
+
+
+class PoseReceiver:
+    """Non-blocking pose receiver with automatic reconnect.
+
+    Parameters
+    ----------
+    url : str
+        ``socket://HOST:PORT``, a device path (``/dev/ttyUSB0``, a pty slave),
+        or any other pyserial URL (``loop://``, ``rfc2217://...``).
+    baudrate : int
+        Serial lines only.
+    backoff_min_s, backoff_max_s : float
+        Delay before a reconnect attempt starts at ``backoff_min_s`` and
+        doubles after each failure up to ``backoff_max_s``; a valid frame
+        resets it.
+    idle_timeout_s : float
+        TCP only: drop and reconnect when no byte arrived for this long (the
+        publisher sends at least a HEARTBEAT per second, so silence means a
+        dead peer or a half-open connection). 0 disables.
+    connect_timeout_s : float
+        TCP only: give up a connect attempt after this long.
+    max_read_bytes : int
+        Upper bound on bytes consumed per ``poll`` (bounds its run time).
+    clock_ns : callable
+        Monotonic clock, ns, used when ``poll``/``latest`` get no ``now_ns``.
+
+    Raises
+    ------
+    ValueError
+        Malformed ``socket://`` URL (at construction only).
+    """
+
+    def __init__(self, url: str, *, baudrate: int = 115200, backoff_min_s: float = 0.05,
+                 backoff_max_s: float = 1.0, idle_timeout_s: float = 3.0, connect_timeout_s: float = 2.0,
+                 max_read_bytes: int = 65536, clock_ns: Callable[[], int] = time.monotonic_ns):
+        self.url = url
+        if url.startswith("socket://"):
+            parts = urlsplit(url)
+            if parts.hostname is None or parts.port is None:
+                raise ValueError(f"expected socket://HOST:PORT, got {url!r}")
+            self._transport = _TcpTransport(parts.hostname, parts.port)
+            self._idle_ns = int(idle_timeout_s * 1e9)
+        else:
+            self._transport = _SerialTransport(url, baudrate)
+            self._idle_ns = 0
+        self._connect_timeout_ns = int(connect_timeout_s * 1e9)
+        self._backoff_min_ns = int(backoff_min_s * 1e9)
+        self._backoff_max_ns = int(backoff_max_s * 1e9)
+        self._backoff_ns = self._backoff_min_ns
+        self._max_read = int(max_read_bytes)
+        self._clock_ns = clock_ns
+        self._decoder = Decoder()
+        self.state = LinkState.DISCONNECTED
+        self._next_attempt_ns = 0
+        self._connect_started_ns = 0
+        self._last_rx_ns = 0
+        self.hello: HelloMsg | None = None
+        self._latest: PoseMsg | None = None
+        self._latest_rx_ns = 0
+        self._by_object: dict[int, tuple[PoseMsg, int]] = {}
+        self._connects = 0
+        self._disconnects = 0
+        self._open_failures = 0
+        self._poses = 0
+
+    # --- the loop's API -----------------------------------------------------------
+
+    def poll(self, now_ns: int | None = None, out: list | None = None) -> PoseMsg | None:
+        """Read what has arrived; return the newest POSE among it, or None.
+
+        Never blocks, never raises: a lost link is closed and reopened later.
+
+        Parameters
+        ----------
+        now_ns : int, optional
+            Current time, ns (this PC's monotonic clock); ``clock_ns()`` if None.
+        out : list, optional
+            If given, every message decoded in this call (HELLO, POSE,
+            HEARTBEAT) is appended to it, in arrival order.
+        """
+        now = self._clock_ns() if now_ns is None else int(now_ns)
+        newest = None
+        try:
+            if self.state == LinkState.DISCONNECTED and now >= self._next_attempt_ns:
+                self._connect_started_ns = now
+                self.state = LinkState.CONNECTED if self._transport.start() else LinkState.CONNECTING
+                if self.state == LinkState.CONNECTED:
+                    self._on_connected(now)
+            if self.state == LinkState.CONNECTING:
+                if self._transport.finish():
+                    self.state = LinkState.CONNECTED
+                    self._on_connected(now)
+                elif now - self._connect_started_ns > self._connect_timeout_ns:
+                    raise TimeoutError("connect timed out")
+            if self.state == LinkState.CONNECTED:
+                newest = self._read(now, out)
+        except Exception:
+            self._lost(now, connected=self.state == LinkState.CONNECTED)
+        return newest
+
+    def latest(self, now_ns: int | None = None, object_id: int | None = None) -> tuple[PoseMsg | None, int]:
+        """Newest pose received (of ``object_id``, or of any object) and its age.
+
+        Returns
+        -------
+        pose : PoseMsg or None
+        age_ns : int
+            Estimated time since capture, ns (see module docstring);
+            ``NO_POSE_AGE_NS`` when there is no pose.
+        """
+        now = self._clock_ns() if now_ns is None else int(now_ns)
+        if object_id is None:
+            pose, t_rx = self._latest, self._latest_rx_ns
+        else:
+            pose, t_rx = self._by_object.get(object_id, (None, 0))
+        if pose is None:
+            return None, NO_POSE_AGE_NS
+        return pose, (now - t_rx) + (pose.t_send_ns - pose.t_capture_ns)
+
+    def fileno(self) -> int | None:
+        """Descriptor of the open link (for ``select``), or None when there is none."""
+        try:
+            return self._transport.fileno()
+        except Exception:
+            return None
+
+    def stats(self) -> ReceiverStats:
+        d = self._decoder.stats()
+        return ReceiverStats(self.state, self._connects, self._disconnects, self._open_failures,
+                             d.bytes_in, d.frames_ok, self._poses, d.rejected, d.seq_gaps,
+                             d.seq_duplicates, d.seq_resets)
+
+    def close(self) -> None:
+        self._transport.close()
+        self.state = LinkState.DISCONNECTED
+        self._next_attempt_ns = NO_POSE_AGE_NS  # never reopen
+
+    def __enter__(self) -> "PoseReceiver":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # --- internals ----------------------------------------------------------------
+
+    def _on_connected(self, now: int) -> None:
+        self._connects += 1
+        self._last_rx_ns = now
+        self._decoder.reset_stream()
+
+    def _lost(self, now: int, connected: bool) -> None:
+        self._transport.close()
+        if connected:
+            self._disconnects += 1
+        else:
+            self._open_failures += 1
+        self.state = LinkState.DISCONNECTED
+        self._next_attempt_ns = now + self._backoff_ns
+        self._backoff_ns = min(2 * self._backoff_ns, self._backoff_max_ns)
+
+    def _read(self, now: int, out: list | None) -> PoseMsg | None:
+        newest = None
+        total = 0
+        while total < self._max_read:
+            data = self._transport.read(min(65536, self._max_read - total))
+            if not data:
+                break
+            total += len(data)
+            msgs = self._decoder.feed(data)
+            if out is not None:
+                out.extend(msgs)
+            for msg in msgs:
+                if isinstance(msg, PoseMsg):
+                    newest = msg
+                    self._poses += 1
+                    self._by_object[msg.object_id] = (msg, now)
+                    self._latest, self._latest_rx_ns = msg, now
+                elif isinstance(msg, HelloMsg):
+                    self.hello = msg
+                self._backoff_ns = self._backoff_min_ns
+        if total:
+            self._last_rx_ns = now
+        elif self._idle_ns and now - self._last_rx_ns > self._idle_ns:
+            raise TimeoutError("link idle")
+        return newest
