@@ -67,23 +67,12 @@ def _distortion(s: str):
     return v
 
 
-def add_parser(sub) -> None:
-    p = sub.add_parser(
-        "record",
-        help="simulate the cell and write a recording (shared/spec/recording.md)",
-        description=(
-            "Simulate the robotic cell (MuJoCo physics at 500 Hz, cameras at --rate) and write a "
-            "recording: frames of every rig camera, the rig, the object model, measured eye-in-hand "
-            "camera poses, and ground truth in groundtruth.csv (for evaluators only)."
-        ),
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
-    )
-    p.add_argument("out", type=Path, help="recording folder to create")
+def add_scenario_options(p: argparse.ArgumentParser) -> None:
+    """Options describing a simulated scenario (shared by record, serve, demo)."""
     p.add_argument("--object", default="bracket", help="object name in models/objects (box, lblock, bracket) or a mesh path (metres)")
     p.add_argument("--rig", default="fixed2", help="standard rig in cameras/ (fixed1, fixed2, fixed3, hand, hybrid) or a cameras.yaml path")
     p.add_argument("--motion", default="conveyor", choices=["conveyor", "sinusoid", "random", "static"],
                    help="conveyor: on the belt; sinusoid: free 6-DoF sinusoids; random: random smooth 6-DoF; static")
-    p.add_argument("--frames", type=int, default=78, help="number of capture instants")
     p.add_argument("--rate", type=float, default=26.0, help="capture rate, Hz")
     p.add_argument("--resolution", type=_resolution, help="image size WxH (scales the rig's intrinsics)")
     p.add_argument("--speed", type=float, help="belt speed in m/s (conveyor, default 0.1) or frequency scale of free motions (default 1)")
@@ -105,6 +94,22 @@ def add_parser(sub) -> None:
                    help="home: arm parked; watch: flange hovers over the working area (eye-in-hand view)")
     p.add_argument("--encoder-noise", type=float, default=0.0, help="joint sensor noise, rad")
     p.add_argument("--seed", type=int, default=0, help="random seed (noise, random motion)")
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser(
+        "record",
+        help="simulate the cell and write a recording (shared/spec/recording.md)",
+        description=(
+            "Simulate the robotic cell (MuJoCo physics at 500 Hz, cameras at --rate) and write a "
+            "recording: frames of every rig camera, the rig, the object model, measured eye-in-hand "
+            "camera poses, and ground truth in groundtruth.csv (for evaluators only)."
+        ),
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
+    p.add_argument("out", type=Path, help="recording folder to create")
+    p.add_argument("--frames", type=int, default=78, help="number of capture instants")
+    add_scenario_options(p)
     p.add_argument("--overwrite", action="store_true", help="replace an existing recording folder")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
@@ -133,7 +138,8 @@ def build_config(args) -> tuple:
     rig = Rig(tuple(cams))
     if any(not c.is_fixed for c in rig) and args.arm == "home":
         args.arm = "watch"  # an eye-in-hand camera on a parked arm sees nothing useful
-    duration = args.frames / args.rate
+    duration = getattr(args, "frames", None) or 78
+    duration = duration / args.rate
     occluders = ()
     if args.occluder:
         fixed = [c.name for c in rig if c.is_fixed]

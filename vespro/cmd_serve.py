@@ -1,0 +1,135 @@
+"""``vespro serve``: the standalone pose server process."""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import sys
+from pathlib import Path
+
+
+def add_parser(sub) -> None:
+    from .cmd_record import add_scenario_options
+    from .cmd_track import add_tracker_options
+
+    p = sub.add_parser(
+        "serve", help="run the pose server: track a source, stream poses over TCP or a serial line",
+        description=(
+            "Track the object in frames from a source (the simulated cell, a recording replayed at its "
+            "own rate, or live cameras) and publish every estimate (pose, velocity, covariance, status, "
+            "capture and send stamps) with the vespro wire protocol over TCP (clients connect with "
+            "socket://HOST:PORT) or a serial line. Logs one status line a second; SIGINT/SIGTERM stop it "
+            "cleanly."
+        ),
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
+    p.add_argument("--source", choices=["sim", "replay", "camera"], default="sim", help="where frames come from")
+    p.add_argument("--recording", type=Path, help="replay: the recording folder")
+    p.add_argument("--loop", action="store_true", help="replay: start over at the end")
+    p.add_argument("--device", action="append", default=[], help="camera: a cv2.VideoCapture device per rig camera")
+    p.add_argument("--model", type=Path, help="camera: the object's CAD file (metres)")
+    p.add_argument("--lockstep", action="store_true",
+                   help="sim/replay: run on simulated time as fast as possible instead of in real time")
+    link = p.add_mutually_exclusive_group()
+    link.add_argument("--tcp", type=int, default=5555, metavar="PORT", help="listen for TCP clients on this port")
+    link.add_argument("--serial", metavar="URL", help="write to a serial device or pyserial URL instead")
+    p.add_argument("--host", default="127.0.0.1", help="TCP: address to bind (localhost unless told otherwise)")
+    p.add_argument("--baud", type=int, default=115200, help="serial: baud rate")
+    p.add_argument("--frames", type=int, help="stop after this many frames")
+    p.add_argument("--quiet", action="store_true", help="no once-a-second status line")
+    add_scenario_options(p)
+    add_tracker_options(p)
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    from .clock import SimClock, WallClock
+    from .link import PosePublisher
+    from .model import load_model
+    from .recording import Recording, RecordingError
+    from .server import PoseServer
+    from .sources import CameraSource, ReplaySource, SimSource
+    from .track import parse_pose
+    from .tracker import InitResult, Tracker
+    from .wire import HelloMsg
+
+    from .cmd_track import tracker_config
+
+    clock = SimClock() if args.lockstep else WallClock()
+    try:
+        if args.source == "replay":
+            if not args.recording:
+                raise ValueError("--source replay needs --recording PATH")
+            rec = Recording(args.recording)
+            source = ReplaySource(rec, clock, loop=args.loop)
+            model = load_model(rec.model_path, name=rec.object_name)
+        elif args.source == "sim":
+            from .cmd_record import build_config
+            from .sim.cell import SimCell
+
+            config, motion, name = build_config(args)
+            cell = SimCell(config, motion)
+            cell.settle_arm()
+            source = SimSource(cell, clock)
+            model = load_model(config.object_mesh, name=name)
+        else:
+            from .cmd_record import rig_path
+            from .rig import load_rig
+
+            if not args.model:
+                raise ValueError("--source camera needs --model CAD_FILE")
+            rig = load_rig(rig_path(args.rig))
+            source = CameraSource(rig, args.device or ["0"], clock, rate_hz=args.rate)
+            model = load_model(args.model)
+    except (ValueError, RecordingError) as e:
+        print(f"vespro serve: {e}", file=sys.stderr)
+        return 2
+
+    tracker = Tracker(source.rig, model, tracker_config(args))
+    initializer = None
+    if args.init_pose:
+        T0 = parse_pose(args.init_pose)
+        fired = []
+
+        def initializer(fs, T0=T0):  # the user's pose, once
+            if fired:
+                return None
+            fired.append(True)
+            return InitResult(T0)
+    else:
+        try:
+            from .init import make_initializer
+
+            initializer = make_initializer(source.rig, model)
+        except ImportError:
+            print("vespro serve: automatic initialisation is not available; pass --init-pose", file=sys.stderr)
+            return 2
+
+    hello = HelloMsg(rate_hz=float(source.rate_hz), object_names=(model.name,))
+    clock_ns = clock.now_ns
+    if args.serial:
+        publisher = PosePublisher.serial(hello, args.serial, baudrate=args.baud, clock_ns=clock_ns)
+        where = f"serial {args.serial} at {args.baud} baud"
+    else:
+        publisher = PosePublisher.tcp(hello, port=args.tcp, host=args.host, clock_ns=clock_ns)
+        host, port = publisher.address
+        where = f"tcp: connect to socket://{host}:{port}"
+    log = None if args.quiet else (lambda line: print(line, flush=True))
+    server = PoseServer(source, tracker, publisher, clock, initializer, background_init=not args.lockstep, log=log)
+
+    def _stop(signum, frame):
+        server.stop()
+
+    old = {s: signal.signal(s, _stop) for s in (signal.SIGINT, signal.SIGTERM)}
+    print(f"vespro serve: {args.source} source, cameras {', '.join(source.rig.names)}, object {model.name}; "
+          f"{where}", flush=True)
+    try:
+        stats = server.run(max_frames=args.frames)
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
+        publisher.close()
+        source.close()
+    print(f"vespro serve: stopped after {stats.frames} frames ({stats.tracking} tracking, "
+          f"{stats.init_successes} initialisations)", flush=True)
+    return 0

@@ -1,0 +1,215 @@
+"""The pose server: tracks frames from a source and publishes every estimate.
+
+:class:`PoseServer` runs one loop at the capture rate: take the next frame set
+from the source, run the tracker, publish a POSE message (status, pose,
+velocity, covariance, capture and send stamps) through a
+:class:`~vespro.link.PosePublisher`. The publisher never blocks on a slow
+client (latest value wins, drops counted), so the tracker is never slowed.
+
+While no track exists the automatic initialiser runs in a background thread on
+the latest frame set; meanwhile every frame is still published with status
+``initializing`` (or ``lost``), at the capture rate. When the initialiser
+returns a pose, the filter starts at that frame's capture stamp and is
+predicted forward to the current frame.
+
+Once a second the server logs one line: frame rate, tracker time, vision
+latency (capture to send), status and link statistics.
+"""
+
+from __future__ import annotations
+
+import threading
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from .clock import Clock
+from .frames import FrameSet
+from .se3 import quat_from_matrix
+from .tracker import Tracker, TrackerOutput
+from .wire import PoseMsg, PoseStatus
+
+__all__ = ["PoseServer", "ServerStats", "pose_message"]
+
+_STATUS = {"tracking": PoseStatus.TRACKING, "initializing": PoseStatus.INITIALIZING, "lost": PoseStatus.LOST}
+
+
+def pose_message(out: TrackerOutput, seq: int, t_send_ns: int, object_id: int = 0,
+                 last_T: np.ndarray | None = None) -> PoseMsg:
+    """Wire message of a tracker output.
+
+    A frame that is not tracking still carries a pose (the last good one, or
+    identity) so the message is well formed; its status tells the receiver not
+    to use it.
+    """
+    if out.status == "tracking" and out.T_world_object is not None:
+        T = out.T_world_object
+        vel = out.velocity if out.velocity is not None else np.zeros(6)
+        cov = out.cov6 if out.cov6 is not None else np.zeros((6, 6))
+    else:
+        T = last_T if last_T is not None else np.eye(4)
+        vel = np.zeros(6)
+        cov = np.zeros((6, 6))
+    return PoseMsg(seq=seq, t_capture_ns=int(out.t_ns), t_send_ns=int(t_send_ns), object_id=object_id,
+                   status=_STATUS[out.status], p_world_object=T[:3, 3], q_world_object=quat_from_matrix(T[:3, :3]),
+                   v_world_object=vel[:3], w_world_object=vel[3:], cov=cov)
+
+
+@dataclass
+class ServerStats:
+    """Counters of a server run."""
+
+    frames: int = 0
+    tracking: int = 0
+    init_attempts: int = 0
+    init_successes: int = 0
+    publish_failures: int = 0
+    tracker_ms: list = field(default_factory=list)
+    latency_ms: list = field(default_factory=list)
+    statuses: list = field(default_factory=list)
+
+
+class PoseServer:
+    """Track and publish, frame by frame.
+
+    Parameters
+    ----------
+    source : FrameSource
+    tracker : Tracker
+        Its own ``initializer`` must be None: the server runs initialisation
+        in the background itself.
+    publisher : PosePublisher or None
+        None: estimates are only returned/recorded (tests, offline runs).
+    clock : Clock
+        Stamps sends; paces nothing (the source paces).
+    initializer : callable, optional
+        ``initializer(frameset) -> InitResult | None``.
+    background_init : bool
+        Run the initialiser in a thread (real time); False runs it inline
+        (lockstep, reproducible).
+    log : callable, optional
+        Receives the once-a-second status line.
+    on_output : callable, optional
+        Called with every (frameset, TrackerOutput), e.g. to record them.
+    """
+
+    def __init__(self, source, tracker: Tracker, publisher, clock: Clock,
+                 initializer: Callable[[FrameSet], object] | None = None, background_init: bool = True,
+                 log: Callable[[str], None] | None = print, on_output=None, object_id: int = 0):
+        self.source = source
+        self.tracker = tracker
+        self.tracker.initializer = None
+        self.publisher = publisher
+        self.clock = clock
+        self.initializer = initializer
+        self.background_init = background_init
+        self.log = log
+        self.on_output = on_output
+        self.object_id = object_id
+        self.stats = ServerStats()
+        self._stop = threading.Event()
+        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="vespro-init") if background_init else None
+        self._job: Future | None = None
+        self._job_t_ns = 0
+        self._seq = 0
+        self._last_T = None
+        self._last_log_ns = None
+        self._window: list = []
+
+    def stop(self) -> None:
+        """Ask the loop to finish after the current frame (signal-safe)."""
+        self._stop.set()
+
+    # -- initialisation ---------------------------------------------------------
+    def _maybe_start(self, fs: FrameSet) -> None:
+        if self.tracker.ekf is not None or self.initializer is None:
+            return
+        if not self.background_init:
+            self.stats.init_attempts += 1
+            res = self.initializer(fs)
+            if res is not None:
+                self.stats.init_successes += 1
+                self.tracker.start(res, fs.t_ns)
+            return
+        if self._job is not None and self._job.done():
+            try:
+                res = self._job.result()
+            except Exception as e:  # an initialiser bug must not kill the server
+                res = None
+                if self.log:
+                    self.log(f"initialiser failed: {e!r}")
+            job_t = self._job_t_ns
+            self._job = None
+            if res is not None:
+                self.stats.init_successes += 1
+                self.tracker.start(res, job_t)  # predicted forward by process()
+                return
+        if self._job is None:
+            self.stats.init_attempts += 1
+            self._job_t_ns = fs.t_ns
+            self._job = self._pool.submit(self.initializer, fs)
+
+    # -- the loop -------------------------------------------------------------------
+    def step(self, fs: FrameSet) -> TrackerOutput:
+        """Process and publish one frame set."""
+        self._maybe_start(fs)
+        out = self.tracker.process(fs)
+        if out.status == "tracking":
+            self._last_T = out.T_world_object
+            self.stats.tracking += 1
+        t_send = self.clock.now_ns()
+        msg = pose_message(out, self._seq, t_send, self.object_id, self._last_T)
+        self._seq = (self._seq + 1) & 0xFFFFFFFF
+        if self.publisher is not None:
+            try:
+                self.publisher.publish(msg)
+            except Exception:  # the link must never take the tracker down
+                self.stats.publish_failures += 1
+        s = self.stats
+        s.frames += 1
+        s.tracker_ms.append(out.time_ms)
+        s.latency_ms.append((t_send - fs.t_ns) * 1e-6)
+        s.statuses.append(out.status)
+        if self.on_output is not None:
+            self.on_output(fs, out)
+        self._log_line(out)
+        return out
+
+    def _log_line(self, out: TrackerOutput) -> None:
+        now = self.clock.now_ns()
+        self._window.append(out)
+        if self._last_log_ns is None:
+            self._last_log_ns = now
+            return
+        if now - self._last_log_ns < 1_000_000_000:
+            return
+        w, self._window = self._window, []
+        dt = (now - self._last_log_ns) * 1e-9
+        self._last_log_ns = now
+        if not self.log:
+            return
+        lat = np.array(self.stats.latency_ms[-len(w):])
+        tm = np.array([o.time_ms for o in w])
+        link = ""
+        if self.publisher is not None:
+            st = self.publisher.stats()
+            link = f" | link clients {st.clients_connected} sent {st.frames_sent} drops {st.drops} errors {st.errors}"
+        self.log(f"{len(w) / dt:5.1f} Hz | {w[-1].status:12s} | tracker {np.median(tm):5.2f} ms "
+                 f"(max {tm.max():5.2f}) | latency {np.median(lat):6.2f} ms | features {w[-1].n_accepted:2d}{link}")
+
+    def run(self, max_frames: int | None = None) -> ServerStats:
+        """Run until the source ends, ``max_frames`` or :meth:`stop`."""
+        try:
+            while not self._stop.is_set():
+                if max_frames is not None and self.stats.frames >= max_frames:
+                    break
+                fs = self.source.next()
+                if fs is None:
+                    break
+                self.step(fs)
+        finally:
+            if self._pool is not None:
+                self._pool.shutdown(wait=False, cancel_futures=True)
+        return self.stats

@@ -1,0 +1,154 @@
+"""Frame sources for the pose server: where frame sets come from.
+
+A source yields :class:`~vespro.frames.FrameSet` objects at the capture rate,
+each stamped at capture on the server's clock, and None when it has no more.
+
+- :class:`ReplaySource`: a recording replayed at its own rate.
+- :class:`SimSource`: the simulated cell, physics stepped up to each capture
+  instant (real time on a :class:`~vespro.clock.WallClock`, as fast as possible
+  on a :class:`~vespro.clock.SimClock`).
+- :class:`CameraSource`: live fixed cameras through ``cv2.VideoCapture``.
+"""
+
+from __future__ import annotations
+
+from typing import Protocol
+
+from .clock import Clock, ns_from_s
+from .frames import FrameSet
+from .recording import Recording
+from .rig import Rig
+
+__all__ = ["FrameSource", "ReplaySource", "SimSource", "CameraSource"]
+
+
+class FrameSource(Protocol):
+    rig: Rig
+    rate_hz: float
+
+    def next(self) -> FrameSet | None:
+        """Block until the next capture; None when the source is exhausted."""
+        ...
+
+    def close(self) -> None:
+        ...
+
+
+class ReplaySource:
+    """Replay a recording at its own capture times on ``clock``.
+
+    Frame sets are re-stamped ``t_start + t[i]`` on the clock; ``loop`` starts
+    over at the end (indices keep increasing).
+    """
+
+    def __init__(self, recording: Recording, clock: Clock, loop: bool = False):
+        self.recording = recording
+        self.rig = recording.rig
+        self.rate_hz = recording.rate_hz
+        self.clock = clock
+        self.loop = loop
+        self._i = 0
+        self._n = 0
+        self._t_start = None
+        self._period_ns = ns_from_s(len(recording) / recording.rate_hz)
+
+    def next(self) -> FrameSet | None:
+        rec = self.recording
+        if self._i >= len(rec):
+            if not self.loop:
+                return None
+            self._i = 0
+            self._t_start += self._period_ns
+        if self._t_start is None:
+            self._t_start = self.clock.now_ns()
+        t_cap = self._t_start + ns_from_s(rec.t[self._i] - rec.t[0])
+        self.clock.sleep_until(t_cap)
+        fs = rec.frameset(self._i)
+        out = FrameSet(self._n, t_cap, fs.images, fs.T_world_camera)
+        self._i += 1
+        self._n += 1
+        return out
+
+    def close(self) -> None:
+        pass
+
+
+class SimSource:
+    """Frames from a :class:`~vespro.sim.cell.SimCell`.
+
+    The cell's physics runs on its own simulated clock; the server clock paces
+    delivery: on a wall clock each frame set is delivered at its capture instant
+    in real time, on a simulated clock immediately.
+    """
+
+    def __init__(self, cell, clock: Clock, max_frames: int | None = None):
+        self.cell = cell
+        self.rig = cell.config.rig
+        self.rate_hz = cell.config.rate_hz
+        self.clock = clock
+        self.max_frames = max_frames
+        self._t0 = None
+        self._n = 0
+
+    def next(self) -> FrameSet | None:
+        if self.max_frames is not None and self._n >= self.max_frames:
+            return None
+        fs = self.cell.next_frameset()
+        if self._t0 is None:
+            self._t0 = self.clock.now_ns() - fs.t_ns
+        t_cap = self._t0 + fs.t_ns
+        self.clock.sleep_until(t_cap)
+        self._n += 1
+        return FrameSet(fs.index, t_cap, fs.images, fs.T_world_camera)
+
+    def close(self) -> None:
+        self.cell.close()
+
+
+class CameraSource:
+    """Live fixed cameras through ``cv2.VideoCapture`` (one device per rig camera).
+
+    Frames are stamped with the clock when ``grab`` returns for the first
+    camera; the grabs of all cameras are issued back to back before any
+    decoding (``grab`` then ``retrieve``) to keep them as simultaneous as USB
+    cameras allow. A failed read gives a missing image, not an error.
+    Eye-in-hand cameras need the arm's joint state, which a live source does not
+    have: they are rejected.
+    """
+
+    def __init__(self, rig: Rig, devices: list, clock: Clock, rate_hz: float = 26.0):
+        import cv2
+
+        if any(not c.is_fixed for c in rig):
+            raise ValueError("the live camera source supports fixed cameras only")
+        if len(devices) != len(rig):
+            raise ValueError(f"need one device per rig camera: {len(rig)} cameras, {len(devices)} devices")
+        self.rig = rig
+        self.rate_hz = rate_hz
+        self.clock = clock
+        self._caps = []
+        for cam, dev in zip(rig, devices):
+            cap = cv2.VideoCapture(int(dev) if str(dev).isdigit() else dev)
+            if not cap.isOpened():
+                raise ValueError(f"camera {cam.name}: cannot open device {dev!r}")
+            cap.set(cv2.CAP_PROP_FRAME_WIDTH, cam.intrinsics.width)
+            cap.set(cv2.CAP_PROP_FRAME_HEIGHT, cam.intrinsics.height)
+            self._caps.append(cap)
+        self._n = 0
+
+    def next(self) -> FrameSet | None:
+        ok = [cap.grab() for cap in self._caps]
+        t = self.clock.now_ns()
+        images = {}
+        for cam, cap, g in zip(self.rig, self._caps, ok):
+            img = cap.retrieve()[1] if g else None
+            if img is not None and img.shape[:2] != (cam.intrinsics.height, cam.intrinsics.width):
+                img = None  # never rescale silently: the intrinsics are for the rig's size
+            images[cam.name] = img
+        fs = FrameSet(self._n, t, images, {})
+        self._n += 1
+        return fs
+
+    def close(self) -> None:
+        for cap in self._caps:
+            cap.release()
