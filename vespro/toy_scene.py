@@ -176,14 +176,16 @@ def render_polyhedron(
     T_world_camera,
     T_world_object,
     rng=None,
-    background: int = 30,
+    background: int = 20,
     noise_sigma: float = 2.0,
     blur_sigma: float = 0.6,
     supersample: int = 8,
-    light=(0.3, -0.5, -0.8),
+    light=(-0.3, -0.5, -0.8),
 ) -> np.ndarray:
     """Grey image (H, W) uint8 of the polyhedron: flat-shaded faces, anti-aliased.
 
+    Lambertian grey ``50 + 180 max(0, n . light)`` per face (``light``: unit
+    direction towards the light, camera frame) on a dark background.
     Supersampled ``supersample`` x with 1/16 sub-pixel vertex positions
     (``fillPoly`` ``shift=4``), box-averaged back (``INTER_AREA``), then a small
     Gaussian blur (optics) and Gaussian noise. Front faces of a convex body do
@@ -200,7 +202,7 @@ def render_polyhedron(
         if (cam_obj - poly.V[f[0]]) @ n <= 0 or np.any(depth[f] <= 0):
             continue
         n_c = T_co[:3, :3] @ n
-        grey = int(np.clip(60 + 170 * max(0.0, -n_c @ light_c), 0, 255))
+        grey = int(np.clip(50 + 180 * max(0.0, n_c @ light_c), 0, 255))
         hi = (uv[f] + 0.5) * s - 0.5                    # pixel-centre convention
         pts = np.round(hi * 16).astype(np.int32).reshape(-1, 1, 2)
         cv2.fillPoly(img, [pts], grey, lineType=cv2.LINE_8, shift=4)
