@@ -2,9 +2,11 @@
 
 For each selected feature a square window (half-size ``r`` px, e.g. 3 sigma of
 its innovation covariance, :func:`window_half_sizes`) is searched for corners:
-Shi-Tomasi response (``cv2.cornerMinEigenVal``, the measure behind
-``cv2.goodFeaturesToTrack``) with non-maximum suppression, an absolute and a
-relative threshold, then ``cv2.cornerSubPix``. The corner nearest to the
+Shi-Tomasi response (``lambda_min`` of ``cv2.cornerEigenValsAndVecs``, the
+measure behind ``cv2.goodFeaturesToTrack``) with non-maximum suppression, an
+absolute, a relative and an isotropy threshold, then ``cv2.cornerSubPix`` and
+(by default) an edge-intersection refinement that removes cornerSubPix's bias
+at L/Y junctions (see :func:`_refine_lines`). The corner nearest to the
 prediction is associated to the feature unless a second one is similarly close
 (ambiguity) or another feature claims the same corner.
 
@@ -87,6 +89,85 @@ def window_half_sizes(S, n_sigma: float = 3.0, min_px: int = MIN_HALF_SIZE, max_
     return np.clip(r, min_px, max_px).astype(int)
 
 
+def _refine_lines(img, q, radius, tip_px=2.0, min_edge_angle_deg=20.0, rel_grad=0.25, max_line_residual=0.6, max_shift=1.0):
+    """Corner as the intersection of the edges leaving it (no tip bias).
+
+    ``cv2.cornerSubPix`` solves ``sum g g^T (q - x) = 0`` over the window;
+    at an L- or Y-junction (a polyhedron corner, not a chessboard X) the
+    blurred tip and the pixel grid bias it by ~0.1-0.2 px towards the inside
+    of the corner, for every corner, which shrinks the apparent object. Here the
+    gradient pixels outside a ``tip_px`` disc are grouped by their direction
+    seen from ``q`` (the edges are rays from the corner), each group gives a
+    line ``n . x = c`` (normal from the gradient structure tensor, offset from
+    the ``|g|^2``-weighted centroid, which is the edge centre for a symmetric
+    blur), and the lines are intersected in least squares.
+
+    With three or more edges the one farthest from the intersection is dropped
+    while it misses it by more than ``max_line_residual`` px; a result more than
+    ``max_shift`` px from ``q`` (cornerSubPix's bias is a few tenths) is refused.
+
+    Returns the refined point (2,) or None (fewer than two usable, non-parallel edges).
+    """
+    H, W = img.shape
+    R = int(np.ceil(radius))
+    u0, v0 = int(round(q[0])), int(round(q[1]))
+    if u0 - R - 1 < 0 or v0 - R - 1 < 0 or u0 + R + 1 > W - 1 or v0 + R + 1 > H - 1:
+        return None
+    patch = img[v0 - R - 1 : v0 + R + 2, u0 - R - 1 : u0 + R + 2].astype(np.float32)
+    gx = cv2.Sobel(patch, cv2.CV_32F, 1, 0, ksize=3)[1:-1, 1:-1] / 8.0
+    gy = cv2.Sobel(patch, cv2.CV_32F, 0, 1, ksize=3)[1:-1, 1:-1] / 8.0
+    ys, xs = np.mgrid[v0 - R : v0 + R + 1, u0 - R : u0 + R + 1]
+    dx, dy = xs - q[0], ys - q[1]
+    dist = np.hypot(dx, dy)
+    g2 = gx * gx + gy * gy
+    m = (dist > tip_px) & (dist <= radius) & (g2 > (rel_grad**2) * g2.max())
+    if m.sum() < 6:
+        return None
+    x, y, gxm, gym, w = xs[m].astype(float), ys[m].astype(float), gx[m], gy[m], g2[m].astype(float)
+    # the edges are rays from the corner: group pixels by their direction seen from q
+    theta = np.arctan2(dy[m], dx[m])
+    nb = 36
+    hist = np.bincount(((theta + np.pi) / (2 * np.pi) * nb).astype(int) % nb, weights=w, minlength=nb)
+    sm = hist + 0.5 * (np.roll(hist, 1) + np.roll(hist, -1))
+    peaks = [b for b in range(nb) if sm[b] >= sm[b - 1] and sm[b] > sm[(b + 1) % nb] and sm[b] > 0.15 * sm.max()]
+    if len(peaks) < 2:
+        return None
+    centres = (np.array(peaks) + 0.5) / nb * 2 * np.pi - np.pi
+    diff = np.angle(np.exp(1j * (theta[:, None] - centres[None, :])))
+    lab = np.argmin(np.abs(diff), axis=1)
+    lines = []  # (n, c, weight)
+    for k in range(len(centres)):
+        s = lab == k
+        if s.sum() < 3:
+            continue
+        T = np.array([[np.sum(gxm[s] * gxm[s]), np.sum(gxm[s] * gym[s])], [np.sum(gxm[s] * gym[s]), np.sum(gym[s] * gym[s])]])
+        ev, evec = np.linalg.eigh(T)
+        n = evec[:, 1]
+        if ev[0] > 0.2 * ev[1]:  # not a single straight edge (a corner or clutter): skip
+            continue
+        c = np.sum(w[s] * (n[0] * x[s] + n[1] * y[s])) / np.sum(w[s])
+        if abs(n @ q - c) > 1.5:  # an edge that does not pass near the corner
+            continue
+        lines.append((n, c, np.sum(w[s])))
+    while len(lines) >= 2:
+        N = np.array([ln[0] for ln in lines])
+        C = np.array([ln[1] for ln in lines])
+        Wt = np.array([ln[2] for ln in lines])
+        cosmax = np.abs(N @ N.T)[np.triu_indices(len(N), 1)].min()
+        if np.degrees(np.arccos(min(1.0, cosmax))) < min_edge_angle_deg:
+            return None
+        p = np.linalg.solve((N.T * Wt) @ N, (N.T * Wt) @ C)
+        res = np.abs(N @ p - C)
+        # three or more edges must meet in one point; drop the one that does not
+        if len(lines) > 2 and res.max() > max_line_residual:
+            lines.pop(int(np.argmax(res)))
+            continue
+        if not np.all(np.isfinite(p)) or np.hypot(*(p - q)) > max_shift:
+            return None
+        return p
+    return None
+
+
 def _as_grey(image):
     if image is None:
         return None
@@ -111,6 +192,7 @@ def extract_corners(
     half_size,
     *,
     min_eig: float = 2e-4,
+    min_isotropy: float = 0.03,
     rel_quality: float = 0.2,
     block_size: int = 3,
     nms_radius: int = 2,
@@ -118,6 +200,8 @@ def extract_corners(
     ambiguity_ratio: float = 0.6,
     max_subpix_shift: float = 4.0,
     shared_px: float = 1.0,
+    refine_lines: bool = True,
+    line_radius: float = 7.0,
 ) -> ExtractionResult:
     """Find one corner per feature inside its window.
 
@@ -135,6 +219,10 @@ def extract_corners(
         straight edge, below 1.3e-4 in 99.99 % of pixels of flat noise with
         sigma = 2 grey levels. The default keeps right-angle corners from ~10
         grey levels of contrast (more for obtuse ones).
+    min_isotropy : float
+        ``lambda_min / lambda_max`` of the structure tensor must reach this:
+        0.07 at a 150 deg corner, 0.03 at 160 deg, ~0.004 on the staircase of
+        a rasterised straight edge with 190 grey levels of contrast.
     rel_quality : float
         Candidates weaker than this fraction of the window's best are dropped.
     block_size : int
@@ -151,6 +239,14 @@ def extract_corners(
         response peak of an obtuse corner sits up to ~3 px inside the tip).
     shared_px : float
         Two features whose corners are closer than this both get ``SHARED``.
+    refine_lines : bool
+        After ``cornerSubPix``, intersect the edges leaving the corner
+        (:func:`_refine_lines`), which removes most of cornerSubPix's tip bias at
+        L/Y junctions (synthetic polyhedron faces: median error 0.22 -> 0.11 px,
+        90 % 0.38 -> 0.22 px); falls back to the cornerSubPix point when fewer
+        than two clean edges are found within ``line_radius``.
+    line_radius : float
+        px, clamped to the search window half-size + 2.
 
     Returns
     -------
@@ -194,7 +290,10 @@ def extract_corners(
             px0, px1 = max(wx0 - pad, 0), min(wx1 + pad, W - 1)
             py0, py1 = max(wy0 - pad, 0), min(wy1 + pad, H - 1)
             roi = img[py0 : py1 + 1, px0 : px1 + 1]
-            resp = cv2.cornerMinEigenVal(roi, block_size, ksize=3)
+            ev = cv2.cornerEigenValsAndVecs(roi, block_size, ksize=3)
+            lam_a, lam_b = ev[:, :, 0], ev[:, :, 1]
+            resp = np.minimum(lam_a, lam_b)  # == cv2.cornerMinEigenVal
+            lam_max = np.maximum(lam_a, lam_b)
             # only the window proper, away from the image's outer pixels (no valid gradient there)
             inner = np.zeros_like(resp, dtype=bool)
             ix0, ix1 = max(wx0, 2) - px0, min(wx1, W - 3) - px0
@@ -206,6 +305,9 @@ def extract_corners(
             peak = (resp >= cv2.dilate(resp, kernel)) & inner
             best = resp[inner].max()
             peak &= resp >= max(min_eig, rel_quality * best)
+            # straight edges (aliased or noisy) have a small but non-zero lambda_min: ask
+            # the structure tensor to be two-dimensional as well
+            peak &= resp >= min_isotropy * lam_max
             ys, xs = np.nonzero(peak)
             ncand[i] = len(xs)
             if len(xs) == 0:
@@ -228,6 +330,10 @@ def extract_corners(
             ):
                 why[i] = Why.NO_CORNER
                 continue
+            if refine_lines:
+                p = _refine_lines(img, ref, min(line_radius, r + 2.0))
+                if p is not None and abs(p[0] - u) <= r and abs(p[1] - v) <= r:
+                    ref = p
             uv_out[i] = ref
             why[i] = Why.FOUND
         except (cv2.error, ValueError, IndexError, TypeError):
