@@ -35,6 +35,8 @@ Structure follows filterpy: pure ``predict`` / ``update`` functions on
 from __future__ import annotations
 
 import enum
+import functools
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -43,7 +45,7 @@ from filterpy.kalman import predict as kf_predict
 from filterpy.kalman import update as kf_update
 from scipy.stats import chi2
 
-from .se3 import exp_so3, log_so3, matrix_from_quat, quat_from_rotvec, quat_multiply, skew, transform_from_rt
+from .se3 import log_so3, matrix_from_quat, skew, transform_from_rt
 
 __all__ = [
     "Status",
@@ -119,6 +121,41 @@ class UpdateResult:
         return int(self.accepted.sum())
 
 
+# --------------------------------------------------------------------------- small fast SO(3) helpers
+# (scipy's Rotation costs ~10-15 us per call on a single vector; these are per-tick)
+
+
+def _quat_exp(v: np.ndarray) -> np.ndarray:
+    """Unit quaternion (w, x, y, z) of the rotation vector ``v`` (3,)."""
+    a = math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
+    if a < 1e-8:
+        q = np.array([1.0, 0.5 * v[0], 0.5 * v[1], 0.5 * v[2]])
+        return q / math.sqrt(q @ q)
+    s = math.sin(0.5 * a) / a
+    return np.array([math.cos(0.5 * a), s * v[0], s * v[1], s * v[2]])
+
+
+def _quat_mul(p: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """Hamilton product of two single quaternions (4,)."""
+    pw, px, py, pz = p
+    qw, qx, qy, qz = q
+    return np.array([
+        pw * qw - px * qx - py * qy - pz * qz,
+        pw * qx + px * qw + py * qz - pz * qy,
+        pw * qy - px * qz + py * qw + pz * qx,
+        pw * qz + px * qy - py * qx + pz * qw,
+    ])
+
+
+def _exp_so3(v: np.ndarray) -> np.ndarray:
+    """Rotation matrix of the rotation vector ``v`` (3,) (Rodrigues)."""
+    a = math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
+    S = skew(v)
+    if a < 1e-8:
+        return np.eye(3) + S + 0.5 * (S @ S)
+    return np.eye(3) + (math.sin(a) / a) * S + ((1.0 - math.cos(a)) / (a * a)) * (S @ S)
+
+
 # --------------------------------------------------------------------------- state helpers
 
 
@@ -168,8 +205,8 @@ def inject(x: np.ndarray, dx: np.ndarray) -> np.ndarray:
     """
     out = np.empty(13)
     out[P_] = x[P_] + dx[DP]
-    q = quat_multiply(quat_from_rotvec(dx[DTH]), x[Q_])
-    out[Q_] = q / np.linalg.norm(q)
+    q = _quat_mul(_quat_exp(dx[DTH]), x[Q_])
+    out[Q_] = q / math.sqrt(q @ q)
     out[V_] = x[V_] + dx[DV]
     out[W_] = x[W_] + dx[DW]
     return out
@@ -205,8 +242,8 @@ def motion_model(x: np.ndarray, dt: float) -> np.ndarray:
     """Propagate the nominal state (13,) by ``dt`` seconds (constant velocity)."""
     out = x.copy()
     out[P_] = x[P_] + dt * x[V_]
-    q = quat_multiply(quat_from_rotvec(dt * x[W_]), x[Q_])
-    out[Q_] = q / np.linalg.norm(q)
+    q = _quat_mul(_quat_exp(dt * x[W_]), x[Q_])
+    out[Q_] = q / math.sqrt(q @ q)
     return out
 
 
@@ -220,12 +257,21 @@ def transition_jacobian(x: np.ndarray, dt: float) -> np.ndarray:
     F = np.eye(12)
     F[DP, DV] = dt * np.eye(3)
     phi = dt * x[W_]
-    F[DTH, DTH] = exp_so3(phi)
+    F[DTH, DTH] = _exp_so3(phi)
     F[DTH, DW] = dt * left_jacobian_so3(phi)
     return F
 
 
 def process_noise(dt: float, q_acc: float, q_alpha: float) -> np.ndarray:
+    """Discretised process noise ``Q`` (12, 12); see :func:`_process_noise_cached`.
+
+    Cached per ``(dt, q_acc, q_alpha)``: dt from capture stamps repeats.
+    """
+    return _process_noise_cached(float(dt), float(q_acc), float(q_alpha)).copy()
+
+
+@functools.lru_cache(maxsize=256)
+def _process_noise_cached(dt: float, q_acc: float, q_alpha: float) -> np.ndarray:
     """Discretised process noise ``Q`` (12, 12) of the constant-velocity model.
 
     Per axis ``q * [[dt^3/3, dt^2/2], [dt^2/2, dt]]`` (continuous white
@@ -250,6 +296,7 @@ def process_noise(dt: float, q_acc: float, q_alpha: float) -> np.ndarray:
     ia = np.r_[3:6, 9:12]
     Q[np.ix_(il, il)] = lin
     Q[np.ix_(ia, ia)] = ang
+    Q.setflags(write=False)
     return Q
 
 
@@ -260,7 +307,7 @@ def predict(x: np.ndarray, P: np.ndarray, dt: float, q_acc: float, q_alpha: floa
     zero before the step: the nominal state carries the mean).
     """
     F = transition_jacobian(x, dt)
-    _, P_new = kf_predict(np.zeros(12), P, F, process_noise(dt, q_acc, q_alpha))
+    _, P_new = kf_predict(np.zeros(12), P, F, _process_noise_cached(float(dt), float(q_acc), float(q_alpha)))
     return motion_model(x, dt), 0.5 * (P_new + P_new.T)
 
 

@@ -97,20 +97,9 @@ def project_with_jacobian(
     x = X * iz
     y = Y * iz
 
-    # d P_c / d delta, (N, 3, 6): [R_cw, -R_cw [r]x] = [R_cw, R_cw-rows x r]
-    # -R_cw [r]x row i is (r x R_cw[i]) since -(a x r) . = (r x a) .
-    dPc = np.empty((P_c.shape[0], 3, 6))
-    dPc[:, :, :3] = R_cw
-    dPc[:, :, 3:] = np.cross(r_w[:, None, :], R_cw[None, :, :])
-
-    # d (x, y) / d P_c, (N, 2, 3)
-    dxy_dPc = np.zeros((P_c.shape[0], 2, 3))
-    dxy_dPc[:, 0, 0] = iz
-    dxy_dPc[:, 0, 2] = -x * iz
-    dxy_dPc[:, 1, 1] = iz
-    dxy_dPc[:, 1, 2] = -y * iz
-
+    n = P_c.shape[0]
     fx, fy, cx, cy = intr.fx, intr.fy, intr.cx, intr.cy
+    # D = d(u, v) / d(x, y), the 2x2 distortion Jacobian scaled by the focal lengths
     if intr.has_distortion:
         k1, k2, p1, p2, k3 = intr.dist
         r2 = x * x + y * y
@@ -119,21 +108,38 @@ def project_with_jacobian(
         xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
         yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
         cross_term = 2.0 * x * y * drad + 2.0 * p1 * x + 2.0 * p2 * y
-        D = np.empty((P_c.shape[0], 2, 2))
-        D[:, 0, 0] = radial + 2.0 * x * x * drad + 2.0 * p1 * y + 6.0 * p2 * x
-        D[:, 0, 1] = cross_term
-        D[:, 1, 0] = cross_term
-        D[:, 1, 1] = radial + 2.0 * y * y * drad + 6.0 * p1 * y + 2.0 * p2 * x
-        D[:, 0, :] *= fx
-        D[:, 1, :] *= fy
+        D00 = fx * (radial + 2.0 * x * x * drad + 2.0 * p1 * y + 6.0 * p2 * x)
+        D01 = fx * cross_term
+        D10 = fy * cross_term
+        D11 = fy * (radial + 2.0 * y * y * drad + 6.0 * p1 * y + 2.0 * p2 * x)
     else:
         xd, yd = x, y
-        D = np.zeros((P_c.shape[0], 2, 2))
-        D[:, 0, 0] = fx
-        D[:, 1, 1] = fy
+        D00 = np.full(n, fx)
+        D11 = np.full(n, fy)
+        D01 = D10 = np.zeros(n)
 
-    uv = np.stack([fx * xd + cx, fy * yd + cy], axis=1)
-    J = D @ dxy_dPc @ dPc
+    uv = np.empty((n, 2))
+    uv[:, 0] = fx * xd + cx
+    uv[:, 1] = fy * yd + cy
+
+    # A = D @ d(x, y)/d P_c with d(x, y)/d P_c = [[1/Z, 0, -x/Z], [0, 1/Z, -y/Z]], (N, 2, 3)
+    A = np.empty((n, 2, 3))
+    A[:, 0, 0] = D00 * iz
+    A[:, 0, 1] = D01 * iz
+    A[:, 0, 2] = -(D00 * x + D01 * y) * iz
+    A[:, 1, 0] = D10 * iz
+    A[:, 1, 1] = D11 * iz
+    A[:, 1, 2] = -(D10 * x + D11 * y) * iz
+    # d P_c / d delta = R_cw [I, -[r]x]: position block B = A R_cw, rotation block
+    # -B [r]x, whose rows are r x b (b a row of B)
+    J = np.empty((n, 2, 6))
+    B = A @ R_cw
+    J[:, :, :3] = B
+    r0, r1, r2_ = r_w[:, 0:1], r_w[:, 1:2], r_w[:, 2:3]
+    b0, b1, b2 = B[:, :, 0], B[:, :, 1], B[:, :, 2]
+    J[:, :, 3] = r1 * b2 - r2_ * b1
+    J[:, :, 4] = r2_ * b0 - r0 * b2
+    J[:, :, 5] = r0 * b1 - r1 * b0
     return uv, Z.copy(), J
 
 

@@ -197,12 +197,32 @@ def select_quality(
     dist = np.linalg.norm(uv[el] - c, axis=1)
     first = el[np.lexsort((-dist, -w[el]))[0]]
     chosen = [int(first)]
-    remaining = [int(i) for i in el if i != first]
+    remaining = np.array([i for i in el if i != first], dtype=np.intp)
     while len(chosen) < k:
-        scores = [quality_index(uv[chosen + [j]], w[chosen + [j]], image_size) for j in remaining]
+        scores = _quality_index_batch(uv[chosen], w[chosen], uv[remaining], w[remaining], image_size)
         best = int(np.argmax(scores))
-        chosen.append(remaining.pop(best))
+        chosen.append(int(remaining[best]))
+        remaining = np.delete(remaining, best)
     return np.array(chosen, dtype=np.intp)
+
+
+def _quality_index_batch(uv_S, w_S, uv_c, w_c, image_size) -> np.ndarray:
+    """:func:`quality_index` of ``S + {j}`` for every candidate j at once, shape (M,)."""
+    n = len(uv_S) + 1
+    wdt, hgt = image_size
+    sets = np.concatenate([np.broadcast_to(uv_S, (len(uv_c),) + uv_S.shape), uv_c[:, None, :]], axis=1)  # (M, n, 2)
+    c = sets.mean(axis=1, keepdims=True)
+    d = sets - c
+    q_s = np.minimum(1.0, np.sqrt(np.mean(np.sum(d * d, axis=2), axis=1)) / (0.5 * np.hypot(wdt, hgt)))
+    if n < 3:
+        q_a = np.ones(len(uv_c))
+    else:
+        a = np.sort(np.arctan2(d[:, :, 1], d[:, :, 0]), axis=1)
+        gaps = np.diff(np.concatenate([a, a[:, :1] + 2.0 * np.pi], axis=1), axis=1)
+        even = 2.0 * np.pi / n
+        q_a = 1.0 - (gaps.max(axis=1) - even) / (2.0 * np.pi - even)
+    w_mean = (np.sum(w_S) + w_c) / n
+    return w_mean * q_s * q_a
 
 
 def pose_information_logdet(J_sel, P6=None, sigma_px=0.5) -> float:

@@ -226,6 +226,7 @@ def run_ekf(
     q_alpha: float = 0.1,
     init_error=(0.02, np.deg2rad(5.0)),
     outliers=None,
+    select_joint=None,
 ):
     """Track ``truth`` (n, 13) with :class:`vespro.ekf.PoseEKF` from synthetic pixels.
 
@@ -243,6 +244,10 @@ def run_ekf(
         Magnitudes of the start error (random directions).
     outliers : callable or None
         ``outliers(k, z) -> z`` may corrupt the stacked measurements of frame k.
+    select_joint : callable or None
+        ``select_joint(cands, P6) -> list of positions`` with ``cands`` a list of
+        per-camera ``(idx, uv, J, view_angle, silhouette_px, intr)``; used
+        instead of ``select`` when given (selection across cameras).
 
     Returns
     -------
@@ -267,12 +272,20 @@ def run_ekf(
         zs, hs, Js = [], [], []
         frame_meas = []
         out["meas"].append(frame_meas)
+        cands = []
         for c, (intr, T_wc) in enumerate(cameras):
             idx, uv_pred, ang, sil = visible_features(poly, intr, T_wc, T_pred)
             h, _, J = project_with_jacobian(intr, T_wc, T_pred, poly.V[idx])
-            if select is not None:
-                pos = np.asarray(select(c, idx, h, J, ang, sil, intr, f.pose_covariance), dtype=int)
-                idx, h, J = idx[pos], h[pos], J[pos]
+            cands.append((idx, h, J, ang, sil, intr))
+        if select_joint is not None:
+            picks = select_joint(cands, f.pose_covariance)
+        elif select is not None:
+            picks = [select(c, *cands[c][:5], cands[c][5], f.pose_covariance) for c in range(len(cameras))]
+        else:
+            picks = [np.arange(len(cd[0])) for cd in cands]
+        for c, (intr, T_wc) in enumerate(cameras):
+            pos = np.asarray(picks[c], dtype=int)
+            idx, h, J = cands[c][0][pos], cands[c][1][pos], cands[c][2][pos]
             z_true, _, _ = project_with_jacobian(intr, T_wc, T_true, poly.V[idx])
             zs.append(z_true + rng.normal(0.0, sigma_px, z_true.shape))
             frame_meas.append((idx, zs[-1]))

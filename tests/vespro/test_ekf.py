@@ -295,3 +295,13 @@ def test_update_shape_errors_raise():
         ekf.update(x, P, z, h, J[:, :, :5])
     with pytest.raises(ValueError, match="expected"):
         ekf.update(x, P, z[:-1], h, J)
+
+
+def test_fast_so3_helpers_match_se3():
+    rng = np.random.default_rng(8)
+    for v in [np.zeros(3), np.array([1e-10, 0, 0]), rng.normal(0, 1e-5, 3), rng.normal(0, 1.0, 3), np.array([0, 0, 3.1])]:
+        np.testing.assert_allclose(ekf._exp_so3(v), se3.exp_so3(v), atol=1e-14)
+        q = ekf._quat_exp(v)
+        np.testing.assert_allclose(se3.quat_canonical(q), se3.quat_canonical(se3.quat_from_rotvec(v)), atol=1e-14)
+    a, b = se3.quat_normalize(rng.normal(size=(2, 4)))
+    np.testing.assert_allclose(ekf._quat_mul(a, b), se3.quat_multiply(a, b), atol=1e-15)

@@ -154,3 +154,14 @@ def test_shape_errors_raise():
         sel.select_information(uv, J[:, :, :3], va, sil, SIZE)
     with pytest.raises(ValueError, match="view_angle"):
         sel.select_quality(uv, va[:-1], sil, SIZE)
+
+
+def test_batched_quality_index_matches_the_scalar_one():
+    rng = np.random.default_rng(2)
+    uv = rng.uniform(0, 600, (12, 2))
+    w = rng.uniform(0.2, 1, 12)
+    for n in (1, 2, 5):
+        S, C = np.arange(n), np.arange(n, 12)
+        batch = sel._quality_index_batch(uv[S], w[S], uv[C], w[C], SIZE)
+        ref = [sel.quality_index(uv[np.r_[S, j]], w[np.r_[S, j]], SIZE) for j in C]
+        np.testing.assert_allclose(batch, ref, rtol=1e-12)
