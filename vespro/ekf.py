@@ -357,8 +357,9 @@ def update(
         Predicted pixels at ``x`` (:func:`vespro.projection.project_with_jacobian`).
     J_pose : ndarray, shape (M, 2, 6)
         ``d h / d [dp, dtheta]`` at ``x``.
-    sigma_px : float
-        Pixel noise standard deviation (isotropic, independent), px.
+    sigma_px : float or ndarray (M,)
+        Pixel noise standard deviation (isotropic, independent), px; per point
+        if an array (e.g. from the extractor's confidence).
     gate_prob : float
         Gate probability: a point is an outlier if its normalised innovation
         exceeds the ``gate_prob`` quantile of chi-square with 2 dof.
@@ -393,30 +394,37 @@ def update(
     if z.shape != (M, 2) or h.shape != (M, 2) or J_pose.shape != (M, 2, 6):
         raise ValueError(f"update: expected z (M,2), h (M,2), J_pose (M,2,6); got {z.shape}, {h.shape}, {J_pose.shape}")
 
+    try:
+        sig2 = np.broadcast_to(np.asarray(sigma_px, dtype=float) ** 2, (M,))
+    except ValueError:
+        raise ValueError(f"update: sigma_px must be a scalar or shape ({M},), got {np.shape(sigma_px)}") from None
+
     y_all = z - h
     finite = np.all(np.isfinite(y_all), axis=1) & np.all(np.isfinite(J_pose), axis=(1, 2))
+    finite &= np.isfinite(sig2) & (sig2 > 0)
     nonfinite = ~finite
     accepted = finite.copy()
     nis = np.full(M, np.nan)
     H_all = np.zeros((M, 2, 12))
     H_all[:, :, :6] = np.where(finite[:, None, None], J_pose, 0.0)
     y_all = np.where(finite[:, None], y_all, 0.0)
-    r2 = sigma_px**2
     gate = chi2.ppf(gate_prob, 2)
+    I2 = np.eye(2)
 
     dx = None
     P_post = None
     while accepted.sum() >= max(min_points, 1):
         idx = np.flatnonzero(accepted)
         H = H_all[idx].reshape(-1, 12)
-        dx, P_post = kf_update(np.zeros(12), P, y_all[idx].reshape(-1), r2 * np.eye(2 * idx.size), H)
+        s2 = sig2[idx]
+        dx, P_post = kf_update(np.zeros(12), P, y_all[idx].reshape(-1), np.diag(np.repeat(s2, 2)), H)
         Hi = H_all[idx]
         r = y_all[idx] - Hi @ dx
-        C = r2 * np.eye(2) - Hi @ P_post @ Hi.transpose(0, 2, 1)
+        C = s2[:, None, None] * I2 - Hi @ P_post @ Hi.transpose(0, 2, 1)
         # C is the residual covariance; keep it positive if a single point carries
         # (almost) all the information of a direction (leverage -> 1).
-        C[:, 0, 0] = np.maximum(C[:, 0, 0], 1e-6 * r2)
-        C[:, 1, 1] = np.maximum(C[:, 1, 1], 1e-6 * r2)
+        C[:, 0, 0] = np.maximum(C[:, 0, 0], 1e-6 * s2)
+        C[:, 1, 1] = np.maximum(C[:, 1, 1], 1e-6 * s2)
         d2 = np.einsum("mi,mij,mj->m", r, _inv2x2(C), r)
         nis[idx] = d2
         worst = int(np.argmax(d2))
@@ -433,7 +441,7 @@ def update(
     if gated.any():
         Hg = H_all[gated]
         rg = y_all[gated] - Hg @ dx
-        Sg = r2 * np.eye(2) + Hg @ P_post @ Hg.transpose(0, 2, 1)
+        Sg = sig2[gated][:, None, None] * I2 + Hg @ P_post @ Hg.transpose(0, 2, 1)
         nis[gated] = np.einsum("mi,mij,mj->m", rg, _inv2x2(Sg), rg)
 
     x_new = inject(x, dx)
