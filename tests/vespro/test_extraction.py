@@ -116,6 +116,11 @@ def test_window_radius_is_respected():
     # the square window: 9 px along both axes is outside r = 8 even though a disc of 13 would hold it
     assert not extract_corners(img, tri + [[9.0, 9.0]], 8).found[0]
     assert extract_corners(img, tri + [[7.0, 7.0]], 8).found[0]
+    # just outside: the response peak can sit on the window's last pixel column, the
+    # refined corner may not leave the window
+    for off in np.arange(8.4, 9.0, 0.1):  # beyond 8 px + the 0.35 px error budget
+        assert not extract_corners(img, tri + [[-off, 0.0]], 8).found[0], off
+        assert not extract_corners(img, tri + [[off, 0.0]], 8).found[0], off
 
 
 def test_ambiguous_and_shared_corners():
