@@ -60,7 +60,7 @@ def _vec(a, n, name, default):
     return a
 
 
-def eligible_mask(uv, image_size, border_px=DEFAULT_BORDER_PX, view_angle=None, max_view_angle=DEFAULT_MAX_VIEW_ANGLE, J=None):
+def eligible_mask(uv, image_size, border_px=DEFAULT_BORDER_PX, view_angle=None, max_view_angle=DEFAULT_MAX_VIEW_ANGLE, J=None, min_separation_px=0.0):
     """Candidates that may be selected.
 
     Parameters
@@ -77,6 +77,9 @@ def eligible_mask(uv, image_size, border_px=DEFAULT_BORDER_PX, view_angle=None, 
         rad; grazing corners are unreliable.
     J : ndarray (N, 2, 6), optional
         Rows with non-finite Jacobians are excluded.
+    min_separation_px : float
+        Exclude corners with another candidate closer than this (px): the
+        extractor cannot tell them apart (ambiguous / shared corner). 0: off.
 
     Returns
     -------
@@ -93,10 +96,15 @@ def eligible_mask(uv, image_size, border_px=DEFAULT_BORDER_PX, view_angle=None, 
             ok &= np.isfinite(va) & (va < max_view_angle)
     if J is not None:
         ok &= np.all(np.isfinite(np.asarray(J)), axis=(1, 2))
+    if min_separation_px > 0 and len(uv) > 1:
+        with np.errstate(invalid="ignore"):
+            d = np.hypot(uv[:, None, 0] - uv[None, :, 0], uv[:, None, 1] - uv[None, :, 1])
+            np.fill_diagonal(d, np.inf)
+            ok &= ~np.any(d < min_separation_px, axis=1)
     return ok
 
 
-def feature_weights(uv, view_angle, silhouette_px, image_size, border_px=DEFAULT_BORDER_PX, sil_ref_px=DEFAULT_SIL_REF_PX, max_view_angle=DEFAULT_MAX_VIEW_ANGLE):
+def feature_weights(uv, view_angle, silhouette_px, image_size, border_px=DEFAULT_BORDER_PX, sil_ref_px=DEFAULT_SIL_REF_PX, max_view_angle=DEFAULT_MAX_VIEW_ANGLE, min_separation_px=0.0):
     """Per-corner reliability in [0, 1] (0 for ineligible corners).
 
     Product of a viewing-angle term ``cos(angle)`` rescaled to reach 0 at
@@ -110,7 +118,7 @@ def feature_weights(uv, view_angle, silhouette_px, image_size, border_px=DEFAULT
     va = _vec(view_angle, n, "view_angle", 0.0)
     sil = _vec(silhouette_px, n, "silhouette_px", sil_ref_px)
     w, h = image_size
-    el = eligible_mask(uv, image_size, border_px, va, max_view_angle)
+    el = eligible_mask(uv, image_size, border_px, va, max_view_angle, min_separation_px=min_separation_px)
     cmin = np.cos(max_view_angle)
     with np.errstate(invalid="ignore"):
         t_view = np.clip((np.cos(va) - cmin) / (1.0 - cmin), 0.0, 1.0)
@@ -162,6 +170,7 @@ def select_quality(
     border_px: float = DEFAULT_BORDER_PX,
     max_view_angle: float = DEFAULT_MAX_VIEW_ANGLE,
     sil_ref_px: float = DEFAULT_SIL_REF_PX,
+    min_separation_px: float = 0.0,
 ) -> np.ndarray:
     """Greedy quality-index selection of up to ``k`` corners of one camera.
 
@@ -175,7 +184,7 @@ def select_quality(
         Pixel distance to the object's silhouette.
     image_size : (width, height)
     k : int
-    border_px, max_view_angle, sil_ref_px : see :func:`eligible_mask`, :func:`feature_weights`.
+    border_px, max_view_angle, sil_ref_px, min_separation_px : see :func:`eligible_mask`, :func:`feature_weights`.
 
     Returns
     -------
@@ -189,7 +198,7 @@ def select_quality(
     enlarged set. O(N k) index evaluations.
     """
     uv = _check(uv)
-    w = feature_weights(uv, view_angle, silhouette_px, image_size, border_px, sil_ref_px, max_view_angle)
+    w = feature_weights(uv, view_angle, silhouette_px, image_size, border_px, sil_ref_px, max_view_angle, min_separation_px)
     el = np.flatnonzero(w > 0.0)
     if el.size <= k:
         return el[np.argsort(-w[el], kind="stable")].astype(np.intp)
@@ -285,6 +294,7 @@ def select_information(
     sigma_px=0.5,
     border_px: float = DEFAULT_BORDER_PX,
     max_view_angle: float = DEFAULT_MAX_VIEW_ANGLE,
+    min_separation_px: float = 0.0,
 ) -> np.ndarray:
     """Greedy information (log-det) selection of up to ``k`` corners of one camera.
 
@@ -306,6 +316,7 @@ def select_information(
     k : int
     sigma_px : float or ndarray (N,)
         Pixel noise per corner.
+    border_px, max_view_angle, min_separation_px : see :func:`eligible_mask`.
 
     Returns
     -------
@@ -324,11 +335,19 @@ def select_information(
     if J.shape != (len(uv), 2, 6):
         raise ValueError(f"J: expected shape ({len(uv)}, 2, 6), got {J.shape}")
     _vec(silhouette_px, len(uv), "silhouette_px", 0.0)
-    el = eligible_mask(uv, image_size, border_px, view_angle, max_view_angle, J)
+    el = eligible_mask(uv, image_size, border_px, view_angle, max_view_angle, J, min_separation_px)
     return _greedy_info(J, el, np.zeros(len(uv), int), [k], P6, sigma_px)
 
 
-def select_information_joint(candidates, P6=None, k_per_camera: int = DEFAULT_K, sigma_px=0.5, border_px: float = DEFAULT_BORDER_PX, max_view_angle: float = DEFAULT_MAX_VIEW_ANGLE):
+def select_information_joint(
+    candidates,
+    P6=None,
+    k_per_camera: int = DEFAULT_K,
+    sigma_px=0.5,
+    border_px: float = DEFAULT_BORDER_PX,
+    max_view_angle: float = DEFAULT_MAX_VIEW_ANGLE,
+    min_separation_px: float = 0.0,
+):
     """Greedy information selection across all cameras at once.
 
     Parameters
@@ -352,7 +371,7 @@ def select_information_joint(candidates, P6=None, k_per_camera: int = DEFAULT_K,
         if J.shape != (len(uv), 2, 6):
             raise ValueError(f"camera {c}: J: expected shape ({len(uv)}, 2, 6), got {J.shape}")
         Js.append(J)
-        els.append(eligible_mask(uv, size, border_px, va, max_view_angle, J))
+        els.append(eligible_mask(uv, size, border_px, va, max_view_angle, J, min_separation_px))
         groups.append(np.full(len(uv), c))
     if not Js:
         return []

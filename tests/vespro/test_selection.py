@@ -165,3 +165,19 @@ def test_batched_quality_index_matches_the_scalar_one():
         batch = sel._quality_index_batch(uv[S], w[S], uv[C], w[C], SIZE)
         ref = [sel.quality_index(uv[np.r_[S, j]], w[np.r_[S, j]], SIZE) for j in C]
         np.testing.assert_allclose(batch, ref, rtol=1e-12)
+
+
+def test_min_separation_excludes_crowded_corners():
+    uv, J, va, sil, P6 = _candidates(3)
+    uv = uv.copy()
+    uv[1] = uv[0] + [3.0, 0.0]  # two corners 3 px apart: the extractor cannot tell them apart
+    el = sel.eligible_mask(uv, SIZE, J=J, min_separation_px=5.0)
+    assert not el[0] and not el[1]
+    for idx in (
+        sel.select_quality(uv, va, sil, SIZE, k=30, min_separation_px=5.0),
+        sel.select_information(uv, J, va, sil, SIZE, P6=P6, k=30, min_separation_px=5.0),
+        sel.select_information_joint([(uv, J, va, SIZE)], P6=P6, k_per_camera=30, min_separation_px=5.0)[0],
+    ):
+        assert 0 not in idx and 1 not in idx
+    # off by default
+    assert sel.eligible_mask(uv, SIZE, J=J)[[0, 1]].all()
