@@ -20,6 +20,7 @@ Pixels: ``(0, 0)`` is the centre of the top-left pixel (OpenCV).
 from __future__ import annotations
 
 import enum
+import math
 from dataclasses import dataclass
 
 import cv2
@@ -129,10 +130,10 @@ def _refine_lines(img, q, radius, tip_px=2.0, min_edge_angle_deg=20.0, rel_grad=
     nb = 36
     hist = np.bincount(((theta + np.pi) / (2 * np.pi) * nb).astype(int) % nb, weights=w, minlength=nb)
     sm = hist + 0.5 * (np.roll(hist, 1) + np.roll(hist, -1))
-    peaks = [b for b in range(nb) if sm[b] >= sm[b - 1] and sm[b] > sm[(b + 1) % nb] and sm[b] > 0.15 * sm.max()]
+    peaks = np.flatnonzero((sm >= np.roll(sm, 1)) & (sm > np.roll(sm, -1)) & (sm > 0.15 * sm.max()))
     if len(peaks) < 2:
         return None
-    centres = (np.array(peaks) + 0.5) / nb * 2 * np.pi - np.pi
+    centres = (peaks + 0.5) / nb * 2 * np.pi - np.pi
     diff = np.angle(np.exp(1j * (theta[:, None] - centres[None, :])))
     lab = np.argmin(np.abs(diff), axis=1)
     lines = []  # (n, c, weight)
@@ -140,11 +141,14 @@ def _refine_lines(img, q, radius, tip_px=2.0, min_edge_angle_deg=20.0, rel_grad=
         s = lab == k
         if s.sum() < 3:
             continue
-        T = np.array([[np.sum(gxm[s] * gxm[s]), np.sum(gxm[s] * gym[s])], [np.sum(gxm[s] * gym[s]), np.sum(gym[s] * gym[s])]])
-        ev, evec = np.linalg.eigh(T)
-        n = evec[:, 1]
-        if ev[0] > 0.2 * ev[1]:  # not a single straight edge (a corner or clutter): skip
+        a_, b_, c_ = float(gxm[s] @ gxm[s]), float(gxm[s] @ gym[s]), float(gym[s] @ gym[s])
+        # 2x2 structure tensor: eigenvalues and the dominant eigenvector in closed form
+        half_tr, disc = 0.5 * (a_ + c_), math.hypot(0.5 * (a_ - c_), b_)
+        ev0, ev1 = half_tr - disc, half_tr + disc
+        if ev1 <= 0 or ev0 > 0.2 * ev1:  # not a single straight edge (a corner or clutter): skip
             continue
+        phi = 0.5 * math.atan2(2.0 * b_, a_ - c_)
+        n = np.array([math.cos(phi), math.sin(phi)])
         c = np.sum(w[s] * (n[0] * x[s] + n[1] * y[s])) / np.sum(w[s])
         if abs(n @ q - c) > 1.5:  # an edge that does not pass near the corner
             continue
