@@ -359,3 +359,14 @@ def test_gate_statistic_is_the_leave_one_out_innovation():
         S = H_i @ P_lin @ H_i.T + 0.25 * np.eye(2)
         # equal up to the reset's second-order terms in dtheta (~1e-3 rad here)
         assert res.nis[i] == pytest.approx(e @ np.linalg.solve(S, e), rel=1e-3)
+
+
+from hypothesis import given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+
+@settings(max_examples=60, deadline=None, derandomize=True)
+@given(dx=st.lists(st.floats(-1.0, 1.0), min_size=12, max_size=12).map(np.array), seed=st.integers(0, 1000))
+def test_inject_boxminus_property(dx, seed):
+    x = _random_state(np.random.default_rng(seed))
+    np.testing.assert_allclose(ekf.boxminus(ekf.inject(x, dx), x), dx, atol=1e-10)

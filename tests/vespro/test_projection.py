@@ -102,3 +102,29 @@ def test_gauss_newton_recovers_pose_from_two_cameras():
     T_est, _ = refine_pose_gauss_newton(cams, z, [P, P], T0)
     dp, da = se3.pose_error(T_est, T_wo)
     assert dp < 1e-9 and da < 1e-9
+
+
+from hypothesis import given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+_vec3 = st.lists(st.floats(-1.0, 1.0), min_size=3, max_size=3).map(np.array)
+
+
+@settings(max_examples=60, deadline=None, derandomize=True)
+@given(rv_c=_vec3, rv_o=_vec3, t=_vec3, pts=st.lists(_vec3, min_size=1, max_size=6))
+def test_jacobian_property_any_pose(rv_c, rv_o, t, pts):
+    # any camera / object orientation, object 0.5-1.5 m in front of the camera
+    intr = CameraIntrinsics(640, 480, K, DIST)
+    T_wc = se3.transform_from_rt(se3.exp_so3(2.0 * rv_c), 0.3 * t)
+    T_co = se3.transform_from_rt(se3.exp_so3(3.0 * rv_o), [0.1 * t[0], 0.1 * t[1], 1.0 + 0.5 * t[2]])
+    T_wo = T_wc @ T_co
+    P = 0.1 * np.array(pts)
+    uv, depth, J = project_with_jacobian(intr, T_wc, T_wo, P)
+    assert np.all(depth > 0.3)
+    h = 1e-6
+    for k in range(6):
+        d = np.zeros(6)
+        d[k] = h
+        up = project_with_jacobian(intr, T_wc, apply_pose_error(T_wo, d), P)[0]
+        um = project_with_jacobian(intr, T_wc, apply_pose_error(T_wo, -d), P)[0]
+        np.testing.assert_allclose(J[:, :, k], (up - um) / (2 * h), rtol=1e-5, atol=1e-3)
