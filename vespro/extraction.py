@@ -117,48 +117,54 @@ def _refine_lines(img, q, radius, tip_px=2.0, min_edge_angle_deg=20.0, rel_grad=
     patch = img[v0 - R - 1 : v0 + R + 2, u0 - R - 1 : u0 + R + 2].astype(np.float32)
     gx = cv2.Sobel(patch, cv2.CV_32F, 1, 0, ksize=3)[1:-1, 1:-1] / 8.0
     gy = cv2.Sobel(patch, cv2.CV_32F, 0, 1, ksize=3)[1:-1, 1:-1] / 8.0
-    ys, xs = np.mgrid[v0 - R : v0 + R + 1, u0 - R : u0 + R + 1]
-    dx, dy = xs - q[0], ys - q[1]
-    dist = np.hypot(dx, dy)
+    xs = np.arange(u0 - R, u0 + R + 1, dtype=float)[None, :]
+    ys = np.arange(v0 - R, v0 + R + 1, dtype=float)[:, None]
+    dx, dy = np.broadcast_arrays(xs - q[0], ys - q[1])
+    dist2 = dx * dx + dy * dy
     g2 = gx * gx + gy * gy
-    m = (dist > tip_px) & (dist <= radius) & (g2 > (rel_grad**2) * g2.max())
-    if m.sum() < 6:
+    m = (dist2 > tip_px * tip_px) & (dist2 <= radius * radius) & (g2 > (rel_grad**2) * g2.max())
+    if np.count_nonzero(m) < 6:
         return None
-    x, y, gxm, gym, w = xs[m].astype(float), ys[m].astype(float), gx[m], gy[m], g2[m].astype(float)
+    dxm, dym, gxm, gym = dx[m], dy[m], gx[m].astype(float), gy[m].astype(float)
+    w = gxm * gxm + gym * gym
     # the edges are rays from the corner: group pixels by their direction seen from q
-    theta = np.arctan2(dy[m], dx[m])
+    theta = np.arctan2(dym, dxm)
     nb = 36
-    hist = np.bincount(((theta + np.pi) / (2 * np.pi) * nb).astype(int) % nb, weights=w, minlength=nb)
-    sm = hist + 0.5 * (np.roll(hist, 1) + np.roll(hist, -1))
-    peaks = np.flatnonzero((sm >= np.roll(sm, 1)) & (sm > np.roll(sm, -1)) & (sm > 0.15 * sm.max()))
+    hist = np.bincount(((theta + np.pi) * (nb / (2 * np.pi))).astype(int) % nb, weights=w, minlength=nb)
+    prev, nxt = np.r_[hist[-1], hist[:-1]], np.r_[hist[1:], hist[0]]
+    sm = hist + 0.5 * (prev + nxt)
+    sprev, snxt = np.r_[sm[-1], sm[:-1]], np.r_[sm[1:], sm[0]]
+    peaks = np.flatnonzero((sm >= sprev) & (sm > snxt) & (sm > 0.15 * sm.max()))
     if len(peaks) < 2:
         return None
-    centres = (peaks + 0.5) / nb * 2 * np.pi - np.pi
-    diff = np.angle(np.exp(1j * (theta[:, None] - centres[None, :])))
+    centres = (peaks + 0.5) * (2 * np.pi / nb) - np.pi
+    diff = (theta[:, None] - centres[None, :] + np.pi) % (2 * np.pi) - np.pi
     lab = np.argmin(np.abs(diff), axis=1)
-    lines = []  # (n, c, weight)
-    for k in range(len(centres)):
-        s = lab == k
-        if s.sum() < 3:
-            continue
-        a_, b_, c_ = float(gxm[s] @ gxm[s]), float(gxm[s] @ gym[s]), float(gym[s] @ gym[s])
-        # 2x2 structure tensor: eigenvalues and the dominant eigenvector in closed form
-        half_tr, disc = 0.5 * (a_ + c_), math.hypot(0.5 * (a_ - c_), b_)
-        ev0, ev1 = half_tr - disc, half_tr + disc
-        if ev1 <= 0 or ev0 > 0.2 * ev1:  # not a single straight edge (a corner or clutter): skip
-            continue
-        phi = 0.5 * math.atan2(2.0 * b_, a_ - c_)
-        n = np.array([math.cos(phi), math.sin(phi)])
-        c = np.sum(w[s] * (n[0] * x[s] + n[1] * y[s])) / np.sum(w[s])
-        if abs(n @ q - c) > 1.5:  # an edge that does not pass near the corner
-            continue
-        lines.append((n, c, np.sum(w[s])))
+    K = len(centres)
+    cnt = np.bincount(lab, minlength=K)
+    a_ = np.bincount(lab, gxm * gxm, K)
+    b_ = np.bincount(lab, gxm * gym, K)
+    c_ = np.bincount(lab, gym * gym, K)
+    sw = np.bincount(lab, w, K)
+    swx = np.bincount(lab, w * dxm, K)  # coordinates relative to q keep the sums well conditioned
+    swy = np.bincount(lab, w * dym, K)
+    # per group: 2x2 structure tensor in closed form, normal = dominant eigenvector
+    half_tr, disc = 0.5 * (a_ + c_), np.hypot(0.5 * (a_ - c_), b_)
+    ev0, ev1 = half_tr - disc, half_tr + disc
+    phi = 0.5 * np.arctan2(2.0 * b_, a_ - c_)
+    nx, ny = np.cos(phi), np.sin(phi)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        c_rel = (nx * swx + ny * swy) / sw          # line offset relative to q: n . (x - q) = c_rel
+    # a single straight edge (not a corner / clutter), passing near q
+    ok = (cnt >= 3) & (ev1 > 0) & (ev0 <= 0.2 * ev1) & (np.abs(c_rel) <= 1.5)
+    lines = [(np.array([nx[k], ny[k]]), c_rel[k], sw[k]) for k in np.flatnonzero(ok)]
     while len(lines) >= 2:
         N = np.array([ln[0] for ln in lines])
         C = np.array([ln[1] for ln in lines])
         Wt = np.array([ln[2] for ln in lines])
-        cosmax = np.abs(N @ N.T)[np.triu_indices(len(N), 1)].min()
-        if np.degrees(np.arccos(min(1.0, cosmax))) < min_edge_angle_deg:
+        G = np.abs(N @ N.T)
+        np.fill_diagonal(G, np.inf)
+        if G.min() > math.cos(math.radians(min_edge_angle_deg)):  # all edges nearly parallel
             return None
         p = np.linalg.solve((N.T * Wt) @ N, (N.T * Wt) @ C)
         res = np.abs(N @ p - C)
@@ -166,9 +172,9 @@ def _refine_lines(img, q, radius, tip_px=2.0, min_edge_angle_deg=20.0, rel_grad=
         if len(lines) > 2 and res.max() > max_line_residual:
             lines.pop(int(np.argmax(res)))
             continue
-        if not np.all(np.isfinite(p)) or np.hypot(*(p - q)) > max_shift:
+        if not np.all(np.isfinite(p)) or np.hypot(*p) > max_shift:
             return None
-        return p
+        return q + p
     return None
 
 
