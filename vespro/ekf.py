@@ -275,7 +275,11 @@ def _process_noise_cached(dt: float, q_acc: float, q_alpha: float) -> np.ndarray
     """Discretised process noise ``Q`` (12, 12) of the constant-velocity model.
 
     Per axis ``q * [[dt^3/3, dt^2/2], [dt^2/2, dt]]`` (continuous white
-    acceleration, filterpy's ``Q_continuous_white_noise``). For the rotation
+    acceleration, filterpy's ``Q_continuous_white_noise``; its
+    ``Q_discrete_white_noise`` is the piecewise-constant acceleration model,
+    ``var * [[dt^4/4, dt^3/2], [dt^3/2, dt^2]]``, parametrised by a per-step
+    variance rather than a spectral density, so its tuning would change with
+    the frame rate). For the rotation
     block the ``Exp(w dt)`` / ``Jl(w dt)`` factors are taken as identity: they
     rotate an isotropic density (no effect) up to O(|w| dt) terms in the
     cross block, below 4 % at 1 rad/s and 26 Hz.
