@@ -295,6 +295,8 @@ def select_information(
     border_px: float = DEFAULT_BORDER_PX,
     max_view_angle: float = DEFAULT_MAX_VIEW_ANGLE,
     min_separation_px: float = 0.0,
+    weight_by_quality: bool = False,
+    sil_ref_px: float = DEFAULT_SIL_REF_PX,
 ) -> np.ndarray:
     """Greedy information (log-det) selection of up to ``k`` corners of one camera.
 
@@ -307,9 +309,7 @@ def select_information(
     view_angle : ndarray (N,) or None
         rad (eligibility only).
     silhouette_px : ndarray (N,) or None
-        Unused by the criterion (kept for a uniform signature with
-        :func:`select_quality`); pass a per-corner ``sigma_px`` to penalise
-        silhouette corners instead.
+        Used only with ``weight_by_quality``.
     image_size : (width, height)
     P6 : ndarray (6, 6) or None
         Current pose covariance ``[dp, dtheta]``; None: a negligible prior.
@@ -317,6 +317,12 @@ def select_information(
     sigma_px : float or ndarray (N,)
         Pixel noise per corner.
     border_px, max_view_angle, min_separation_px : see :func:`eligible_mask`.
+    weight_by_quality : bool
+        Inflate each corner's pixel sigma by ``1 / sqrt(w_i)`` with ``w_i`` the
+        reliability of :func:`feature_weights` (view angle, silhouette, border),
+        so that information from corners the extractor handles badly counts less.
+    sil_ref_px : float
+        See :func:`feature_weights`.
 
     Returns
     -------
@@ -336,6 +342,10 @@ def select_information(
         raise ValueError(f"J: expected shape ({len(uv)}, 2, 6), got {J.shape}")
     _vec(silhouette_px, len(uv), "silhouette_px", 0.0)
     el = eligible_mask(uv, image_size, border_px, view_angle, max_view_angle, J, min_separation_px)
+    if weight_by_quality:
+        w = feature_weights(uv, view_angle, silhouette_px, image_size, border_px, sil_ref_px, max_view_angle, min_separation_px)
+        el &= w > 0.0
+        sigma_px = np.broadcast_to(np.asarray(sigma_px, dtype=float), (len(uv),)) / np.sqrt(np.maximum(w, 1e-12))
     return _greedy_info(J, el, np.zeros(len(uv), int), [k], P6, sigma_px)
 
 

@@ -181,3 +181,19 @@ def test_min_separation_excludes_crowded_corners():
         assert 0 not in idx and 1 not in idx
     # off by default
     assert sel.eligible_mask(uv, SIZE, J=J)[[0, 1]].all()
+
+
+def test_weight_by_quality_prefers_reliable_corners():
+    uv, J, va, sil, P6 = _candidates(6)
+    plain = sel.select_information(uv, J, va, sil, SIZE, P6=P6, k=8)
+    # make the plain choice's corners grazing-but-eligible and on the silhouette
+    va, sil = va.copy(), sil.copy()
+    va[plain] = np.deg2rad(78.0)
+    sil[plain] = 0.0
+    w = sel.feature_weights(uv, va, sil, SIZE)
+    weighted = sel.select_information(uv, J, va, sil, SIZE, P6=P6, k=8, weight_by_quality=True)
+    assert w[weighted].mean() > 2 * w[plain].mean()
+    assert len(set(weighted.tolist()) & set(plain.tolist())) < 4
+    # unchanged criterion when every corner is equally reliable
+    same = sel.select_information(uv, J, np.zeros(30), np.full(30, 50.0), SIZE, P6=P6, k=8, weight_by_quality=True)
+    np.testing.assert_array_equal(same, sel.select_information(uv, J, np.zeros(30), np.full(30, 50.0), SIZE, P6=P6, k=8))
