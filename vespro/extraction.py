@@ -1,0 +1,362 @@
+"""Windowed corner extraction around predicted feature positions.
+
+For each selected feature a square window (half-size ``r`` px, e.g. 3 sigma of
+its innovation covariance, :func:`window_half_sizes`) is searched for corners:
+Shi-Tomasi response (``lambda_min`` of ``cv2.cornerEigenValsAndVecs``, the
+measure behind ``cv2.goodFeaturesToTrack``) with non-maximum suppression, an
+absolute, a relative and an isotropy threshold, then ``cv2.cornerSubPix`` and
+(by default) an edge-intersection refinement that removes cornerSubPix's bias
+at L/Y junctions (see :func:`_refine_lines`). The corner nearest to the
+prediction is associated to the feature unless a second one is similarly close
+(ambiguity) or another feature claims the same corner.
+
+The function never raises: a missing image, a window outside the image, a
+non-finite prediction or an OpenCV error give "not found" for the features
+concerned, with a :class:`Why` code.
+
+Pixels: ``(0, 0)`` is the centre of the top-left pixel (OpenCV).
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+__all__ = ["Why", "ExtractionResult", "window_half_sizes", "extract_corners"]
+
+MIN_HALF_SIZE = 4
+MAX_HALF_SIZE = 24
+
+
+class Why(enum.IntEnum):
+    """Per-feature outcome."""
+
+    FOUND = 0
+    NO_IMAGE = 1      #: image is None or not a usable grey image
+    OUTSIDE = 2       #: window (almost) entirely outside the image
+    NO_CORNER = 3     #: no corner strong enough inside the window
+    AMBIGUOUS = 4     #: two corners similarly close to the prediction
+    SHARED = 5        #: the same corner is nearest for two features
+    INVALID = 6       #: non-finite prediction / window size, or OpenCV failed
+
+
+@dataclass(frozen=True)
+class ExtractionResult:
+    """Measured corners of K features.
+
+    Attributes
+    ----------
+    uv : ndarray, shape (K, 2)
+        Sub-pixel corner positions, px; NaN where not found.
+    found : ndarray, shape (K,), bool
+    why : ndarray, shape (K,), int8
+        :class:`Why` codes.
+    n_candidates : ndarray, shape (K,), int
+        Corners detected inside each window (before association).
+    """
+
+    uv: np.ndarray
+    found: np.ndarray
+    why: np.ndarray
+    n_candidates: np.ndarray
+
+
+def window_half_sizes(S, n_sigma: float = 3.0, min_px: int = MIN_HALF_SIZE, max_px: int = MAX_HALF_SIZE) -> np.ndarray:
+    """Search-window half-sizes from innovation covariances.
+
+    Parameters
+    ----------
+    S : ndarray, shape (K, 2, 2)
+        Innovation covariance per feature, px^2 (``J_i P6 J_i^T + R``).
+    n_sigma : float
+        Half-size in standard deviations along the worst direction.
+
+    Returns
+    -------
+    ndarray, shape (K,), int
+        ``ceil(n_sigma * sqrt(lambda_max(S_i)))`` clamped to ``[min_px, max_px]``;
+        ``max_px`` where S is not finite.
+    """
+    S = np.asarray(S, dtype=float).reshape(-1, 2, 2)
+    tr = S[:, 0, 0] + S[:, 1, 1]
+    det = S[:, 0, 0] * S[:, 1, 1] - S[:, 0, 1] * S[:, 1, 0]
+    lam = 0.5 * tr + np.sqrt(np.maximum(0.25 * tr * tr - det, 0.0))
+    r = np.ceil(n_sigma * np.sqrt(np.maximum(lam, 0.0)))
+    r = np.where(np.isfinite(r), r, max_px)
+    return np.clip(r, min_px, max_px).astype(int)
+
+
+def _refine_lines(img, q, radius, tip_px=2.0, min_edge_angle_deg=20.0, rel_grad=0.25, max_line_residual=0.6, max_shift=1.0):
+    """Corner as the intersection of the edges leaving it (no tip bias).
+
+    ``cv2.cornerSubPix`` solves ``sum g g^T (q - x) = 0`` over the window;
+    at an L- or Y-junction (a polyhedron corner, not a chessboard X) the
+    blurred tip and the pixel grid bias it by ~0.1-0.2 px towards the inside
+    of the corner, for every corner, which shrinks the apparent object. Here the
+    gradient pixels outside a ``tip_px`` disc are grouped by their direction
+    seen from ``q`` (the edges are rays from the corner), each group gives a
+    line ``n . x = c`` (normal from the gradient structure tensor, offset from
+    the ``|g|^2``-weighted centroid, which is the edge centre for a symmetric
+    blur), and the lines are intersected in least squares.
+
+    With three or more edges the one farthest from the intersection is dropped
+    while it misses it by more than ``max_line_residual`` px; a result more than
+    ``max_shift`` px from ``q`` (cornerSubPix's bias is a few tenths) is refused.
+
+    Returns the refined point (2,) or None (fewer than two usable, non-parallel edges).
+    """
+    H, W = img.shape
+    R = int(np.ceil(radius))
+    u0, v0 = int(round(q[0])), int(round(q[1]))
+    if u0 - R - 1 < 0 or v0 - R - 1 < 0 or u0 + R + 1 > W - 1 or v0 + R + 1 > H - 1:
+        return None
+    patch = img[v0 - R - 1 : v0 + R + 2, u0 - R - 1 : u0 + R + 2].astype(np.float32)
+    gx = cv2.Sobel(patch, cv2.CV_32F, 1, 0, ksize=3)[1:-1, 1:-1] / 8.0
+    gy = cv2.Sobel(patch, cv2.CV_32F, 0, 1, ksize=3)[1:-1, 1:-1] / 8.0
+    xs = np.arange(u0 - R, u0 + R + 1, dtype=float)[None, :]
+    ys = np.arange(v0 - R, v0 + R + 1, dtype=float)[:, None]
+    dx, dy = np.broadcast_arrays(xs - q[0], ys - q[1])
+    dist2 = dx * dx + dy * dy
+    g2 = gx * gx + gy * gy
+    m = (dist2 > tip_px * tip_px) & (dist2 <= radius * radius) & (g2 > (rel_grad**2) * g2.max())
+    if np.count_nonzero(m) < 6:
+        return None
+    dxm, dym, gxm, gym = dx[m], dy[m], gx[m].astype(float), gy[m].astype(float)
+    w = gxm * gxm + gym * gym
+    # the edges are rays from the corner: group pixels by their direction seen from q
+    theta = np.arctan2(dym, dxm)
+    nb = 36
+    hist = np.bincount(((theta + np.pi) * (nb / (2 * np.pi))).astype(int) % nb, weights=w, minlength=nb)
+    prev, nxt = np.r_[hist[-1], hist[:-1]], np.r_[hist[1:], hist[0]]
+    sm = hist + 0.5 * (prev + nxt)
+    sprev, snxt = np.r_[sm[-1], sm[:-1]], np.r_[sm[1:], sm[0]]
+    peaks = np.flatnonzero((sm >= sprev) & (sm > snxt) & (sm > 0.15 * sm.max()))
+    if len(peaks) < 2:
+        return None
+    centres = (peaks + 0.5) * (2 * np.pi / nb) - np.pi
+    diff = (theta[:, None] - centres[None, :] + np.pi) % (2 * np.pi) - np.pi
+    lab = np.argmin(np.abs(diff), axis=1)
+    K = len(centres)
+    cnt = np.bincount(lab, minlength=K)
+    a_ = np.bincount(lab, gxm * gxm, K)
+    b_ = np.bincount(lab, gxm * gym, K)
+    c_ = np.bincount(lab, gym * gym, K)
+    sw = np.bincount(lab, w, K)
+    swx = np.bincount(lab, w * dxm, K)  # coordinates relative to q keep the sums well conditioned
+    swy = np.bincount(lab, w * dym, K)
+    # per group: 2x2 structure tensor in closed form, normal = dominant eigenvector
+    half_tr, disc = 0.5 * (a_ + c_), np.hypot(0.5 * (a_ - c_), b_)
+    ev0, ev1 = half_tr - disc, half_tr + disc
+    phi = 0.5 * np.arctan2(2.0 * b_, a_ - c_)
+    nx, ny = np.cos(phi), np.sin(phi)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        c_rel = (nx * swx + ny * swy) / sw          # line offset relative to q: n . (x - q) = c_rel
+    # a single straight edge (not a corner / clutter), passing near q
+    ok = (cnt >= 3) & (ev1 > 0) & (ev0 <= 0.2 * ev1) & (np.abs(c_rel) <= 1.5)
+    lines = [(np.array([nx[k], ny[k]]), c_rel[k], sw[k]) for k in np.flatnonzero(ok)]
+    while len(lines) >= 2:
+        N = np.array([ln[0] for ln in lines])
+        C = np.array([ln[1] for ln in lines])
+        Wt = np.array([ln[2] for ln in lines])
+        G = np.abs(N @ N.T)
+        np.fill_diagonal(G, np.inf)
+        if G.min() > math.cos(math.radians(min_edge_angle_deg)):  # all edges nearly parallel
+            return None
+        p = np.linalg.solve((N.T * Wt) @ N, (N.T * Wt) @ C)
+        res = np.abs(N @ p - C)
+        # three or more edges must meet in one point; drop the one that does not
+        if len(lines) > 2 and res.max() > max_line_residual:
+            lines.pop(int(np.argmax(res)))
+            continue
+        if not np.all(np.isfinite(p)) or np.hypot(*p) > max_shift:
+            return None
+        return q + p
+    return None
+
+
+def _as_grey(image):
+    if image is None:
+        return None
+    try:
+        img = np.asarray(image)
+    except Exception:  # noqa: BLE001 - never raise on bad input
+        return None
+    if img.dtype != np.uint8:
+        return None
+    if img.ndim == 3 and img.shape[2] == 1:
+        img = img[:, :, 0]
+    elif img.ndim == 3 and img.shape[2] == 3:
+        img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+    if img.ndim != 2 or min(img.shape) < 8:
+        return None
+    return np.ascontiguousarray(img)
+
+
+def extract_corners(
+    image,
+    uv_pred,
+    half_size,
+    *,
+    min_eig: float = 2e-4,
+    min_isotropy: float = 0.03,
+    rel_quality: float = 0.2,
+    block_size: int = 3,
+    nms_radius: int = 2,
+    subpix_half: int = 4,
+    ambiguity_ratio: float = 0.6,
+    max_subpix_shift: float = 4.0,
+    shared_px: float = 1.0,
+    refine_lines: bool = True,
+    line_radius: float = 7.0,
+) -> ExtractionResult:
+    """Find one corner per feature inside its window.
+
+    Parameters
+    ----------
+    image : ndarray (H, W) uint8, or (H, W, 3) uint8 BGR, or None
+    uv_pred : ndarray, shape (K, 2)
+        Predicted (distorted) pixels of the selected features.
+    half_size : int or ndarray (K,)
+        Window half-size per feature, px (window is ``2 r + 1`` wide).
+    min_eig : float
+        Absolute threshold on the Shi-Tomasi response (``cornerMinEigenVal``,
+        ``blockSize=3``, ``ksize=3`` on a uint8 image): about
+        ``(contrast/255)^2 / 8`` at a clean right-angle corner, 0 on a clean
+        straight edge, below 1.3e-4 in 99.99 % of pixels of flat noise with
+        sigma = 2 grey levels. The default keeps right-angle corners from ~10
+        grey levels of contrast (more for obtuse ones).
+    min_isotropy : float
+        ``lambda_min / lambda_max`` of the structure tensor must reach this:
+        0.07 at a 150 deg corner, 0.03 at 160 deg, ~0.004 on the staircase of
+        a rasterised straight edge with 190 grey levels of contrast.
+    rel_quality : float
+        Candidates weaker than this fraction of the window's best are dropped.
+    block_size : int
+        Neighbourhood of the structure tensor, px.
+    nms_radius : int
+        Non-maximum suppression radius, px.
+    subpix_half : int
+        ``cv2.cornerSubPix`` half window, px (clamped to the search window).
+    ambiguity_ratio : float
+        Ambiguous when ``d1 > ambiguity_ratio * d2`` (distances of the two
+        nearest candidates to the prediction).
+    max_subpix_shift : float
+        Sub-pixel refinement may move a candidate at most this far, px (the
+        response peak of an obtuse corner sits up to ~3 px inside the tip).
+    shared_px : float
+        Two features whose corners are closer than this both get ``SHARED``.
+    refine_lines : bool
+        After ``cornerSubPix``, intersect the edges leaving the corner
+        (:func:`_refine_lines`), which removes most of cornerSubPix's tip bias at
+        L/Y junctions (synthetic polyhedron faces: median error 0.22 -> 0.11 px,
+        90 % 0.38 -> 0.22 px); falls back to the cornerSubPix point when fewer
+        than two clean edges are found within ``line_radius``.
+    line_radius : float
+        px, clamped to the search window half-size + 2.
+
+    Returns
+    -------
+    ExtractionResult
+    """
+    try:
+        uv_pred = np.asarray(uv_pred, dtype=float).reshape(-1, 2)
+    except Exception:  # noqa: BLE001
+        uv_pred = np.zeros((0, 2))
+    K = len(uv_pred)
+    uv_out = np.full((K, 2), np.nan)
+    why = np.full(K, int(Why.INVALID), dtype=np.int8)
+    ncand = np.zeros(K, dtype=int)
+    try:
+        r_all = np.broadcast_to(np.asarray(half_size, dtype=float), (K,))
+    except Exception:  # noqa: BLE001
+        return ExtractionResult(uv_out, np.zeros(K, bool), why, ncand)
+
+    img = _as_grey(image)
+    if img is None:
+        why[:] = Why.NO_IMAGE
+        return ExtractionResult(uv_out, np.zeros(K, bool), why, ncand)
+    H, W = img.shape
+    pad = block_size // 2 + 2  # Sobel (1) + block support, so the response is valid at the window edge
+    crit = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 40, 0.001)
+    kernel = np.ones((2 * nms_radius + 1, 2 * nms_radius + 1), np.uint8)
+
+    for i in range(K):
+        u, v = uv_pred[i]
+        r = r_all[i]
+        if not (np.isfinite(u) and np.isfinite(v) and np.isfinite(r) and r >= 1):
+            continue
+        r = int(round(r))
+        try:
+            x0, x1 = int(np.floor(u - r)), int(np.ceil(u + r))
+            y0, y1 = int(np.floor(v - r)), int(np.ceil(v + r))
+            wx0, wx1, wy0, wy1 = max(x0, 0), min(x1, W - 1), max(y0, 0), min(y1, H - 1)
+            if wx1 - wx0 < 4 or wy1 - wy0 < 4:
+                why[i] = Why.OUTSIDE
+                continue
+            px0, px1 = max(wx0 - pad, 0), min(wx1 + pad, W - 1)
+            py0, py1 = max(wy0 - pad, 0), min(wy1 + pad, H - 1)
+            roi = img[py0 : py1 + 1, px0 : px1 + 1]
+            ev = cv2.cornerEigenValsAndVecs(roi, block_size, ksize=3)
+            lam_a, lam_b = ev[:, :, 0], ev[:, :, 1]
+            resp = np.minimum(lam_a, lam_b)  # == cv2.cornerMinEigenVal
+            lam_max = np.maximum(lam_a, lam_b)
+            # only the window proper, away from the image's outer pixels (no valid gradient there)
+            inner = np.zeros_like(resp, dtype=bool)
+            ix0, ix1 = max(wx0, 2) - px0, min(wx1, W - 3) - px0
+            iy0, iy1 = max(wy0, 2) - py0, min(wy1, H - 3) - py0
+            if ix1 < ix0 or iy1 < iy0:
+                why[i] = Why.OUTSIDE
+                continue
+            inner[iy0 : iy1 + 1, ix0 : ix1 + 1] = True
+            peak = (resp >= cv2.dilate(resp, kernel)) & inner
+            best = resp[inner].max()
+            peak &= resp >= max(min_eig, rel_quality * best)
+            # straight edges (aliased or noisy) have a small but non-zero lambda_min: ask
+            # the structure tensor to be two-dimensional as well
+            peak &= resp >= min_isotropy * lam_max
+            ys, xs = np.nonzero(peak)
+            ncand[i] = len(xs)
+            if len(xs) == 0:
+                why[i] = Why.NO_CORNER
+                continue
+            cand = np.stack([xs + px0, ys + py0], axis=1).astype(np.float32)
+            d = np.hypot(cand[:, 0] - u, cand[:, 1] - v)
+            order = np.argsort(d, kind="stable")
+            if len(order) > 1 and d[order[0]] > ambiguity_ratio * d[order[1]]:
+                why[i] = Why.AMBIGUOUS
+                continue
+            c0 = cand[order[0]].reshape(1, 1, 2).copy()
+            sh = int(max(2, min(subpix_half, r)))
+            ref = cv2.cornerSubPix(img, c0.copy(), (sh, sh), (-1, -1), crit).reshape(2).astype(float)
+            if (
+                not np.all(np.isfinite(ref))
+                or np.hypot(*(ref - c0.reshape(2))) > max_subpix_shift
+                or abs(ref[0] - u) > r
+                or abs(ref[1] - v) > r
+            ):
+                why[i] = Why.NO_CORNER
+                continue
+            if refine_lines:
+                p = _refine_lines(img, ref, min(line_radius, r + 2.0))
+                if p is not None and abs(p[0] - u) <= r and abs(p[1] - v) <= r:
+                    ref = p
+            uv_out[i] = ref
+            why[i] = Why.FOUND
+        except (cv2.error, ValueError, IndexError, TypeError):
+            why[i] = Why.INVALID
+            uv_out[i] = np.nan
+
+    found_idx = np.flatnonzero(why == Why.FOUND)
+    if len(found_idx) > 1:
+        P = uv_out[found_idx]
+        dd = np.hypot(P[:, None, 0] - P[None, :, 0], P[:, None, 1] - P[None, :, 1])
+        np.fill_diagonal(dd, np.inf)
+        clash = found_idx[np.any(dd < shared_px, axis=1)]
+        why[clash] = Why.SHARED
+        uv_out[clash] = np.nan
+    found = why == Why.FOUND
+    return ExtractionResult(uv_out, found, why, ncand)

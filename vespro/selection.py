@@ -1,0 +1,391 @@
+"""Choice of the corners to measure, per camera, among the visible candidates.
+
+Two selectors on the same plain-array inputs (what the visibility module gives
+per camera and frame, plus the projection Jacobians of :mod:`vespro.projection`):
+
+- :func:`select_quality`: the classic quality-index selection in the spirit of
+  Lippiello, Siciliano and Villani (image spread, angular spread around the
+  centroid, per-feature reliability from border / silhouette distance and
+  viewing angle), maximised greedily.
+- :func:`select_information`: greedy maximisation of the log-determinant of the
+  6x6 pose information ``P6^-1 + sum_i J_i^T R^-1 J_i`` (D-optimal design). With
+  the filter's current ``P6`` it picks the corners that shrink the current
+  uncertainty most. :func:`select_information_joint` does the same across all
+  cameras at once (each pick accounts for what the other cameras already give).
+
+Both return indices into the candidate arrays, in the order picked, distinct,
+deterministic (ties go to the lowest index), and only among *eligible*
+candidates (:func:`eligible_mask`: finite, at least ``border_px`` inside the
+image, viewing angle below ``max_view_angle``). Fewer than ``k`` eligible
+candidates: all of them are returned.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = [
+    "eligible_mask",
+    "feature_weights",
+    "quality_index",
+    "select_quality",
+    "select_information",
+    "select_information_joint",
+    "pose_information_logdet",
+]
+
+DEFAULT_K = 8
+DEFAULT_BORDER_PX = 8.0
+DEFAULT_MAX_VIEW_ANGLE = np.deg2rad(80.0)
+#: Silhouette distance (px) beyond which a corner counts as fully interior.
+DEFAULT_SIL_REF_PX = 10.0
+#: Prior information used when no P6 is given (m^-2 / rad^-2): weak enough to
+#: be negligible, strong enough to keep the first picks' log-determinant finite.
+WEAK_PRIOR_INFO = 1e-6
+
+
+def _check(uv, n_name="uv"):
+    uv = np.asarray(uv, dtype=float)
+    if uv.ndim != 2 or uv.shape[1] != 2:
+        raise ValueError(f"{n_name}: expected shape (N, 2), got {uv.shape}")
+    return uv
+
+
+def _vec(a, n, name, default):
+    if a is None:
+        return np.full(n, default, dtype=float)
+    a = np.asarray(a, dtype=float)
+    if a.shape != (n,):
+        raise ValueError(f"{name}: expected shape ({n},), got {a.shape}")
+    return a
+
+
+def eligible_mask(uv, image_size, border_px=DEFAULT_BORDER_PX, view_angle=None, max_view_angle=DEFAULT_MAX_VIEW_ANGLE, J=None, min_separation_px=0.0):
+    """Candidates that may be selected.
+
+    Parameters
+    ----------
+    uv : ndarray, shape (N, 2)
+        Predicted pixels.
+    image_size : (width, height)
+        Pixels.
+    border_px : float
+        Minimum distance to the image border (the search window must fit).
+    view_angle : ndarray (N,), optional
+        Angle (rad) between line of sight and surface normal.
+    max_view_angle : float
+        rad; grazing corners are unreliable.
+    J : ndarray (N, 2, 6), optional
+        Rows with non-finite Jacobians are excluded.
+    min_separation_px : float
+        Exclude corners with another candidate closer than this (px): the
+        extractor cannot tell them apart (ambiguous / shared corner). 0: off.
+
+    Returns
+    -------
+    ndarray, shape (N,), bool
+    """
+    uv = _check(uv)
+    w, h = image_size
+    ok = np.all(np.isfinite(uv), axis=1)
+    with np.errstate(invalid="ignore"):
+        ok &= (uv[:, 0] >= border_px) & (uv[:, 0] <= w - 1 - border_px)
+        ok &= (uv[:, 1] >= border_px) & (uv[:, 1] <= h - 1 - border_px)
+        if view_angle is not None:
+            va = np.asarray(view_angle, dtype=float)
+            ok &= np.isfinite(va) & (va < max_view_angle)
+    if J is not None:
+        ok &= np.all(np.isfinite(np.asarray(J)), axis=(1, 2))
+    if min_separation_px > 0 and len(uv) > 1:
+        with np.errstate(invalid="ignore"):
+            d = np.hypot(uv[:, None, 0] - uv[None, :, 0], uv[:, None, 1] - uv[None, :, 1])
+            np.fill_diagonal(d, np.inf)
+            ok &= ~np.any(d < min_separation_px, axis=1)
+    return ok
+
+
+def feature_weights(uv, view_angle, silhouette_px, image_size, border_px=DEFAULT_BORDER_PX, sil_ref_px=DEFAULT_SIL_REF_PX, max_view_angle=DEFAULT_MAX_VIEW_ANGLE, min_separation_px=0.0):
+    """Per-corner reliability in [0, 1] (0 for ineligible corners).
+
+    Product of a viewing-angle term ``cos(angle)`` rescaled to reach 0 at
+    ``max_view_angle``, a silhouette term (silhouette corners see the
+    background and can be occluded by clutter: 0.5 at the silhouette, 1 beyond
+    ``sil_ref_px``) and a border term (ramps from 0.5 at ``border_px`` to 1 at
+    ``3 border_px``).
+    """
+    uv = _check(uv)
+    n = len(uv)
+    va = _vec(view_angle, n, "view_angle", 0.0)
+    sil = _vec(silhouette_px, n, "silhouette_px", sil_ref_px)
+    w, h = image_size
+    el = eligible_mask(uv, image_size, border_px, va, max_view_angle, min_separation_px=min_separation_px)
+    cmin = np.cos(max_view_angle)
+    with np.errstate(invalid="ignore"):
+        t_view = np.clip((np.cos(va) - cmin) / (1.0 - cmin), 0.0, 1.0)
+        t_sil = 0.5 + 0.5 * np.clip(sil / sil_ref_px, 0.0, 1.0)
+        d_border = np.minimum.reduce([uv[:, 0], uv[:, 1], w - 1 - uv[:, 0], h - 1 - uv[:, 1]])
+        t_border = 0.5 + 0.5 * np.clip((d_border - border_px) / (2.0 * border_px), 0.0, 1.0)
+    wts = t_view * t_sil * t_border
+    wts[~el] = 0.0
+    return np.nan_to_num(wts)
+
+
+def quality_index(uv_sel, w_sel, image_size) -> float:
+    """Quality index of a selected set (higher is better), in [0, 1].
+
+    ``Q = mean(w) * Q_spatial * Q_angular``:
+
+    - ``Q_spatial``: RMS distance of the points from their centroid divided
+      by half the image diagonal (its largest possible value; spread-out
+      points condition the pose better and average image-space errors);
+    - ``Q_angular``: ``1 - (g_max - 2 pi/n) / (2 pi - 2 pi/n)`` with ``g_max`` the
+      largest angular gap between consecutive points around the centroid (1 for
+      evenly surrounding points, 0 when all lie on one ray); 1 for n < 3.
+    """
+    uv_sel = np.asarray(uv_sel, dtype=float).reshape(-1, 2)
+    w_sel = np.asarray(w_sel, dtype=float).reshape(-1)
+    n = len(uv_sel)
+    if n == 0:
+        return 0.0
+    wdt, hgt = image_size
+    c = uv_sel.mean(axis=0)
+    d = uv_sel - c
+    q_s = min(1.0, float(np.sqrt(np.mean(np.sum(d * d, axis=1)))) / (0.5 * np.hypot(wdt, hgt)))
+    if n < 3:
+        q_a = 1.0
+    else:
+        a = np.sort(np.arctan2(d[:, 1], d[:, 0]))
+        gaps = np.diff(np.r_[a, a[0] + 2.0 * np.pi])
+        even = 2.0 * np.pi / n
+        q_a = 1.0 - (gaps.max() - even) / (2.0 * np.pi - even)
+    return float(np.mean(w_sel) * q_s * q_a)
+
+
+def select_quality(
+    uv,
+    view_angle,
+    silhouette_px,
+    image_size,
+    k: int = DEFAULT_K,
+    border_px: float = DEFAULT_BORDER_PX,
+    max_view_angle: float = DEFAULT_MAX_VIEW_ANGLE,
+    sil_ref_px: float = DEFAULT_SIL_REF_PX,
+    min_separation_px: float = 0.0,
+) -> np.ndarray:
+    """Greedy quality-index selection of up to ``k`` corners of one camera.
+
+    Parameters
+    ----------
+    uv : ndarray, shape (N, 2)
+        Predicted pixels of the visible candidates.
+    view_angle : ndarray, shape (N,)
+        rad.
+    silhouette_px : ndarray, shape (N,)
+        Pixel distance to the object's silhouette.
+    image_size : (width, height)
+    k : int
+    border_px, max_view_angle, sil_ref_px, min_separation_px : see :func:`eligible_mask`, :func:`feature_weights`.
+
+    Returns
+    -------
+    ndarray, shape (min(k, n_eligible),), intp
+        Indices into the candidates, in the order picked.
+
+    Notes
+    -----
+    Starts from the most reliable corner (ties: farthest from the candidates'
+    centroid), then adds the corner that maximises :func:`quality_index` of the
+    enlarged set. O(N k) index evaluations.
+    """
+    uv = _check(uv)
+    w = feature_weights(uv, view_angle, silhouette_px, image_size, border_px, sil_ref_px, max_view_angle, min_separation_px)
+    el = np.flatnonzero(w > 0.0)
+    if el.size <= k:
+        return el[np.argsort(-w[el], kind="stable")].astype(np.intp)
+    c = uv[el].mean(axis=0)
+    dist = np.linalg.norm(uv[el] - c, axis=1)
+    first = el[np.lexsort((-dist, -w[el]))[0]]
+    chosen = [int(first)]
+    remaining = np.array([i for i in el if i != first], dtype=np.intp)
+    while len(chosen) < k:
+        scores = _quality_index_batch(uv[chosen], w[chosen], uv[remaining], w[remaining], image_size)
+        best = int(np.argmax(scores))
+        chosen.append(int(remaining[best]))
+        remaining = np.delete(remaining, best)
+    return np.array(chosen, dtype=np.intp)
+
+
+def _quality_index_batch(uv_S, w_S, uv_c, w_c, image_size) -> np.ndarray:
+    """:func:`quality_index` of ``S + {j}`` for every candidate j at once, shape (M,)."""
+    n = len(uv_S) + 1
+    wdt, hgt = image_size
+    sets = np.concatenate([np.broadcast_to(uv_S, (len(uv_c),) + uv_S.shape), uv_c[:, None, :]], axis=1)  # (M, n, 2)
+    c = sets.mean(axis=1, keepdims=True)
+    d = sets - c
+    q_s = np.minimum(1.0, np.sqrt(np.mean(np.sum(d * d, axis=2), axis=1)) / (0.5 * np.hypot(wdt, hgt)))
+    if n < 3:
+        q_a = np.ones(len(uv_c))
+    else:
+        a = np.sort(np.arctan2(d[:, :, 1], d[:, :, 0]), axis=1)
+        gaps = np.diff(np.concatenate([a, a[:, :1] + 2.0 * np.pi], axis=1), axis=1)
+        even = 2.0 * np.pi / n
+        q_a = 1.0 - (gaps.max(axis=1) - even) / (2.0 * np.pi - even)
+    w_mean = (np.sum(w_S) + w_c) / n
+    return w_mean * q_s * q_a
+
+
+def pose_information_logdet(J_sel, P6=None, sigma_px=0.5) -> float:
+    """``log det(P6^-1 + sum_i J_i^T J_i / sigma_i^2)`` of a selected set.
+
+    Parameters
+    ----------
+    J_sel : ndarray, shape (K, 2, 6)
+        Pixel Jacobians w.r.t. ``[dp, dtheta]``.
+    P6 : ndarray (6, 6) or None
+        Prior pose covariance; None: ``WEAK_PRIOR_INFO * I`` as information.
+    sigma_px : float or ndarray (K,)
+    """
+    J_sel = np.asarray(J_sel, dtype=float).reshape(-1, 2, 6)
+    info = np.eye(6) * WEAK_PRIOR_INFO if P6 is None else np.linalg.inv(np.asarray(P6, dtype=float))
+    s2 = np.broadcast_to(np.asarray(sigma_px, dtype=float) ** 2, (len(J_sel),))
+    info = info + np.einsum("kai,kaj,k->ij", J_sel, J_sel, 1.0 / s2)
+    sign, ld = np.linalg.slogdet(info)
+    return float(ld) if sign > 0 else -np.inf
+
+
+def _greedy_info(J, eligible, group, caps, P6, sigma_px):
+    """Greedy D-optimal picks over all candidates; ``group``/``caps`` cap per camera."""
+    n = len(J)
+    Sigma = np.eye(6) / WEAK_PRIOR_INFO if P6 is None else np.array(P6, dtype=float)
+    s2 = np.broadcast_to(np.asarray(sigma_px, dtype=float) ** 2, (n,)).astype(float)
+    Jc = np.where(eligible[:, None, None], J, 0.0)
+    avail = eligible.copy()
+    counts = np.zeros(len(caps), int)
+    chosen = []
+    I2 = np.eye(2)
+    while True:
+        open_group = counts[group] < np.asarray(caps)[group]
+        cand = avail & open_group
+        if not cand.any():
+            break
+        # matrix determinant lemma: gain = log det(I + J Sigma J^T / s2)
+        A = I2 + np.einsum("nai,ij,nbj->nab", Jc, Sigma, Jc) / s2[:, None, None]
+        gain = np.log(A[:, 0, 0] * A[:, 1, 1] - A[:, 0, 1] * A[:, 1, 0])
+        gain[~cand] = -np.inf
+        j = int(np.argmax(gain))
+        chosen.append(j)
+        avail[j] = False
+        counts[group[j]] += 1
+        # Woodbury: Sigma <- Sigma - Sigma J^T (s2 I + J Sigma J^T)^-1 J Sigma
+        SJt = Sigma @ Jc[j].T
+        Sigma = Sigma - SJt @ np.linalg.solve(s2[j] * I2 + Jc[j] @ SJt, SJt.T)
+        Sigma = 0.5 * (Sigma + Sigma.T)
+    return np.array(chosen, dtype=np.intp)
+
+
+def select_information(
+    uv,
+    J,
+    view_angle,
+    silhouette_px,
+    image_size,
+    P6=None,
+    k: int = DEFAULT_K,
+    sigma_px=0.5,
+    border_px: float = DEFAULT_BORDER_PX,
+    max_view_angle: float = DEFAULT_MAX_VIEW_ANGLE,
+    min_separation_px: float = 0.0,
+    weight_by_quality: bool = False,
+    sil_ref_px: float = DEFAULT_SIL_REF_PX,
+) -> np.ndarray:
+    """Greedy information (log-det) selection of up to ``k`` corners of one camera.
+
+    Parameters
+    ----------
+    uv : ndarray, shape (N, 2)
+        Predicted pixels (eligibility only).
+    J : ndarray, shape (N, 2, 6)
+        ``d uv / d [dp, dtheta]`` (:func:`vespro.projection.project_with_jacobian`).
+    view_angle : ndarray (N,) or None
+        rad (eligibility only).
+    silhouette_px : ndarray (N,) or None
+        Used only with ``weight_by_quality``.
+    image_size : (width, height)
+    P6 : ndarray (6, 6) or None
+        Current pose covariance ``[dp, dtheta]``; None: a negligible prior.
+    k : int
+    sigma_px : float or ndarray (N,)
+        Pixel noise per corner.
+    border_px, max_view_angle, min_separation_px : see :func:`eligible_mask`.
+    weight_by_quality : bool
+        Inflate each corner's pixel sigma by ``1 / sqrt(w_i)`` with ``w_i`` the
+        reliability of :func:`feature_weights` (view angle, silhouette, border),
+        so that information from corners the extractor handles badly counts less.
+    sil_ref_px : float
+        See :func:`feature_weights`.
+
+    Returns
+    -------
+    ndarray, shape (min(k, n_eligible),), intp
+        Indices in the order picked.
+
+    Notes
+    -----
+    Each pick maximises ``log det(I + J_i Sigma J_i^T / sigma_i^2)`` (matrix
+    determinant lemma), then ``Sigma`` is downdated by Woodbury: O(N) 2x2
+    work per pick. ``log det`` of information is monotone submodular in the
+    set, so greedy is within ``1 - 1/e`` of the best gain over the prior.
+    """
+    uv = _check(uv)
+    J = np.asarray(J, dtype=float)
+    if J.shape != (len(uv), 2, 6):
+        raise ValueError(f"J: expected shape ({len(uv)}, 2, 6), got {J.shape}")
+    _vec(silhouette_px, len(uv), "silhouette_px", 0.0)
+    el = eligible_mask(uv, image_size, border_px, view_angle, max_view_angle, J, min_separation_px)
+    if weight_by_quality:
+        w = feature_weights(uv, view_angle, silhouette_px, image_size, border_px, sil_ref_px, max_view_angle, min_separation_px)
+        el &= w > 0.0
+        sigma_px = np.broadcast_to(np.asarray(sigma_px, dtype=float), (len(uv),)) / np.sqrt(np.maximum(w, 1e-12))
+    return _greedy_info(J, el, np.zeros(len(uv), int), [k], P6, sigma_px)
+
+
+def select_information_joint(
+    candidates,
+    P6=None,
+    k_per_camera: int = DEFAULT_K,
+    sigma_px=0.5,
+    border_px: float = DEFAULT_BORDER_PX,
+    max_view_angle: float = DEFAULT_MAX_VIEW_ANGLE,
+    min_separation_px: float = 0.0,
+):
+    """Greedy information selection across all cameras at once.
+
+    Parameters
+    ----------
+    candidates : sequence of (uv (N_c, 2), J (N_c, 2, 6), view_angle (N_c,) or None, image_size)
+        One entry per camera.
+    P6 : ndarray (6, 6) or None
+    k_per_camera : int
+        Cap per camera (each camera's extraction budget).
+    sigma_px : float
+
+    Returns
+    -------
+    list of ndarray (intp)
+        Per camera, indices into its candidates in the order picked.
+    """
+    Js, els, groups = [], [], []
+    for c, (uv, J, va, size) in enumerate(candidates):
+        uv = _check(uv)
+        J = np.asarray(J, dtype=float)
+        if J.shape != (len(uv), 2, 6):
+            raise ValueError(f"camera {c}: J: expected shape ({len(uv)}, 2, 6), got {J.shape}")
+        Js.append(J)
+        els.append(eligible_mask(uv, size, border_px, va, max_view_angle, J, min_separation_px))
+        groups.append(np.full(len(uv), c))
+    if not Js:
+        return []
+    J_all = np.concatenate(Js)
+    picks = _greedy_info(J_all, np.concatenate(els), np.concatenate(groups), [k_per_camera] * len(Js), P6, sigma_px)
+    offsets = np.cumsum([0] + [len(J) for J in Js])
+    return [picks[(picks >= offsets[c]) & (picks < offsets[c + 1])] - offsets[c] for c in range(len(Js))]
