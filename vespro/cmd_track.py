@@ -11,7 +11,7 @@ def add_tracker_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--init-pose", metavar="x,y,z,qw,qx,qy,qz",
                    help="object pose T_world_object at the first frame (overrides automatic initialisation)")
     p.add_argument("--features", type=int, default=8, help="features selected per camera and frame")
-    p.add_argument("--selection", choices=["information", "quality"], default="information",
+    p.add_argument("--selection", choices=["information", "quality"], default="quality",
                    help="feature selection: information-greedy (log-det) or the classic quality index")
     p.add_argument("--sigma-px", type=float, default=0.5, help="corner measurement noise std, px")
 

@@ -83,7 +83,7 @@ class TrackerConfig:
     """
 
     features_per_camera: int = 8
-    selection: str = "information"
+    selection: str = "quality"
     sigma_px: float = 0.5
     q_acc: float = 0.05
     q_alpha: float = 0.5
