@@ -240,7 +240,9 @@ class TrackingPlanner:
         self.inp.max_jerk = [L.j_lin] * 3 + [L.j_ang] * 3
         # Target velocities are kept strictly inside the limits (Ruckig rejects
         # a target state it cannot hold).
-        self._v_tgt_cap = np.array([L.v_lin] * 3 + [L.v_ang] * 3) * 0.95
+        self._vmax_abs = np.array([L.v_lin] * 3 + [L.v_ang] * 3)
+        self._vmax_rel = self._vmax_abs.copy()
+        self._v_tgt_cap = self._vmax_abs * 0.9
         self.ref = Reference()
         self.phase = Phase.IDLE
         self.task: FollowTask | None = None
@@ -351,62 +353,104 @@ class TrackingPlanner:
         inp.current_acceleration = ca
 
     def _apply_output(self) -> None:
+        """Absolute-coordinate output (stop / hold) back into the reference."""
         out = self.out
         ref = self.ref
         np_ = out.new_position
         nv = out.new_velocity
         na = out.new_acceleration
-        ref.p[0], ref.p[1], ref.p[2] = np_[0], np_[1], np_[2]
         r = self._r3
-        r[0], r[1], r[2] = np_[3], np_[4], np_[5]
-        quat_from_rotvec_into(r, self._q4a)
-        quat_multiply_into(self._q4a, ref.quat, self._q4b)
-        # renormalise (rounding drift over hours of ticks)
-        n = math.sqrt(float(self._q4b @ self._q4b))
-        np.multiply(self._q4b, 1.0 / n, out=ref.quat)
-        ref.v[0], ref.v[1], ref.v[2] = nv[0], nv[1], nv[2]
-        ref.w[0], ref.w[1], ref.w[2] = nv[3], nv[4], nv[5]
-        ref.a[0], ref.a[1], ref.a[2] = na[0], na[1], na[2]
-        ref.alpha[0], ref.alpha[1], ref.alpha[2] = na[3], na[4], na[5]
+        for i in range(3):
+            ref.p[i] = np_[i]
+            r[i] = np_[i + 3]
+            ref.v[i] = nv[i]
+            ref.w[i] = nv[i + 3]
+            ref.a[i] = na[i]
+            ref.alpha[i] = na[i + 3]
+        self._rotate_ref(r)
 
     def step(self, t_ns: int, dt: float) -> int:
         """Advance the tracking reference by ``dt`` (s) towards the target at ``t_ns``.
 
-        Returns Ruckig's result as an int (0 working, 1 target reached,
-        negative: error; the reference is then left unchanged).
-        Without a sample or a task the reference holds still (see :meth:`stop_step`).
+        Ruckig plans in the frame moving with the target (Galilean change of
+        variables, target velocity constant over the plan): current state
+        ``(x_ref - x_tgt, v_ref - v_tgt, a_ref)``, target state zero. Planning
+        to the target's *current* position in fixed coordinates instead makes
+        the reference trail a moving target by a gap that closes only slowly
+        (each re-plan aims where the target was). Accelerations and jerks are
+        the same in both frames; the velocity limit of each axis is reduced by
+        ``|v_tgt|`` on that axis so that the absolute velocity stays within
+        ``v_max``. A change of the target velocity changes only the relative
+        current state, so the absolute reference stays continuous.
+
+        Returns Ruckig's result as an int (0 working, 1 on the target,
+        negative: error; the reference is then left unchanged). Without a
+        sample or a task the reference decelerates to rest and holds
+        (see :meth:`stop_step`).
         """
         if not self.have_sample or self.task is None or self.phase == Phase.IDLE:
-            return self.stop_step(dt)
+            self.stop_step(dt)
+            return 0
         self.update_target(t_ns)
-        self._set_current()
-        tp, tv = self._tp, self._tv
-        tp[:3] = self.tgt_p
-        quat_conjugate_into(self.ref.quat, self._q4a)
-        quat_multiply_into(self.tgt_q, self._q4a, self._q4b)
-        rotvec_from_quat_into(self._q4b, self._r3)
-        tp[3:] = self._r3
+        ref = self.ref
+        cp, cv, ca = self._cur_p, self._cur_v, self._cur_a
+        tv = self._tv
         tv[:3] = self.tgt_v
         tv[3:] = self.tgt_w
         np.clip(tv, -self._v_tgt_cap, self._v_tgt_cap, out=tv)
+        # current, relative to the target; orientation chart anchored at q_ref
+        np.subtract(ref.p, self.tgt_p, out=cp[:3])
+        quat_conjugate_into(ref.quat, self._q4a)
+        quat_multiply_into(self.tgt_q, self._q4a, self._q4b)
+        rotvec_from_quat_into(self._q4b, self._r3)  # target orientation in the chart
+        np.negative(self._r3, out=cp[3:])
+        cv[:3] = ref.v
+        cv[3:] = ref.w
+        cv -= tv
+        ca[:3] = ref.a
+        ca[3:] = ref.alpha
+        vmax = self._vmax_rel
+        np.abs(tv, out=vmax)
+        np.subtract(self._vmax_abs, vmax, out=vmax)
         inp = self.inp
         inp.control_interface = ControlInterface.Position
-        inp.target_position = tp
-        inp.target_velocity = tv
+        inp.max_velocity = vmax
+        inp.current_position = cp
+        inp.current_velocity = cv
+        inp.current_acceleration = ca
+        inp.target_position = self._zero6
+        inp.target_velocity = self._zero6
         inp.target_acceleration = self._zero6
         self.otg.delta_time = dt
         res = int(self.otg.update(inp, self.out))
-        if res < 0:
-            # Rare numerical corner with a moving target: retry aiming at rest there.
-            inp.target_velocity = self._zero6
-            res = int(self.otg.update(inp, self.out))
         self.last_result = res
         if res < 0:
             return res
-        self._apply_output()
+        # back to absolute: x = x_tgt + v_tgt dt + x_rel, v = v_tgt + v_rel, a = a_rel
+        out = self.out
+        np_ = out.new_position
+        nv = out.new_velocity
+        na = out.new_acceleration
+        p, r = ref.p, self._r3
+        for i in range(3):
+            p[i] = self.tgt_p[i] + tv[i] * dt + np_[i]
+            r[i] = r[i] + tv[i + 3] * dt + np_[i + 3]
+            ref.v[i] = tv[i] + nv[i]
+            ref.w[i] = tv[i + 3] + nv[i + 3]
+            ref.a[i] = na[i]
+            ref.alpha[i] = na[i + 3]
+        self._rotate_ref(r)
         if self.phase == Phase.APPROACH:
             self._maybe_switch_to_follow()
         return res
+
+    def _rotate_ref(self, r: np.ndarray) -> None:
+        """q_ref <- exp(r) q_ref, renormalised (rounding drift over hours of ticks)."""
+        ref = self.ref
+        quat_from_rotvec_into(r, self._q4a)
+        quat_multiply_into(self._q4a, ref.quat, self._q4b)
+        n = math.sqrt(float(self._q4b @ self._q4b))
+        np.multiply(self._q4b, 1.0 / n, out=ref.quat)
 
     def _maybe_switch_to_follow(self) -> None:
         t = self.task
@@ -432,6 +476,7 @@ class TrackingPlanner:
         """
         self._set_current()
         inp = self.inp
+        inp.max_velocity = self._vmax_abs
         inp.control_interface = ControlInterface.Velocity
         inp.target_velocity = self._zero6
         inp.target_acceleration = self._zero6
