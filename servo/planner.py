@@ -41,7 +41,7 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from ruckig import ControlInterface, InputParameter, OutputParameter, Result, Ruckig
+from ruckig import ControlInterface, InputParameter, OutputParameter, Result, Ruckig, RuckigError, Synchronization
 
 from .rotation import (
     quat_conjugate,
@@ -118,8 +118,15 @@ class Workspace:
 
     def clamp_into(self, p: np.ndarray, out: np.ndarray) -> bool:
         """Clamp a point (3,) into the workspace; returns True if it moved."""
-        np.clip(p, self.box_min, self.box_max, out=out)
-        moved = bool(out[0] != p[0] or out[1] != p[1] or out[2] != p[2])
+        lo, hi = self.box_min, self.box_max
+        moved = False
+        for i in range(3):  # out may alias p: decide before writing
+            x = p[i]
+            if x < lo[i]:
+                x, moved = lo[i], True
+            elif x > hi[i]:
+                x, moved = hi[i], True
+            out[i] = x
         c = self.reach_center
         dx, dy, dz = out[0] - c[0], out[1] - c[1], out[2] - c[2]
         d = math.sqrt(dx * dx + dy * dy + dz * dz)
@@ -262,6 +269,7 @@ class TrackingPlanner:
         self.tgt_w = np.zeros(3)
         self.clamped = False
         self.last_result = 0
+        self.n_fallbacks = 0  # Ruckig retries without time synchronisation (diagnostics)
         # work buffers
         self._cur_p = np.zeros(6)
         self._cur_v = np.zeros(6)
@@ -421,9 +429,7 @@ class TrackingPlanner:
         inp.target_position = self._zero6
         inp.target_velocity = self._zero6
         inp.target_acceleration = self._zero6
-        self.otg.delta_time = dt
-        res = int(self.otg.update(inp, self.out))
-        self.last_result = res
+        res = self._update(dt)
         if res < 0:
             return res
         # back to absolute: x = x_tgt + v_tgt dt + x_rel, v = v_tgt + v_rel, a = a_rel
@@ -442,6 +448,32 @@ class TrackingPlanner:
         self._rotate_ref(r)
         if self.phase == Phase.APPROACH:
             self._maybe_switch_to_follow()
+        return res
+
+    def _update(self, dt: float) -> int:
+        """Ruckig update that never raises.
+
+        The Python binding raises ``RuckigError`` where the C++ returns an error
+        code; for a handful of near-degenerate inputs the time-synchronised
+        solution fails numerically (seen with ~1e-4 m relative states), so
+        retry once with independent DoFs (each still time-optimal and within
+        its limits) before reporting an error.
+        """
+        self.otg.delta_time = dt
+        inp = self.inp
+        try:
+            res = int(self.otg.update(inp, self.out))
+        except RuckigError:
+            res = int(Result.ErrorSynchronizationCalculation)
+        if res < 0:
+            inp.synchronization = Synchronization.No
+            try:
+                res = int(self.otg.update(inp, self.out))
+            except RuckigError:
+                res = int(Result.Error)
+            inp.synchronization = Synchronization.Time
+            self.n_fallbacks += 1
+        self.last_result = res
         return res
 
     def _rotate_ref(self, r: np.ndarray) -> None:
@@ -480,9 +512,7 @@ class TrackingPlanner:
         inp.control_interface = ControlInterface.Velocity
         inp.target_velocity = self._zero6
         inp.target_acceleration = self._zero6
-        self.otg.delta_time = dt
-        res = int(self.otg.update(inp, self.out))
-        self.last_result = res
+        res = self._update(dt)
         if res < 0:
             return False
         self._apply_output()
