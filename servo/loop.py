@@ -126,6 +126,14 @@ class LoopState:
         self.qdd = np.zeros(self.n)
         self.p_prev = np.zeros(3)
         self._quat = np.zeros(4)
+        # CLIK runs on the reference at the tick time t (the previous output)
+        # with the mean of the velocities at t and t + dt as feedforward: the
+        # new joints then sit on the reference at t + dt up to O(dt^3 jerk).
+        # (Using the new reference in the error *and* its velocity as
+        # feedforward would count one tick twice: the joints would lead by v dt.)
+        self.ref_prev = Reference()
+        self.v_ff = np.zeros(3)
+        self.w_ff = np.zeros(3)
         self.t_prev_ns: int | None = None
         self.status = Status.HOLD
         self.latched = False  # a controlled stop by a limit check: no auto-resume
@@ -144,6 +152,7 @@ class LoopState:
         self.p_prev[:] = self.kin.p
         self.planner.set_task(self.planner.task)
         self.planner.reset(self.kin.p, self._quat)
+        self.ref_prev.copy_from(self.planner.ref)
         self.safety.reset()
         self.t_prev_ns = int(t_ns)
         self.status = Status.HOLD
@@ -188,11 +197,21 @@ def _run_motion(state: LoopState, t_ns: int, dt: float, ref: Reference) -> bool:
         np.clip(state.q_new, state.clik.lo, state.clik.hi, out=state.q_new)
     elif m.space == "task":
         m.sample(t, ref)
-        state.clik.step(state.q_cmd, ref.p, ref.quat, ref.v, ref.w, dt, state.q_new, state.qd)
+        _clik(state, dt)
     else:  # "position": TCP positions along a via path, orientation held
         m.sample(t, ref.p, ref.v, ref.a)
-        state.clik.step(state.q_cmd, ref.p, ref.quat, ref.v, ref.w, dt, state.q_new, state.qd)
+        _clik(state, dt)
     return t >= m.duration
+
+
+def _clik(state: LoopState, dt: float) -> None:
+    """Joints for t + dt from the reference at t (``ref_prev``) and the mean velocity."""
+    rp, r = state.ref_prev, state.planner.ref
+    np.add(rp.v, r.v, out=state.v_ff)
+    state.v_ff *= 0.5
+    np.add(rp.w, r.w, out=state.w_ff)
+    state.w_ff *= 0.5
+    state.clik.step(state.q_cmd, rp.p, rp.quat, state.v_ff, state.w_ff, dt, state.q_new, state.qd)
 
 
 def step(state: LoopState, sample: TargetSample | None, t_ns: int, out: Command) -> Status:
@@ -233,6 +252,7 @@ def _step(state: LoopState, sample, t_ns: int, out: Command) -> Status:
     planner = state.planner
     safety = state.safety
     ref = planner.ref
+    state.ref_prev.copy_from(ref)  # the reference at t (last tick's output)
 
     # 1. pose stream
     if sample is not None and sample.t_capture_ns != state.last_capture_ns:
@@ -282,7 +302,7 @@ def _step(state: LoopState, sample, t_ns: int, out: Command) -> Status:
             at_rest = planner.stop_step(dt)
             if st == Status.STOPPING and at_rest:
                 st = Status.HOLD
-        state.clik.step(state.q_cmd, ref.p, ref.quat, ref.v, ref.w, dt, state.q_new, state.qd)
+        _clik(state, dt)
 
     # 3. check the command
     kin = state.kin
