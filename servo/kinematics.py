@@ -31,6 +31,7 @@ from pathlib import Path
 
 import mujoco
 import numpy as np
+from scipy.linalg.lapack import dgesdd as _dgesdd
 
 from .rotation import (
     matrix_from_quat,
@@ -257,8 +258,12 @@ def dls_solve_into(J: np.ndarray, x: np.ndarray, eps: float, lambda_max: float, 
     s_min : float
         Smallest singular value of J (a manipulability measure).
     """
-    # LAPACK returns fresh small arrays here: the one allocation per tick we accept.
-    U, s, Vt = np.linalg.svd(J)
+    # LAPACK returns fresh small arrays here: the one allocation per tick we
+    # accept. Calling dgesdd directly halves the cost of np.linalg.svd's wrapper.
+    U, s, Vt, info = _dgesdd(J)
+    if info != 0:
+        out[:] = np.nan  # caught downstream as a non-finite command (FAULT)
+        return 0.0
     s_min = float(s[-1])
     lam2 = damping_squared(s_min, eps, lambda_max)
     y = U.T @ x

@@ -385,7 +385,14 @@ class Scheduler:
         Channels recorded when the recorder has them: t_ns, q_cmd, qd_cmd,
         q_meas, p_ref, quat_ref, v_ref, status, flags, compute_ns.
     realtime : bool
-        Pin to ``cpu``, ask for SCHED_FIFO at ``fifo_priority``, freeze the GC.
+        Real-time mode: the tick time is the actual wake-up time (so a late
+        tick yields a longer dt) and overruns are counted. In lockstep
+        (False) the tick time is the deadline itself.
+    rt_setup : bool or None
+        Pin to ``cpu``, ask for SCHED_FIFO at ``fifo_priority`` (falling back
+        with a warning), freeze and disable the GC during the run. Defaults
+        to ``realtime``; True in virtual mode measures compute time without
+        preemption by other processes.
     tick_fn : callable or None
         Replaces ``step`` (same signature); used for the empty-tick baseline.
     on_tick : callable (t_ns, out) or None
@@ -404,7 +411,9 @@ class Scheduler:
         fifo_priority: int | None = 80,
         tick_fn=None,
         on_tick=None,
+        rt_setup: bool | None = None,
     ):
+        self.rt_setup = realtime if rt_setup is None else bool(rt_setup)
         self.clock = clock
         self.robot = robot
         self.state = state
@@ -463,7 +472,7 @@ class Scheduler:
         rt_msg = None
         saved_aff = saved_pol = None
         gc_was = gc.isenabled()
-        if self.realtime:
+        if self.rt_setup:
             try:
                 saved_aff = os.sched_getaffinity(0)
                 saved_pol = (os.sched_getscheduler(0), os.sched_getparam(0).sched_priority)
@@ -514,7 +523,7 @@ class Scheduler:
                 if self.on_tick is not None:
                     self.on_tick(t_tick, out)
         finally:
-            if self.realtime:
+            if self.rt_setup:
                 gc.unfreeze()
                 if gc_was:
                     gc.enable()

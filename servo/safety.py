@@ -131,7 +131,11 @@ class Safety:
             Check.TCP_SPEED: config.policy_tcp_speed,
             Check.WATCHDOG: config.policy_watchdog,
         }
-        self._t = np.zeros(len(config.q_min))
+        self._q_min = config.q_min.tolist()
+        self._q_max = config.q_max.tolist()
+        self._qd_max = config.qd_max.tolist()
+        self._box_min = config.box_min.tolist()
+        self._box_max = config.box_max.tolist()
         self.reset()
 
     def reset(self) -> None:
@@ -192,23 +196,28 @@ class Safety:
             TCP position (world) at the new and previous command.
         """
         cfg = self.cfg
-        t = self._t
         flags = 0
-        for i in range(len(t)):
-            if not math.isfinite(q_cmd[i]):
+        # Plain floats: six-element NumPy reductions cost more than the comparisons.
+        q = q_cmd.tolist()
+        qp = q_prev.tolist()
+        lo, hi, vmax = self._q_min, self._q_max, self._qd_max
+        k = dt * (1.0 + cfg.velocity_tolerance)
+        for i in range(len(q)):
+            x = q[i]
+            if not math.isfinite(x):
                 return int(Check.NONFINITE)
-        if np.any(q_cmd < cfg.q_min) or np.any(q_cmd > cfg.q_max):
-            flags |= Check.JOINT_POSITION
-        np.subtract(q_cmd, q_prev, out=t)
-        np.abs(t, out=t)
-        if np.any(t > cfg.qd_max * (dt * (1.0 + cfg.velocity_tolerance))):
-            flags |= Check.JOINT_VELOCITY
-        if np.any(p_tcp < cfg.box_min) or np.any(p_tcp > cfg.box_max):
-            flags |= Check.WORKSPACE
+            if x < lo[i] or x > hi[i]:
+                flags |= Check.JOINT_POSITION
+            if abs(x - qp[i]) > vmax[i] * k:
+                flags |= Check.JOINT_VELOCITY
+        bl, bh = self._box_min, self._box_max
+        for i in range(3):
+            if p_tcp[i] < bl[i] or p_tcp[i] > bh[i]:
+                flags |= Check.WORKSPACE
         dx = p_tcp[0] - p_tcp_prev[0]
         dy = p_tcp[1] - p_tcp_prev[1]
         dz = p_tcp[2] - p_tcp_prev[2]
-        if math.sqrt(dx * dx + dy * dy + dz * dz) > cfg.tcp_speed_max * dt * (1.0 + cfg.velocity_tolerance):
+        if math.sqrt(dx * dx + dy * dy + dz * dz) > cfg.tcp_speed_max * k:
             flags |= Check.TCP_SPEED
         return int(flags)
 
