@@ -83,9 +83,9 @@ def busy_other_core(loop_cpu: int):
     return p, cpu
 
 
-def realtime(seconds: float, cpu: int, baseline: bool, fifo: int | None):
+def realtime(seconds: float, cpu: int, baseline: bool, fifo: int | None, spin_ns: int = 600_000):
     cfg, arm, src = conveyor_setup()
-    clock = WallClock(spin_ns=300_000)
+    clock = WallClock(spin_ns=spin_ns)
     src.t0_ns = clock.now_ns()
     sch = Scheduler(
         clock, arm, LoopState(cfg), src, realtime=True, cpu=cpu, fifo_priority=fifo,
@@ -126,6 +126,7 @@ def main(argv=None):
     try:
         print(f"\nreal-time mode: {a.seconds:.0f} s per run, loop on CPU {a.cpu}, "
               f"busy process on CPU {busy_cpu}, SCHED_FIFO {fifo}, MuJoCo plant stepped in real time")
+        realtime(1.0, a.cpu, True, fifo)  # warm-up: first mlockall / page-in, caches
         results = []
         for name, base in (("baseline (empty tick)", True), ("servo loop", False)):
             st, warns = realtime(a.seconds, a.cpu, base, fifo)

@@ -17,6 +17,8 @@ SCHED_FIFO).
 
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
 import gc
 import os
 import time
@@ -388,6 +390,8 @@ class Scheduler:
         Real-time mode: the tick time is the actual wake-up time (so a late
         tick yields a longer dt) and overruns are counted. In lockstep
         (False) the tick time is the deadline itself.
+    lock_memory : bool
+        With ``rt_setup``, ``mlockall`` the process for the run (no page faults).
     rt_setup : bool or None
         Pin to ``cpu``, ask for SCHED_FIFO at ``fifo_priority`` (falling back
         with a warning), freeze and disable the GC during the run. Defaults
@@ -412,8 +416,11 @@ class Scheduler:
         tick_fn=None,
         on_tick=None,
         rt_setup: bool | None = None,
+        lock_memory: bool = True,
     ):
         self.rt_setup = realtime if rt_setup is None else bool(rt_setup)
+        self.lock_memory = lock_memory
+        self._locked = False
         self.clock = clock
         self.robot = robot
         self.state = state
@@ -444,6 +451,16 @@ class Scheduler:
                 os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(self.fifo_priority))
             except (OSError, AttributeError) as e:
                 msgs.append(f"SCHED_FIFO refused ({e}); running with the normal scheduler")
+        if self.lock_memory:
+            # Page faults (first touch, reclaimed pages) cost milliseconds: lock
+            # what is mapped now and what gets mapped later.
+            try:
+                libc = ctypes.CDLL(ctypes.util.find_library("c"), use_errno=True)
+                if libc.mlockall(3) != 0:  # MCL_CURRENT | MCL_FUTURE
+                    raise OSError(ctypes.get_errno(), os.strerror(ctypes.get_errno()))
+                self._locked = True
+            except (OSError, AttributeError, TypeError) as e:
+                msgs.append(f"mlockall failed ({e}); memory may page")
         if msgs:
             msg = "; ".join(msgs)
             warnings.warn(msg, RuntimeWarning, stacklevel=3)
@@ -451,6 +468,12 @@ class Scheduler:
         return None
 
     def _leave_realtime(self, saved_affinity, saved_policy) -> None:
+        if self._locked:
+            try:
+                ctypes.CDLL(ctypes.util.find_library("c")).munlockall()
+            except (OSError, AttributeError):
+                pass
+            self._locked = False
         try:
             if self.fifo_priority is not None:
                 os.sched_setscheduler(0, saved_policy[0], os.sched_param(saved_policy[1]))
