@@ -81,6 +81,50 @@ class LoopConfig:
     latency_compensation: bool = True
     max_prediction_s: float = 0.3
 
+    @classmethod
+    def from_dict(cls, d: dict) -> "LoopConfig":
+        """Build from plain data (a parsed YAML/JSON file), SI units.
+
+        Keys: model_path, site, period_ns, max_dt_ticks, latency_compensation,
+        max_prediction_s; ``limits`` / ``workspace`` / ``clik``: the fields of
+        :class:`CartesianLimits` / :class:`Workspace` / :class:`ClikConfig`;
+        ``safety``: fields of :class:`SafetyConfig` (policies as
+        "IMMEDIATE" / "CONTROLLED"); ``task``: ``pq_object_tcp`` (7 numbers
+        ``x y z qw qx qy qz``, as on the wire) plus the other
+        :class:`FollowTask` fields. Unknown keys raise ``ValueError``.
+        """
+        from .rotation import matrix_from_quat
+
+        d = dict(d)
+        kw = {}
+        for k in ("model_path", "site", "period_ns", "max_dt_ticks", "latency_compensation", "max_prediction_s"):
+            if k in d:
+                kw[k] = d.pop(k)
+        if "limits" in d:
+            kw["limits"] = CartesianLimits(**d.pop("limits"))
+        if "workspace" in d:
+            kw["workspace"] = Workspace(**d.pop("workspace"))
+        if "clik" in d:
+            kw["clik"] = ClikConfig(**d.pop("clik"))
+        if "safety" in d:
+            saf = dict(d.pop("safety"))
+            for k, v in saf.items():
+                if k.startswith("policy_") and isinstance(v, str):
+                    saf[k] = StopPolicy[v.upper()]
+            kw["safety"] = saf
+        if "task" in d:
+            t = dict(d.pop("task"))
+            pq = np.asarray(t.pop("pq_object_tcp"), float)
+            if pq.shape != (7,):
+                raise ValueError(f"task.pq_object_tcp: expected 7 numbers, got shape {pq.shape}")
+            T = np.eye(4)
+            T[:3, :3] = matrix_from_quat(pq[3:])
+            T[:3, 3] = pq[:3]
+            kw["task"] = FollowTask(T, **t)
+        if d:
+            raise ValueError(f"LoopConfig: unknown keys {sorted(d)}")
+        return cls(**kw)
+
 
 class Command:
     """Output of one tick (preallocated, overwritten each tick).
@@ -168,8 +212,11 @@ class LoopState:
         self.start(q_measured, t_ns)
 
     def set_task(self, task: FollowTask | None) -> None:
-        """Change the follow task (starts with the approach phase)."""
+        """Change the follow task (starts with the approach phase); ends a finished motion."""
         self.planner.set_task(task)
+        if self.status == Status.FINISHED:
+            self.motion = None
+            self.status = Status.HOLD
 
     def start_motion(self, motion, t_ns: int) -> None:
         """Run a classic motion (``JointTrapezoid``, ``CartesianTrapezoid``,
@@ -197,6 +244,18 @@ def _run_motion(state: LoopState, t_ns: int, dt: float, ref: Reference) -> bool:
     if m.space == "joint":
         m.sample(t, state.q_new, state.qd, state.qdd)
         np.clip(state.q_new, state.clik.lo, state.clik.hi, out=state.q_new)
+        # Keep the TCP reference on the joint motion (pose, J qd, J qdd without
+        # the Jd qd term), so that a controlled stop decelerates from where the
+        # arm really is and how fast it really moves.
+        kin = state.kin
+        kin.update(state.q_new)
+        ref.p[:] = kin.p
+        quat_from_matrix_into(kin.R, ref.quat)
+        J = kin.J
+        np.dot(J[:3], state.qd, out=ref.v)
+        np.dot(J[3:], state.qd, out=ref.w)
+        np.dot(J[:3], state.qdd, out=ref.a)
+        np.dot(J[3:], state.qdd, out=ref.alpha)
     elif m.space == "task":
         m.sample(t, ref)
         _clik(state, dt)

@@ -263,3 +263,39 @@ def test_conveyor_following_with_and_without_latency_compensation():
     # without compensation the TCP trails by v * (latency + frame age) = 4 ... 8 mm
     assert steady0.mean() > 4e-3
     assert steady0.mean() > 5 * steady1.mean()
+
+
+def test_loop_config_from_dict():
+    cfg = LoopConfig.from_dict(
+        {
+            "latency_compensation": False,
+            "limits": {"v_lin": 0.3},
+            "safety": {"policy_watchdog": "immediate", "watchdog_timeout_s": 0.2},
+            "task": {"pq_object_tcp": [0, 0, 0.15, 0, 1, 0, 0], "standoff_m": 0.05},
+        }
+    )
+    assert cfg.latency_compensation is False and cfg.limits.v_lin == 0.3
+    np.testing.assert_allclose(cfg.task.T_object_tcp, T_DOWN, atol=1e-12)
+    state = LoopState(cfg)
+    assert state.safety.cfg.policy_watchdog.name == "IMMEDIATE"
+    with pytest.raises(ValueError):
+        LoopConfig.from_dict({"speling": 1})
+
+
+def test_controlled_stop_during_a_joint_motion_decelerates_from_the_motion():
+    # a TCP speed limit the joint motion will break: controlled stop, smooth, latched
+    state, out = make_loop(safety={"tcp_speed_max": 0.3})
+    q0 = state.q_cmd.copy()
+    m = JointTrapezoid(q0, q0 + np.array([1.0, 0, 0, 0, 0, 0]), state.kin.qd_max, np.full(6, 3.0))
+    state.start_motion(m, 0)
+    t, seen, q_prev, dq = 0, [], out.q.copy(), []
+    q_prev[:] = q0
+    for _ in range(1500):
+        t += DT_NS
+        seen.append(step(state, None, t, out))
+        dq.append(out.q - q_prev)
+        q_prev[:] = out.q
+    assert Status.STOPPING in seen and seen[-1] == Status.HOLD and state.latched
+    i = seen.index(Status.STOPPING)
+    # no reversal towards the start pose: j1 keeps moving forward while it stops
+    assert np.all(np.array(dq)[i:, 0] >= -1e-6)
