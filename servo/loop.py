@@ -493,6 +493,7 @@ class Scheduler:
         self.period_ns = state.cfg.period_ns
         self.out = Command(state.n)
         self.q_meas = np.zeros(state.n)
+        self._drives_off = False
 
     @classmethod
     def from_config(cls, config: LoopConfig, clock, robot, source=None, **kw) -> "Scheduler":
@@ -553,6 +554,7 @@ class Scheduler:
         overruns = 0
         rt_msg = None
         saved_aff = saved_pol = None
+        drives_off = self._drives_off
         gc_was = gc.isenabled()
         if self.rt_setup:
             try:
@@ -574,6 +576,10 @@ class Scheduler:
             t_next = clock.now_ns()
             state.start(q_meas, t_next)
             t_wake_prev = None
+            drives_off = self._drives_off
+            if drives_off:  # a new run is an explicit restart (state.start above)
+                robot.enable()
+                drives_off = False
             for k in range(n_ticks):
                 t_next += period
                 t_wake = clock.sleep_until(t_next)
@@ -587,9 +593,14 @@ class Scheduler:
                 st = self.tick_fn(state, sample, t_tick, out)
                 c1 = perf()
                 if out.drives_on:
+                    if drives_off:  # the loop was reset (operator action): drives back on
+                        robot.enable()
+                        drives_off = False
                     robot.command(out.q, out.qd)
                 else:
-                    robot.stop()
+                    if not drives_off:
+                        robot.stop()
+                        drives_off = True
                 robot.plant_step()
                 t_end = clock.now_ns()
                 compute[k] = c1 - c0
@@ -605,6 +616,7 @@ class Scheduler:
                 if self.on_tick is not None:
                     self.on_tick(t_tick, out)
         finally:
+            self._drives_off = drives_off
             if self.rt_setup:
                 gc.unfreeze()
                 if gc_was:

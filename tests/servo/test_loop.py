@@ -121,6 +121,7 @@ class MockRobot:
         self.commands = 0
         self.stops = 0
         self.steps = 0
+        self.enables = 0
 
     def read(self, q_out):
         q_out[:] = self.q
@@ -133,7 +134,7 @@ class MockRobot:
         self.stops += 1
 
     def enable(self):
-        pass
+        self.enables += 1
 
     def plant_step(self):
         self.steps += 1
@@ -177,7 +178,28 @@ def test_scheduler_stops_the_robot_on_fault():
     sch.tick_fn = tick
     stats = sch.run(20)
     assert Status(stats.status[-1]) == Status.FAULT
-    assert robot.stops >= 1
+    assert robot.stops == 1 and robot.commands == 10  # stopped once, nothing sent after
+
+
+
+def test_scheduler_drives_back_on_after_an_operator_reset():
+    robot = MockRobot(q_above())
+    sch = Scheduler.from_config(LoopConfig(task=FollowTask(T_DOWN)), SimClock(), robot, None)
+    calls = {"n": 0}
+
+    def tick(state, sample, t_ns, out):
+        calls["n"] += 1
+        if calls["n"] == 3:
+            state.q_cmd[0] = np.nan  # -> FAULT on this tick
+        if calls["n"] == 6:
+            state.reset(robot.q, t_ns - DT_NS)  # the operator's reset
+        return step(state, sample, t_ns, out)
+
+    sch.tick_fn = tick
+    stats = sch.run(10)
+    assert [Status(s) for s in stats.status[2:5]] == [Status.FAULT] * 3
+    assert Status(stats.status[-1]) == Status.HOLD
+    assert robot.stops == 1 and robot.enables == 1 and robot.commands == 2 + 5
 
 
 def test_scheduler_realtime_mode_runs():
