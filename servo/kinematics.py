@@ -26,6 +26,7 @@ then each joint is slowed so it can brake before its position limit.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -317,6 +318,9 @@ class Clik:
         self.lo = kin.q_min + config.joint_margin_rad
         self.hi = kin.q_max - config.joint_margin_rad
         self.qd_max = kin.qd_max
+        self._qd_max_l = kin.qd_max.tolist()
+        self._lo_l = self.lo.tolist()
+        self._hi_l = self.hi.tolist()
         self.x = np.zeros(6)
         self.quat = np.zeros(4)
         self.quat_inv = np.zeros(4)
@@ -370,31 +374,42 @@ class Clik:
         return self._limit_and_integrate(q, self.qd_raw, dt, q_out, qd_out)
 
     def _limit_and_integrate(self, q, qd, dt, q_out, qd_out) -> float:
-        t = self._t
+        # Plain floats: six-element NumPy calls cost more than the arithmetic.
+        qv = q.tolist()
+        v = qd.tolist()
+        vmax, lo, hi = self._qd_max_l, self._lo_l, self._hi_l
+        n = len(qv)
         # Uniform scaling keeps the Cartesian direction of the motion.
-        np.divide(np.abs(qd, out=t), self.qd_max, out=t)
-        worst = float(t.max())
-        if worst > 1.0:
-            np.multiply(qd, 1.0 / worst, out=qd_out)
-        else:
-            qd_out[:] = qd
-        # Braking distance to each limit: |qd| <= sqrt(2 a d), then clamp the position.
+        worst = 0.0
+        for i in range(n):
+            r = abs(v[i]) / vmax[i]
+            if not r <= worst:  # also takes a NaN, which then propagates to a FAULT
+                worst = r
+        s = 1.0 / worst if worst > 1.0 else 1.0
         a2 = 2.0 * self.cfg.joint_brake_acc
-        np.subtract(self.hi, q, out=t)
-        np.maximum(t, 0.0, out=t)
-        np.sqrt(np.multiply(t, a2, out=t), out=t)
-        np.minimum(qd_out, t, out=qd_out)
-        np.subtract(q, self.lo, out=t)
-        np.maximum(t, 0.0, out=t)
-        np.sqrt(np.multiply(t, a2, out=t), out=t)
-        np.negative(t, out=t)
-        np.maximum(qd_out, t, out=qd_out)
-        np.multiply(qd_out, dt, out=t)
-        t += q
-        np.clip(t, self.lo, self.hi, out=t)
-        np.subtract(t, q, out=qd_out)
-        qd_out *= 1.0 / dt
-        q_out[:] = t
+        inv_dt = 1.0 / dt
+        qn_l = [0.0] * n
+        qd_l = [0.0] * n
+        for i in range(n):
+            x = v[i] * s
+            # braking distance to each limit: |qd| <= sqrt(2 a d)
+            up = hi[i] - qv[i]
+            up = math.sqrt(a2 * up) if up > 0.0 else 0.0
+            if x > up:
+                x = up
+            dn = qv[i] - lo[i]
+            dn = math.sqrt(a2 * dn) if dn > 0.0 else 0.0
+            if x < -dn:
+                x = -dn
+            qn = qv[i] + x * dt
+            if qn > hi[i]:
+                qn = hi[i]
+            elif qn < lo[i]:
+                qn = lo[i]
+            qn_l[i] = qn
+            qd_l[i] = (qn - qv[i]) * inv_dt
+        q_out[:] = qn_l
+        qd_out[:] = qd_l
         return self.s_min
 
 

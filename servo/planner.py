@@ -248,12 +248,17 @@ class TrackingPlanner:
         # Target velocities are kept strictly inside the limits (Ruckig rejects
         # a target state it cannot hold).
         self._vmax_abs = np.array([L.v_lin] * 3 + [L.v_ang] * 3)
-        self._vmax_rel = self._vmax_abs.copy()
-        self._v_tgt_cap = self._vmax_abs * 0.9
+        self._vmax_abs_l = self._vmax_abs.tolist()
+        self._v_tgt_cap_l = (self._vmax_abs * 0.9).tolist()
+        self._zero6_l = [0.0] * 6
         self.ref = Reference()
         self.phase = Phase.IDLE
         self.task: FollowTask | None = None
         self._p_object_tcp = np.zeros(3)
+        self._p_object_tcp_l = [0.0, 0.0, 0.0]
+        self._sp_l = [0.0, 0.0, 0.0]
+        self._sv_l = [0.0, 0.0, 0.0]
+        self._sw_l = [0.0, 0.0, 0.0]
         self._q_object_tcp = np.array([1.0, 0.0, 0.0, 0.0])
         # latest object sample
         self.have_sample = False
@@ -298,6 +303,7 @@ class TrackingPlanner:
             self.phase = Phase.IDLE
             return
         self._p_object_tcp[:] = task.T_object_tcp[:3, 3]
+        self._p_object_tcp_l = self._p_object_tcp.tolist()
         self._q_object_tcp[:] = quat_from_matrix(np.ascontiguousarray(task.T_object_tcp[:3, :3]))
         self.phase = Phase.APPROACH
 
@@ -308,6 +314,9 @@ class TrackingPlanner:
         self.s_q[:] = s.q_world_object
         self.s_v[:] = s.v_world_object
         self.s_w[:] = s.w_world_object
+        self._sp_l = self.s_p.tolist()
+        self._sv_l = self.s_v.tolist()
+        self._sw_l = self.s_w.tolist()
         self.have_sample = True
 
     # -- per tick ---------------------------------------------------------------
@@ -319,25 +328,24 @@ class TrackingPlanner:
             tau = (t_ns - self.t_capture_ns) * 1e-9
             tau = min(max(tau, 0.0), self.max_prediction_s)
         # object pose at t: p + v tau, exp(w tau) * q
-        p_obj = self._p3
-        np.multiply(self.s_v, tau, out=p_obj)
-        p_obj += self.s_p
-        np.multiply(self.s_w, tau, out=self._r3)
-        quat_from_rotvec_into(self._r3, self._q4a)
+        sp, sv, sw = self._sp_l, self._sv_l, self._sw_l
+        r = self._r3
+        r[0], r[1], r[2] = sw[0] * tau, sw[1] * tau, sw[2] * tau
+        quat_from_rotvec_into(r, self._q4a)
         quat_multiply_into(self._q4a, self.s_q, self._q4b)  # q_world_object(t)
         # TCP target: T_world_object @ T_object_tcp
         matrix_from_quat_into(self._q4b, self._R)
-        arm = self._v3
-        np.dot(self._R, self._p_object_tcp, out=arm)  # object origin -> TCP, world
-        np.add(p_obj, arm, out=self.tgt_p)
+        R = self._R.tolist()
+        o = self._p_object_tcp_l
+        ax = R[0][0] * o[0] + R[0][1] * o[1] + R[0][2] * o[2]  # object origin -> TCP, world
+        ay = R[1][0] * o[0] + R[1][1] * o[1] + R[1][2] * o[2]
+        az = R[2][0] * o[0] + R[2][1] * o[1] + R[2][2] * o[2]
+        self.tgt_p[:] = [sp[0] + sv[0] * tau + ax, sp[1] + sv[1] * tau + ay, sp[2] + sv[2] * tau + az]
         quat_multiply_into(self._q4b, self._q_object_tcp, self.tgt_q)
         # v_tcp = v + w x arm ; w_tcp = w
-        w = self.s_w
         tv = self.tgt_v
-        tv[0] = self.s_v[0] + w[1] * arm[2] - w[2] * arm[1]
-        tv[1] = self.s_v[1] + w[2] * arm[0] - w[0] * arm[2]
-        tv[2] = self.s_v[2] + w[0] * arm[1] - w[1] * arm[0]
-        self.tgt_w[:] = w
+        tv[:] = [sv[0] + sw[1] * az - sw[2] * ay, sv[1] + sw[2] * ax - sw[0] * az, sv[2] + sw[0] * ay - sw[1] * ax]
+        self.tgt_w[:] = sw
         if self.phase == Phase.APPROACH and self.task is not None:
             self.tgt_p[2] += self.task.standoff_m
         self.clamped = self.workspace.clamp_into(self.tgt_p, self.tgt_p)
@@ -401,34 +409,36 @@ class TrackingPlanner:
             return 0
         self.update_target(t_ns)
         ref = self.ref
-        cp, cv, ca = self._cur_p, self._cur_v, self._cur_a
-        tv = self._tv
-        tv[:3] = self.tgt_v
-        tv[3:] = self.tgt_w
-        np.clip(tv, -self._v_tgt_cap, self._v_tgt_cap, out=tv)
-        # current, relative to the target; orientation chart anchored at q_ref
-        np.subtract(ref.p, self.tgt_p, out=cp[:3])
+        # Plain floats below: NumPy calls on 3- and 6-vectors cost ~1 us each,
+        # more than the arithmetic.
+        cap = self._v_tgt_cap_l
+        tv = self.tgt_v.tolist() + self.tgt_w.tolist()
+        for i in range(6):
+            if tv[i] > cap[i]:
+                tv[i] = cap[i]
+            elif tv[i] < -cap[i]:
+                tv[i] = -cap[i]
+        # target orientation in the chart anchored at q_ref
         quat_conjugate_into(ref.quat, self._q4a)
         quat_multiply_into(self.tgt_q, self._q4a, self._q4b)
-        rotvec_from_quat_into(self._q4b, self._r3)  # target orientation in the chart
-        np.negative(self._r3, out=cp[3:])
-        cv[:3] = ref.v
-        cv[3:] = ref.w
-        cv -= tv
-        ca[:3] = ref.a
-        ca[3:] = ref.alpha
-        vmax = self._vmax_rel
-        np.abs(tv, out=vmax)
-        np.subtract(self._vmax_abs, vmax, out=vmax)
+        rotvec_from_quat_into(self._q4b, self._r3)
+        rt = self._r3.tolist()
+        tp = self.tgt_p.tolist()
+        p, v, w = ref.p.tolist(), ref.v.tolist(), ref.w.tolist()
+        # current state relative to the target
+        cp = [p[0] - tp[0], p[1] - tp[1], p[2] - tp[2], -rt[0], -rt[1], -rt[2]]
+        cv = [v[0] - tv[0], v[1] - tv[1], v[2] - tv[2], w[0] - tv[3], w[1] - tv[4], w[2] - tv[5]]
+        vabs = self._vmax_abs_l
+        vmax = [vabs[i] - abs(tv[i]) for i in range(6)]
         inp = self.inp
         inp.control_interface = ControlInterface.Position
         inp.max_velocity = vmax
         inp.current_position = cp
         inp.current_velocity = cv
-        inp.current_acceleration = ca
-        inp.target_position = self._zero6
-        inp.target_velocity = self._zero6
-        inp.target_acceleration = self._zero6
+        inp.current_acceleration = ref.a.tolist() + ref.alpha.tolist()
+        inp.target_position = self._zero6_l
+        inp.target_velocity = self._zero6_l
+        inp.target_acceleration = self._zero6_l
         res = self._update(dt)
         if res < 0:
             return res
@@ -437,15 +447,13 @@ class TrackingPlanner:
         np_ = out.new_position
         nv = out.new_velocity
         na = out.new_acceleration
-        p, r = ref.p, self._r3
-        for i in range(3):
-            p[i] = self.tgt_p[i] + tv[i] * dt + np_[i]
-            r[i] = r[i] + tv[i + 3] * dt + np_[i + 3]
-            ref.v[i] = tv[i] + nv[i]
-            ref.w[i] = tv[i + 3] + nv[i + 3]
-            ref.a[i] = na[i]
-            ref.alpha[i] = na[i + 3]
-        self._rotate_ref(r)
+        ref.p[:] = [tp[0] + tv[0] * dt + np_[0], tp[1] + tv[1] * dt + np_[1], tp[2] + tv[2] * dt + np_[2]]
+        self._r3[:] = [rt[0] + tv[3] * dt + np_[3], rt[1] + tv[4] * dt + np_[4], rt[2] + tv[5] * dt + np_[5]]
+        ref.v[:] = [tv[0] + nv[0], tv[1] + nv[1], tv[2] + nv[2]]
+        ref.w[:] = [tv[3] + nv[3], tv[4] + nv[4], tv[5] + nv[5]]
+        ref.a[:] = na[:3]
+        ref.alpha[:] = na[3:]
+        self._rotate_ref(self._r3)
         if self.phase == Phase.APPROACH:
             self._maybe_switch_to_follow()
         return res
