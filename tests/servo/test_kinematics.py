@@ -205,3 +205,20 @@ def test_clik_at_elbow_singularity_reaching_out(kin):
     assert min(smin) < 0.03  # pushed into the singular region
     assert max(raw) < 1.0 / ClikConfig().eps * (0.25 + 60 * 0.25) * 1.01  # the DLS bound
     assert np.all(np.isfinite(q))
+
+
+def test_clik_brakes_before_joint_limits(kin):
+    """A reference the arm cannot reach without passing j2's limit: j2 slows, then stops inside."""
+    cfg = ClikConfig()
+    clik = Clik(kin, cfg)
+    q = np.array([0.0, 1.8, -0.5, 0.0, 0.9, 0.0])
+    T = kin.forward(np.array([0.0, 2.6, -0.5, 0.0, 0.9, 0.0]))  # j2 = 2.6 > 2.36
+    p, quat = T[:3, 3].copy(), quat_from_matrix(T[:3, :3])
+    z3, qd = np.zeros(3), np.zeros(6)
+    hi = kin.q_max[1] - cfg.joint_margin_rad
+    for _ in range(1500):
+        d = hi - q[1]
+        clik.step(q, p, quat, z3, z3, 0.002, q, qd)
+        assert q[1] <= hi + 1e-12
+        assert qd[1] <= np.sqrt(2 * cfg.joint_brake_acc * max(d, 0.0)) + 1e-9
+    assert q[1] == pytest.approx(hi, abs=1e-3)  # it got there, and stays

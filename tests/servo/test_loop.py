@@ -324,3 +324,17 @@ def test_controlled_stop_during_a_joint_motion_decelerates_from_the_motion():
     i = seen.index(Status.STOPPING)
     # no reversal towards the start pose: j1 keeps moving forward while it stops
     assert np.all(np.array(dq)[i:, 0] >= -1e-6)
+
+
+def test_realtime_setup_falls_back_with_a_warning(monkeypatch):
+    import os
+
+    def refuse(*a, **k):
+        raise PermissionError(1, "Operation not permitted")
+
+    monkeypatch.setattr(os, "sched_setscheduler", refuse)
+    robot = MockRobot(q_above())
+    sch = Scheduler.from_config(LoopConfig(), SimClock(), robot, None, rt_setup=True, fifo_priority=50, lock_memory=False)
+    with pytest.warns(RuntimeWarning, match="SCHED_FIFO refused"):
+        stats = sch.run(5)
+    assert "SCHED_FIFO refused" in stats.rt_warning and robot.commands == 5
