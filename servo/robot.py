@@ -2,7 +2,7 @@
 
 :class:`Robot` is the interface; :class:`MujocoArm` is the simulated arm
 (the MJCF of ``models/arm.xml`` with its position servos). A real arm is a new
-class with the same four methods, not a new loop.
+class with the same methods (read, command, stop, enable; plant_step a no-op), not a new loop.
 """
 
 from __future__ import annotations
