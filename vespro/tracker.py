@@ -271,8 +271,8 @@ class Tracker:
         if dt > 0:
             ekf.predict(dt)
             self._t_ns = fs.t_ns
-        T_pred = ekf.pose()
-        P6 = ekf.pose_covariance()
+        T_pred = ekf.pose
+        P6 = ekf.pose_covariance
 
         # Visibility and projection per camera.
         t = time.perf_counter()
@@ -367,12 +367,12 @@ class Tracker:
         # Status.
         bad = n_acc < c.min_accepted or (np.isfinite(mean_nis) and mean_nis > c.max_mean_nis)
         self._bad = self._bad + 1 if bad else 0
-        pos_std = float(np.sqrt(np.max(np.linalg.eigvalsh(ekf.pose_covariance()[:3, :3]))))
-        T = ekf.pose()
+        pos_std = float(np.sqrt(np.max(np.linalg.eigvalsh(ekf.pose_covariance[:3, :3]))))
+        T = ekf.pose
         if not np.all(np.isfinite(T)) or pos_std > c.max_pos_std or self._bad >= c.lost_after:
             self._lose()
             return TrackerOutput(fs.index, fs.t_ns, STATUS_LOST, observations=tuple(obs), n_accepted=n_acc,
                                  mean_nis=mean_nis, stage_ms={k: v * 1e3 for k, v in stage.items()})
-        vel = np.concatenate([ekf.velocity(), ekf.angular_velocity()])
-        return TrackerOutput(fs.index, fs.t_ns, STATUS_TRACKING, T, vel, ekf.pose_covariance(), tuple(obs),
+        vel = np.concatenate([ekf.velocity, ekf.angular_velocity])
+        return TrackerOutput(fs.index, fs.t_ns, STATUS_TRACKING, T, vel, ekf.pose_covariance, tuple(obs),
                              n_acc, mean_nis, stage_ms={k: v * 1e3 for k, v in stage.items()})
