@@ -9,7 +9,9 @@ import argparse
 import importlib
 import sys
 
-_COMMANDS: list[tuple[str, str]] = []
+_COMMANDS: list[tuple[str, str]] = [
+    ("servo.cmd_run", "run"),
+]
 
 
 def build_parser() -> argparse.ArgumentParser:

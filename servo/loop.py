@@ -492,6 +492,7 @@ class Scheduler:
         self.on_tick = on_tick
         self.period_ns = state.cfg.period_ns
         self.out = Command(state.n)
+        self._stop_requested = False
         self.q_meas = np.zeros(state.n)
         self._drives_off = False
 
@@ -542,8 +543,12 @@ class Scheduler:
         except (OSError, AttributeError):
             pass
 
+    def request_stop(self) -> None:
+        """End :meth:`run` after the current tick (thread- and signal-safe)."""
+        self._stop_requested = True
+
     def run(self, n_ticks: int) -> TickStats:
-        """Run ``n_ticks`` ticks; returns their timing."""
+        """Run ``n_ticks`` ticks (or until :meth:`request_stop`); returns their timing."""
         clock, robot, state, out = self.clock, self.robot, self.state, self.out
         period = self.period_ns
         compute = np.zeros(n_ticks, dtype=np.int64)
@@ -580,7 +585,11 @@ class Scheduler:
             if drives_off:  # a new run is an explicit restart (state.start above)
                 robot.enable()
                 drives_off = False
+            self._stop_requested = False
             for k in range(n_ticks):
+                if self._stop_requested:
+                    n_ticks = k
+                    break
                 t_next += period
                 t_wake = clock.sleep_until(t_next)
                 late[k] = t_wake - t_next
@@ -622,7 +631,8 @@ class Scheduler:
                 if gc_was:
                     gc.enable()
                 self._leave_realtime(saved_aff, saved_pol)
-        return TickStats(compute, tick, late, per, stat, overruns, n_ticks, rt_msg)
+        return TickStats(compute[:n_ticks], tick[:n_ticks], late[:n_ticks], per[:n_ticks], stat[:n_ticks], overruns,
+                         n_ticks, rt_msg)
 
     @staticmethod
     def _record(rec, ch, t_ns, out, q_meas, compute_ns):

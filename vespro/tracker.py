@@ -34,6 +34,7 @@ from .bsp import load_or_build_bsp
 from .ekf import PoseEKF
 from .ekf import Status as EKFStatus
 from .extraction import extract_corners, window_half_sizes
+from .features import salient_corners
 from .frames import FrameSet
 from .model import Model
 from .projection import project_with_jacobian
@@ -192,6 +193,21 @@ class TrackerOutput:
     stage_ms: dict = field(default_factory=dict)
 
 
+@dataclass(frozen=True)
+class _Candidates:
+    """The visible, salient corners of one camera (a filtered Visibility)."""
+
+    indices: np.ndarray
+    points: np.ndarray
+    view_angle: np.ndarray
+    silhouette_distance: np.ndarray
+
+    @classmethod
+    def of(cls, vis, salient: np.ndarray) -> "_Candidates":
+        keep = salient[vis.indices]
+        return cls(vis.indices[keep], vis.points[keep], vis.view_angle[keep], vis.silhouette_distance[keep])
+
+
 class Tracker:
     """Multi-camera model-based pose tracker.
 
@@ -214,6 +230,7 @@ class Tracker:
         self.config = config
         self.initializer = initializer
         self.tree = load_or_build_bsp(model, cache_dir=bsp_cache_dir)
+        self.salient = salient_corners(model)
         self.ekf: PoseEKF | None = None
         self.status = STATUS_INITIALIZING
         self._t_ns: int | None = None
@@ -284,7 +301,7 @@ class Tracker:
                 per_cam.append(None)
                 continue
             T_co = invert_transform(T_wc) @ T_pred
-            vis = query_visibility(self.model, self.tree, T_co, cam.intrinsics)
+            vis = _Candidates.of(query_visibility(self.model, self.tree, T_co, cam.intrinsics), self.salient)
             if vis.indices.size == 0:
                 per_cam.append((cam, img, T_wc, vis, None, None))
                 continue
