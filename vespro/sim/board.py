@@ -140,8 +140,22 @@ def _inside(intr, T_camera_board, spec: BoardSpec, margin_px: float, partial: fl
                 and np.all(uv[:, 1] >= margin_px) and np.all(uv[:, 1] <= intr.height - 1 - margin_px))
 
 
+def _findable_corners(intr, T_camera_board, spec: BoardSpec, margin_px: float) -> np.ndarray:
+    """Projected inner corners whose four surrounding squares are all inside the
+    image (a ChArUco corner needs its neighbouring markers), shape (M, 2)."""
+    s = spec.square_size
+    offs = np.array([[dx, dy, 0.0] for dx in (-s, 0.0, s) for dy in (-s, 0.0, s)])
+    P = (spec.P_board[:, None, :] + offs[None]).reshape(-1, 3)
+    uv, z = project_points(intr, T_camera_board, P)
+    ok = (z > 0.05) & (uv[:, 0] >= margin_px) & (uv[:, 0] <= intr.width - 1 - margin_px) \
+        & (uv[:, 1] >= margin_px) & (uv[:, 1] <= intr.height - 1 - margin_px)
+    ok = ok.reshape(-1, 9).all(axis=1)
+    uvc, _ = project_points(intr, T_camera_board, spec.P_board)
+    return uvc[ok]
+
+
 def intrinsics_board_poses(intr, spec: BoardSpec, n_views: int, rng: np.random.Generator,
-                           distance=(0.5, 0.8), max_tilt_deg: float = 40.0, margin_px: float = 8.0,
+                           distance=(0.5, 0.8), max_tilt_deg: float = 40.0, margin_px: float = 4.0,
                            n_candidates: int = 300, partial: float = 1.0) -> list[np.ndarray]:
     """Well-spread board poses in front of a camera, ``T_camera_board`` each.
 
@@ -180,7 +194,7 @@ def intrinsics_board_poses(intr, spec: BoardSpec, n_views: int, rng: np.random.G
             ray = np.array([(ideal[0] - intr.cx) / intr.fx, (ideal[1] - intr.cy) / intr.fy, 1.0])
             T = transform_from_rt(R, ray / np.linalg.norm(ray) * d - R @ centre_b)
             if _inside(intr, T, spec, margin_px, partial):
-                uvc, _ = project_points(intr, T, spec.P_board)
+                uvc = _findable_corners(intr, T, spec, margin_px)
                 c = np.zeros((gy, gx), bool)
                 c[np.clip((uvc[:, 1] * gy / intr.height).astype(int), 0, gy - 1),
                   np.clip((uvc[:, 0] * gx / intr.width).astype(int), 0, gx - 1)] = True
