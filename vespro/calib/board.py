@@ -228,7 +228,8 @@ def _orient_chessboard(grey: np.ndarray, spec: BoardSpec, grid: np.ndarray) -> n
     dv = g[-1, :] - g[0, :]
     # Image axes (u right, v down) and board axes (x, y) have the same handedness
     # when the printed face is seen from the front.
-    if np.cross(du.mean(0), dv.mean(0)) < 0:
+    a, b = du.mean(0), dv.mean(0)
+    if a[0] * b[1] - a[1] * b[0] < 0:
         g = g[:, ::-1]
     candidates = [g, g[::-1, ::-1]]
     # Centres of all squares, predicted through a homography from each candidate.
