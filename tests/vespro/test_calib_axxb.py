@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from vespro.calib.axxb import NUMPY_METHODS, hand_eye
+from vespro.calib.axxb import NUMPY_METHODS, hand_eye, robot_world_hand_eye
 from vespro.se3 import exp_so3, invert_transform, pose_error, transform_from_rt
 
 
@@ -38,3 +38,17 @@ def test_noisy_motions_close_and_half_turn(method):
     G, C = _views(X, 15, rng, noise=1e-3)
     dp, da = pose_error(hand_eye(method, G, C, use_opencv=False), X)
     assert dp < 2e-3 and np.rad2deg(da) < 0.2
+
+
+def test_robot_world_shah_exact_and_noisy():
+    rng = np.random.default_rng(2)
+    X = transform_from_rt(exp_so3([0.0, 0.0, np.pi]), [0.065, 0.0, 0.056])
+    Y = transform_from_rt(exp_so3([0.1, -0.2, 0.3]), [0.9, 0.0, 0.5])  # _views' board pose
+    G, C = _views(X, 10, rng)
+    Xe, Ye = robot_world_hand_eye(G, C, use_opencv=False)
+    for est, true in ((Xe, X), (Ye, Y)):
+        dp, da = pose_error(est, true)
+        assert dp < 1e-9 and da < 1e-9
+    G, C = _views(X, 15, rng, noise=1e-3)
+    dp, da = pose_error(robot_world_hand_eye(G, C, use_opencv=False)[0], X)
+    assert dp < 3e-3 and np.rad2deg(da) < 0.2

@@ -10,7 +10,10 @@ NumPy versions of three of its methods:
 - ``park``: Park & Martin 1994 (rotation from the log maps by orthogonal
   Procrustes, then translation);
 - ``daniilidis``: Daniilidis 1999 (rotation and translation at once from dual
-  quaternions, SVD).
+  quaternions, SVD);
+- and for the robot-world form ``A_i X = Y B_i`` (camera on the link and board
+  in the base frame at once, no motion pairs): Shah 2013
+  (:func:`solve_robot_world_shah`).
 
 Conventions are OpenCV's: ``gripper2base`` = ``T_base_link``, ``target2cam`` =
 ``T_camera_board``, result ``cam2gripper`` = ``X = T_link_camera``. With
@@ -27,7 +30,8 @@ import numpy as np
 
 from ..se3 import invert_transform, log_so3, quat_from_matrix, quat_multiply, skew, transform_from_rt
 
-__all__ = ["motion_pairs", "solve_tsai", "solve_park", "solve_daniilidis", "hand_eye", "NUMPY_METHODS"]
+__all__ = ["motion_pairs", "solve_tsai", "solve_park", "solve_daniilidis", "solve_robot_world_shah", "hand_eye",
+           "robot_world_hand_eye", "NUMPY_METHODS"]
 
 
 def motion_pairs(T_base_link: list, T_camera_board: list) -> tuple[list, list]:
@@ -114,6 +118,44 @@ def solve_daniilidis(As, Bs) -> np.ndarray:
     return transform_from_rt(matrix_from_quat(qr), t)
 
 
+def _nearest_rotation(M: np.ndarray) -> np.ndarray:
+    U, _, Vt = np.linalg.svd(M)
+    return U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+
+
+def solve_robot_world_shah(T_base_link: list, T_camera_board: list) -> tuple[np.ndarray, np.ndarray]:
+    """Shah 2013, robot-world/hand-eye ``A_i X = Y B_i`` at once.
+
+    With ``A_i = T_base_link_i``, ``B_i = inv(T_camera_board_i)``,
+    ``X = T_link_camera`` and ``Y = T_base_board``. Rotations: the null vector of
+    the stacked Kronecker system ``(I (x) R_A) vec(R_X) - (R_B^T (x) I) vec(R_Y) = 0``,
+    each block projected onto SO(3); translations: linear least squares on
+    ``R_A t_X - t_Y = R_Y t_B - t_A``.
+
+    Returns
+    -------
+    X, Y : ndarray (4, 4)
+        ``T_link_camera`` and ``T_base_board``.
+    """
+    K = []
+    for G, C in zip(T_base_link, T_camera_board):
+        B = invert_transform(C)
+        K.append(np.hstack([np.kron(np.eye(3), G[:3, :3]), -np.kron(B[:3, :3].T, np.eye(3))]))
+    _, _, Vt = np.linalg.svd(np.concatenate(K))
+    v = Vt[-1]
+    RX = v[:9].reshape(3, 3, order="F")  # vec() stacks columns
+    RY = v[9:].reshape(3, 3, order="F")
+    scale = np.cbrt(np.linalg.det(RX))
+    RX, RY = _nearest_rotation(RX / scale), _nearest_rotation(RY / scale)
+    M, rhs = [], []
+    for G, C in zip(T_base_link, T_camera_board):
+        B = invert_transform(C)
+        M.append(np.hstack([G[:3, :3], -np.eye(3)]))
+        rhs.append(RY @ B[:3, 3] - G[:3, 3])
+    t = np.linalg.lstsq(np.concatenate(M), np.concatenate(rhs), rcond=None)[0]
+    return transform_from_rt(RX, t[:3]), transform_from_rt(RY, t[3:])
+
+
 NUMPY_METHODS = {"tsai": solve_tsai, "park": solve_park, "daniilidis": solve_daniilidis}
 _CV_FLAGS = {"tsai": cv2.CALIB_HAND_EYE_TSAI, "park": cv2.CALIB_HAND_EYE_PARK, "horaud": cv2.CALIB_HAND_EYE_HORAUD,
              "andreff": cv2.CALIB_HAND_EYE_ANDREFF, "daniilidis": cv2.CALIB_HAND_EYE_DANIILIDIS}
@@ -144,3 +186,21 @@ def hand_eye(method: str, T_base_link: list, T_camera_board: list, use_opencv: b
         return transform_from_rt(R, np.ravel(t))
     As, Bs = motion_pairs(T_base_link, T_camera_board)
     return NUMPY_METHODS[method](As, Bs)
+
+
+def robot_world_hand_eye(T_base_link: list, T_camera_board: list, use_opencv: bool | None = None
+                         ) -> tuple[np.ndarray, np.ndarray]:
+    """``(X, Y) = (T_link_camera, T_base_board)`` by Shah's method: OpenCV's
+    ``calibrateRobotWorldHandEye`` when bound, else :func:`solve_robot_world_shah`."""
+    if use_opencv is None:
+        use_opencv = hasattr(cv2, "calibrateRobotWorldHandEye")
+    if not use_opencv:
+        return solve_robot_world_shah(T_base_link, T_camera_board)
+    # OpenCV: world = board, cam = camera, base2gripper = T_link_base.
+    R_b2w, t_b2w, R_g2c, t_g2c = cv2.calibrateRobotWorldHandEye(
+        [T[:3, :3] for T in T_camera_board], [T[:3, 3] for T in T_camera_board],
+        [invert_transform(T)[:3, :3] for T in T_base_link], [invert_transform(T)[:3, 3] for T in T_base_link],
+        method=cv2.CALIB_ROBOT_WORLD_HAND_EYE_SHAH)
+    X = invert_transform(transform_from_rt(R_g2c, np.ravel(t_g2c)))
+    Y = invert_transform(transform_from_rt(R_b2w, np.ravel(t_b2w)))
+    return X, Y

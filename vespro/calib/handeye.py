@@ -9,11 +9,11 @@ camera ``T_camera_board`` (PnP). The board stays fixed, so for the right
 
 :func:`calibrate_hand_eye` runs OpenCV's closed-form solvers
 (``cv2.calibrateHandEye``: Tsai, Park, Horaud, Andreff, Daniilidis; and
-``cv2.calibrateRobotWorldHandEye``: Shah, Li), scores each by its consistency
+``cv2.calibrateRobotWorldHandEye``: Shah), scores each by its consistency
 (the spread of the implied ``T_base_board`` and the reprojection RMS of the
 board corners at their mean). OpenCV 5.0.0's Python package lacks both
-functions (opencv/opencv#29565): :mod:`.axxb` then supplies Tsai, Park and
-Daniilidis in NumPy and the robot-world solvers are skipped, refines the best one by least squares on the
+functions (opencv/opencv#29565): :mod:`.axxb` then supplies Tsai, Park,
+Daniilidis and Shah in NumPy, refines the best one by least squares on the
 reprojection error over ``X`` and ``T_base_board`` jointly, and chooses the
 candidate with the lowest reprojection RMS.
 """
@@ -22,23 +22,18 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 from scipy.optimize import least_squares
 
 from ..se3 import invert_transform, log_so3, transform_from_rt
-from .axxb import available_methods, hand_eye
+from .axxb import available_methods, hand_eye, robot_world_hand_eye
 from .board import BoardSpec, require_unambiguous
 from .errors import CalibrationError
 from .pose import board_pose, mean_transform, perturb, residuals
 
-__all__ = ["ROBOT_WORLD_METHODS", "HandEyeCandidate", "HandEyeResult", "calibrate_hand_eye",
+__all__ = ["HandEyeCandidate", "HandEyeResult", "calibrate_hand_eye",
            "consistency"]
 
-ROBOT_WORLD_METHODS = {
-    "rw_shah": cv2.CALIB_ROBOT_WORLD_HAND_EYE_SHAH,
-    "rw_li": cv2.CALIB_ROBOT_WORLD_HAND_EYE_LI,
-}
 
 
 @dataclass(frozen=True)
@@ -92,10 +87,6 @@ def consistency(method: str, X: np.ndarray, T_base_link: list, T_camera_board: l
                             float(np.sqrt(np.mean(np.square(da)))), rms)
 
 
-def _split(Ts):
-    return [T[:3, :3].copy() for T in Ts], [T[:3, 3].reshape(3, 1).copy() for T in Ts]
-
-
 def calibrate_hand_eye(T_base_link: dict, detections: dict, intr, spec: BoardSpec, min_views: int = 5,
                        refine: bool = True) -> HandEyeResult:
     """``T_link_camera`` of an eye-in-hand camera from views of a fixed board.
@@ -137,16 +128,10 @@ def calibrate_hand_eye(T_base_link: dict, detections: dict, intr, spec: BoardSpe
         X = hand_eye(name, Tl, Tc)
         if np.all(np.isfinite(X)):
             cands[name] = consistency(name, X, Tl, Tc, dets, intr, spec)
-    R_t2c, t_t2c = _split(Tc)
-    R_b2g, t_b2g = _split([invert_transform(T) for T in Tl])
-    for name, flag in (ROBOT_WORLD_METHODS.items() if hasattr(cv2, "calibrateRobotWorldHandEye") else ()):
-        R_b2w, t_b2w, R_g2c, t_g2c = cv2.calibrateRobotWorldHandEye(R_t2c, t_t2c, R_b2g, t_b2g, method=flag)
-        X = invert_transform(transform_from_rt(R_g2c, np.ravel(t_g2c)))
-        T_bb = invert_transform(transform_from_rt(R_b2w, np.ravel(t_b2w)))
-        if np.all(np.isfinite(X)):
-            c = consistency(name, X, Tl, Tc, dets, intr, spec)
-            cands[name] = c if c.rms_px <= consistency(name, X, Tl, Tc, dets, intr, spec, T_bb).rms_px \
-                else consistency(name, X, Tl, Tc, dets, intr, spec, T_bb)
+    X, Y = robot_world_hand_eye(Tl, Tc)
+    if np.all(np.isfinite(X)) and np.all(np.isfinite(Y)):
+        # Scored with its own board pose Y, which it estimated with X.
+        cands["rw_shah"] = consistency("rw_shah", X, Tl, Tc, dets, intr, spec, Y)
     if not cands:
         raise CalibrationError("every hand-eye solver failed (degenerate motions: rotate the camera about several axes)")
     start = min(cands.values(), key=lambda c: c.rms_px)
