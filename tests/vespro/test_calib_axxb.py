@@ -52,3 +52,16 @@ def test_robot_world_shah_exact_and_noisy():
     G, C = _views(X, 15, rng, noise=1e-3)
     dp, da = pose_error(robot_world_hand_eye(G, C, use_opencv=False)[0], X)
     assert dp < 3e-3 and np.rad2deg(da) < 0.2
+
+
+def test_tsai_singular_at_half_turn():
+    """Tsai's modified Rodrigues parameter tan(theta/2) is infinite at 180 deg, the
+    standard hand camera's mounting: exact motions still give a wrong X there
+    (why hand-eye scores every method and keeps the most consistent)."""
+    rng = np.random.default_rng(1)
+    X = transform_from_rt(exp_so3([0.0, 0.0, np.pi]), [0.065, 0.0, 0.056])
+    G, C = _views(X, 15, rng)
+    _, da = pose_error(hand_eye("tsai", G, C, use_opencv=False), X)
+    assert np.rad2deg(da) > 10.0
+    _, da = pose_error(hand_eye("park", G, C, use_opencv=False), X)
+    assert da < 1e-9

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import least_squares
 
-from ..se3 import invert_transform, log_so3, transform_from_rt
+from ..se3 import invert_transform, log_so3
 from .axxb import available_methods, hand_eye, robot_world_hand_eye
 from .board import BoardSpec, require_unambiguous
 from .errors import CalibrationError

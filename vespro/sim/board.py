@@ -18,7 +18,6 @@ folders in the layouts that ``vespro calibrate`` reads from real cameras.
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass
 from pathlib import Path
 
 os.environ.setdefault("MUJOCO_GL", "egl")
@@ -30,25 +29,17 @@ import numpy as np  # noqa: E402
 from ..calib.board import BoardSpec, board_image  # noqa: E402
 from ..camera import project_points, undistort_pixels  # noqa: E402
 from ..rig import Rig  # noqa: E402
-from ..se3 import (exp_so3, invert_transform, pq_from_transform, quat_from_matrix,  # noqa: E402
-                   transform_from_rt)
+from ..se3 import exp_so3, invert_transform, quat_from_matrix, transform_from_rt  # noqa: E402
 from .scene import MODELS_DIR, PARK_POS  # noqa: E402
 
-__all__ = ["BOARD_BODY", "BoardScene", "board_extra", "look_at", "intrinsics_board_poses",
-           "capture_intrinsics", "capture_extrinsics", "capture_handeye", "EXTRINSICS_PLACEMENTS"]
+__all__ = ["BOARD_BODY", "board_extra", "set_board_pose", "look_at", "intrinsics_board_poses",
+           "extrinsics_placements", "handeye_board_pose", "handeye_camera_poses",
+           "capture_intrinsics", "capture_extrinsics", "capture_handeye"]
 
 BOARD_BODY = "calib_board"
 _PX_PER_SQUARE = 64
 _MARGIN_SQUARES = 0.75  # white quiet zone around the pattern (chessboard detection needs one)
 _BACKING_M = 0.004
-
-
-@dataclass(frozen=True)
-class BoardScene:
-    """How a board is added to the cell: its spec and (optionally) a fixed pose."""
-
-    spec: BoardSpec
-    T_world_board: np.ndarray | None = None  # None: parked out of sight until moved
 
 
 def board_extra(spec: BoardSpec, T_world_board: np.ndarray | None = None):
@@ -276,7 +267,7 @@ def _placements(spec: BoardSpec) -> list[np.ndarray]:
     return out
 
 
-EXTRINSICS_PLACEMENTS = _placements
+extrinsics_placements = _placements
 
 
 def capture_extrinsics(rig: Rig, spec: BoardSpec, out_dir: Path, n_placements: int = 3) -> list[np.ndarray]:
