@@ -84,7 +84,7 @@ def add_parser(sub) -> None:
     pi.add_argument("--rig", type=Path, required=True, help="rig file to write or update")
     pi.add_argument("--camera", required=True, help="camera name in the rig file")
     pi.add_argument("--min-views", type=int, default=6, help="fewest usable views")
-    pi.add_argument("--coverage-png", type=Path, help="coverage map to write (default: IMAGES/coverage.png)")
+    pi.add_argument("--coverage-png", type=Path, help="coverage map to write (default: <rig>_<camera>_coverage.png beside the rig file)")
     _add_board(pi, "intrinsics")
     _add_sim(pi, "fixed1", 24)
     pi.set_defaults(func=run_intrinsics)
@@ -151,6 +151,14 @@ def _seed_rig_intrinsics(args, sim_rig) -> None:
             update_rig_camera(args.rig, c.name, intrinsics=c.intrinsics)
 
 
+def _fresh_folder(folder: Path) -> None:
+    """--sim writes into a new or empty folder: old images would mix with new ones."""
+    from .calib.errors import CalibrationError
+
+    if folder.exists() and any(folder.iterdir()):
+        raise CalibrationError(f"{folder}: --sim captures into a new or empty folder, and this one holds files")
+
+
 def _detect_all(images: dict, spec) -> tuple[dict, float]:
     from .calib.board import detect_board
 
@@ -190,6 +198,8 @@ def run_intrinsics(args) -> int:
     if args.sim:
         from .sim.board import capture_intrinsics
 
+        _fresh_folder(args.images)
+
         truth = _sim_rig(args, [args.camera])
         if args.camera not in truth.names:
             raise SystemExit(f"vespro calibrate: camera {args.camera!r} is not in the simulated rig {args.sim_rig}")
@@ -213,7 +223,7 @@ def run_intrinsics(args) -> int:
     print(f"fx {intr.fx:.3f}  fy {intr.fy:.3f}  cx {intr.cx:.3f}  cy {intr.cy:.3f} px "
           f"(std {res.std[0]:.3f} {res.std[1]:.3f} {res.std[2]:.3f} {res.std[3]:.3f})")
     print("distortion k1 k2 p1 p2 k3: " + " ".join(f"{v:.6f}" for v in intr.dist))
-    png = args.coverage_png or (args.images / "coverage.png")
+    png = args.coverage_png or args.rig.with_name(f"{args.rig.stem}_{args.camera}_coverage.png")
     cv2.imwrite(str(png), coverage_image(res.coverage, [dets[n] for n in res.used], size))
     print(f"coverage {100 * res.coverage.fraction:.0f}% of the image, map in {png}")
     for w in res.coverage.warnings:
@@ -244,6 +254,8 @@ def run_extrinsics(args) -> int:
     truth = None
     if args.sim:
         from .sim.board import capture_extrinsics
+
+        _fresh_folder(args.images)
 
         truth = _sim_rig(args)
         truth = truth.subset([c.name for c in truth if c.is_fixed])
@@ -307,6 +319,8 @@ def run_hand_eye(args) -> int:
     truth = None
     if args.sim:
         from .sim.board import capture_handeye
+
+        _fresh_folder(args.images)
 
         truth = _sim_rig(args, [args.camera])
         if args.camera not in truth.names:

@@ -95,3 +95,19 @@ def test_cli_writes_eye_in_hand_mount(captured, tmp_path):
     assert out.mount == "eye_in_hand" and out.link == "flange"
     dp, da = pose_error(out.T_link_camera, cam.T_link_camera)
     assert dp < 1e-3 and np.rad2deg(da) < 0.1
+
+
+def test_cli_sim_end_to_end(tmp_path, capsys):
+    """--sim: capture, then the same image-folder path; the rig file gains the
+    simulated camera (intrinsics seeded from the simulator) and its mounting."""
+    rig_file = tmp_path / "cameras.yaml"
+    argv = ["calibrate", "hand-eye", str(tmp_path / "he"), "--sim", "--sim-views", "8", "--camera", "hand",
+            "--rig", str(rig_file)]
+    assert main(argv) == 0
+    out = load_rig(rig_file)["hand"]
+    cam = _true_rig()["hand"]
+    dp, da = pose_error(out.T_link_camera, cam.T_link_camera)
+    assert dp < 1e-3 and np.rad2deg(da) < 0.1
+    assert "chosen: refined" in capsys.readouterr().out
+    assert main(argv) == 1  # the folder now holds images: a second capture would mix with them
+    assert "new or empty folder" in capsys.readouterr().err
