@@ -147,7 +147,8 @@ def _findable_corners(intr, T_camera_board, spec: BoardSpec, margin_px: float) -
 
 def intrinsics_board_poses(intr, spec: BoardSpec, n_views: int, rng: np.random.Generator,
                            distance=(0.5, 0.8), max_tilt_deg: float = 40.0, margin_px: float = 4.0,
-                           n_candidates: int = 300, partial: float = 1.0) -> list[np.ndarray]:
+                           n_candidates: int = 300, partial: float = 1.0,
+                           occluded=None) -> list[np.ndarray]:
     """Well-spread board poses in front of a camera, ``T_camera_board`` each.
 
     Random candidates aim the board centre at any image position, at depths in
@@ -158,6 +159,8 @@ def intrinsics_board_poses(intr, spec: BoardSpec, n_views: int, rng: np.random.G
     picked greedily to cover a 16x12 grid of the image, border cells weighted
     up (distortion is strongest there and extrapolates worst); every fourth
     pick prefers strong tilt (focal length and principal point need it).
+    ``occluded(T_camera_board) -> bool``, when given, drops candidates that
+    the scene hides in part (the belt and its rails below a fixed camera).
 
     Returns
     -------
@@ -185,6 +188,8 @@ def intrinsics_board_poses(intr, spec: BoardSpec, n_views: int, rng: np.random.G
             ray = np.array([(ideal[0] - intr.cx) / intr.fx, (ideal[1] - intr.cy) / intr.fy, 1.0])
             T = transform_from_rt(R, ray / np.linalg.norm(ray) * d - R @ centre_b)
             if _inside(intr, T, spec, margin_px, partial):
+                if occluded is not None and occluded(T):
+                    break
                 uvc = _findable_corners(intr, T, spec, margin_px)
                 c = np.zeros((gy, gx), bool)
                 c[np.clip((uvc[:, 1] * gy / intr.height).astype(int), 0, gy - 1),
@@ -220,6 +225,31 @@ def _cell(rig: Rig, spec: BoardSpec, T_world_board=None, arm: str = "home"):
     return SimCell(cfg, hidden)
 
 
+def _occlusion_test(cell, camera: str, spec: BoardSpec):
+    """``occluded(T_camera_board)``: does any scene geometry (the board itself
+    excluded) cut a ray from the camera to the board's outline or inner grid?"""
+    m, d = cell.model, cell.data
+    T_wc = cell.true_camera_pose(camera)
+    board_id = m.body(BOARD_BODY).id
+    outline = _board_outline(spec)
+    edge = np.concatenate([np.linspace(a, b, 8, endpoint=False) for a, b in zip(outline, np.roll(outline, -1, 0))])
+    P_board = np.concatenate([edge, spec.P_board[::3]])
+    origin = T_wc[:3, 3].copy()
+    geomid = np.zeros(1, np.int32)
+
+    def occluded(T_camera_board: np.ndarray) -> bool:
+        P_w = (T_wc @ T_camera_board)[:3, :3] @ P_board.T + (T_wc @ T_camera_board)[:3, 3:4]
+        for p in P_w.T:
+            v = p - origin
+            dist = np.linalg.norm(v)
+            x = mujoco.mj_ray(m, d, origin, v / dist, None, 1, board_id, geomid)
+            if 0 <= x < dist - 1e-3:
+                return True
+        return False
+
+    return occluded
+
+
 def _write(path: Path, image: np.ndarray) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     if not cv2.imwrite(str(path), image):
@@ -239,9 +269,11 @@ def capture_intrinsics(rig: Rig, camera: str, spec: BoardSpec, out_dir: Path, n_
     rng = np.random.default_rng(seed)
     # A ChArUco board may run off the image: its corners then reach the image's corners.
     partial = 0.35 if spec.kind == "charuco" else 1.0
-    poses = intrinsics_board_poses(cam.intrinsics, spec, n_views, rng, partial=partial)
     out_dir = Path(out_dir)
     with _cell(rig.subset([camera]), spec) as cell:
+        mujoco.mj_forward(cell.model, cell.data)
+        poses = intrinsics_board_poses(cam.intrinsics, spec, n_views, rng, partial=partial,
+                                       occluded=_occlusion_test(cell, camera, spec))
         T_wc = cell.true_camera_pose(camera)
         for i, T_cb in enumerate(poses):
             set_board_pose(cell, T_wc @ T_cb)
