@@ -1,9 +1,10 @@
 """Camera calibration: intrinsics, fixed-camera extrinsics and hand-eye.
 
 Pure functions on detections and poses live in :mod:`.intrinsics`,
-:mod:`.extrinsics` and :mod:`.handeye`; board definitions and detection in
-:mod:`.board`; reading image folders, pose files and updating rig files in
-:mod:`.io`. ``vespro calibrate`` (:mod:`vespro.cmd_calibrate`) is the thin
+:mod:`.extrinsics` and :mod:`.handeye` (with the AX = XB solvers in
+:mod:`.axxb` and single-view board pose in :mod:`.pose`); board definitions and
+detection in :mod:`.board`; reading image folders, pose files and updating rig
+files in :mod:`.io`. ``vespro calibrate`` (:mod:`vespro.cmd_calibrate`) is the thin
 command-line layer over them.
 
 Board frame (every board): origin at the outer corner of square (0, 0) (the

@@ -7,15 +7,19 @@ camera ``T_camera_board`` (PnP). The board stays fixed, so for the right
 
     T_base_board = T_base_link_i @ X @ T_camera_board_i.
 
-:func:`calibrate_hand_eye` runs OpenCV's closed-form solvers
-(``cv2.calibrateHandEye``: Tsai, Park, Horaud, Andreff, Daniilidis; and
-``cv2.calibrateRobotWorldHandEye``: Shah), scores each by its consistency
-(the spread of the implied ``T_base_board`` and the reprojection RMS of the
-board corners at their mean). OpenCV 5.0.0's Python package lacks both
-functions (opencv/opencv#29565): :mod:`.axxb` then supplies Tsai, Park,
-Daniilidis and Shah in NumPy, refines the best one by least squares on the
+:func:`calibrate_hand_eye` runs the closed-form solvers of OpenCV
+(``cv2.calibrateHandEye``: Tsai, Park, Horaud, Andreff, Daniilidis;
+``cv2.calibrateRobotWorldHandEye``: Shah), scores each by its consistency (the
+spread of the implied ``T_base_board`` and the reprojection RMS of the board
+corners at their mean), refines the best one by least squares on the
 reprojection error over ``X`` and ``T_base_board`` jointly, and chooses the
-candidate with the lowest reprojection RMS.
+candidate with the lowest reprojection RMS. OpenCV 5.0.0's Python package lacks
+both functions (opencv/opencv#29565): :mod:`.axxb` then supplies Tsai, Park,
+Daniilidis and Shah in NumPy.
+
+Tsai's parametrisation is singular for a camera turned by 180 deg on its link
+(the standard "hand" camera): its answer is then far off, and the consistency
+score discards it.
 """
 
 from __future__ import annotations
