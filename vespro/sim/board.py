@@ -40,6 +40,8 @@ BOARD_BODY = "calib_board"
 _PX_PER_SQUARE = 64
 _MARGIN_SQUARES = 0.75  # white quiet zone around the pattern (chessboard detection needs one)
 _BACKING_M = 0.004
+#: Where an eye-in-hand camera sits for its intrinsics capture (looking along world +x).
+INTRINSICS_HAND_EYE_POINT = np.array([0.45, 0.0, 1.15])
 
 
 def board_extra(spec: BoardSpec, T_world_board: np.ndarray | None = None):
@@ -258,19 +260,25 @@ def _write(path: Path, image: np.ndarray) -> None:
 
 def capture_intrinsics(rig: Rig, camera: str, spec: BoardSpec, out_dir: Path, n_views: int = 24,
                        seed: int = 0) -> list[np.ndarray]:
-    """Render the board in ``n_views`` poses before one fixed camera.
+    """Render the board in ``n_views`` poses before one camera (the arm holds
+    an eye-in-hand camera level at ``INTRINSICS_HAND_EYE_POINT``, looking
+    along world +x into free air).
 
     Writes ``out_dir/<index:06d>.png``. Returns the true ``T_camera_board``
     of each view (for tests; the calibration reads only the images).
     """
     cam = rig[camera]
-    if not cam.is_fixed:
-        raise ValueError(f"intrinsics capture moves the board before a fixed camera; {camera!r} is {cam.mount}")
     rng = np.random.default_rng(seed)
     # A ChArUco board may run off the image: its corners then reach the image's corners.
     partial = 0.35 if spec.kind == "charuco" else 1.0
     out_dir = Path(out_dir)
     with _cell(rig.subset([camera]), spec) as cell:
+        if not cam.is_fixed:
+            # Point the eye-in-hand camera into free air over the belt, level.
+            T_wc = look_at(INTRINSICS_HAND_EYE_POINT, INTRINSICS_HAND_EYE_POINT + [1.0, 0.0, 0.0])
+            q = cell.solve_ik(T_wc @ invert_transform(cam.T_link_camera), cell.data.qpos[:6].copy(), iters=200)
+            cell.data.qpos[:6] = q
+            cell.data.qvel[:] = 0
         mujoco.mj_forward(cell.model, cell.data)
         poses = intrinsics_board_poses(cam.intrinsics, spec, n_views, rng, partial=partial,
                                        occluded=_occlusion_test(cell, camera, spec))
