@@ -10,6 +10,10 @@ Three tables:
   over four known placements;
 - hand-eye of the "hand" camera: each closed-form method vs the refined one.
 
+The last row of the extrinsics and hand-eye tables runs the chain a user runs:
+intrinsics calibrated first (from the simulated images), then the pose stage
+with them instead of the true intrinsics.
+
 Times are wall-clock seconds per stage on this machine (capture = MuJoCo render
 + imaging + PNG write). Usage: ``python bench/calibrate.py [--views N] [--seed S]``.
 """
@@ -55,7 +59,7 @@ def _timed(fn, *a, **k):
     return out, time.perf_counter() - t
 
 
-def bench_intrinsics(tmp: Path, views: int, seed: int) -> None:
+def bench_intrinsics(tmp: Path, views: int, seed: int):
     rig = _with_dist(load_rig(CAMERAS_DIR / "fixed1.yaml"))
     true = rig["cam_left"].intrinsics
     rows = []
@@ -71,13 +75,16 @@ def bench_intrinsics(tmp: Path, views: int, seed: int) -> None:
         rel = 100 * np.array([e.fx / true.fx - 1, e.fy / true.fy - 1, e.cx / true.cx - 1, e.cy / true.cy - 1])
         rows.append([kind, f"{len(res.used)}/{views}", t_cap, t_det, t_cal, res.rms_px, *np.round(rel, 3).tolist(),
                      rms, mx, 100 * res.coverage.fraction])
+        if kind == "charuco":
+            charuco = res
     print_table(["board", "views", "capture s", "detect s", "calib s", "RMS px", "fx %", "fy %", "cx %", "cy %",
                  "undist RMS px", "undist max px", "cover %"], rows,
                 title=f"Intrinsics, cam_left 640x480 with distortion ({views} views, seed {seed}); errors vs truth")
     print()
+    return charuco.intrinsics
 
 
-def bench_extrinsics(tmp: Path) -> None:
+def bench_extrinsics(tmp: Path, cam_left_calibrated=None) -> None:
     rig = _with_dist(load_rig(CAMERAS_DIR / "fixed3.yaml"))
     spec = BoardSpec("charuco", 9, 6, 0.045, 0.034)
     folder = tmp / "ext"
@@ -97,6 +104,15 @@ def bench_extrinsics(tmp: Path) -> None:
         dp, da = pose_error(res.T_world_camera[c.name], c.T_world_camera)
         n = sum(1 for k in res.view_rms_px if k[0] == c.name)
         rows.append([c.name, n, dp0 * 1e3, np.rad2deg(da0), dp * 1e3, np.rad2deg(da), res.rms_px[c.name]])
+    if cam_left_calibrated is not None:
+        # The chain a user runs: cam_left's intrinsics from the ChArUco calibration above.
+        intr = {c.name: c.intrinsics for c in rig}
+        intr["cam_left"] = cam_left_calibrated
+        res2 = calibrate_extrinsics(dets, intr, known, spec)
+        dp0, da0 = pose_error(res2.T_world_camera_pnp["cam_left"], rig["cam_left"].T_world_camera)
+        dp, da = pose_error(res2.T_world_camera["cam_left"], rig["cam_left"].T_world_camera)
+        rows.append(["cam_left (calib. intr.)", 4, dp0 * 1e3, np.rad2deg(da0), dp * 1e3, np.rad2deg(da),
+                     res2.rms_px["cam_left"]])
     print_table(["camera", "views", "PnP mm", "PnP deg", "joint mm", "joint deg", "joint RMS px"], rows,
                 title=f"Extrinsics, fixed3 with distortion, 4 known placements "
                       f"(capture {t_cap:.2f} s, detect {t_det:.2f} s, solve {t_cal:.2f} s)")
@@ -118,6 +134,17 @@ def bench_hand_eye(tmp: Path, seed: int) -> None:
         dp, da = pose_error(c.T_link_camera, cam.T_link_camera)
         rows.append([c.method + (" *" if c is res.best else ""), dp * 1e3, np.rad2deg(da), c.spread_m * 1e3,
                      np.rad2deg(c.spread_rad), c.rms_px])
+    # The chain a user runs: the hand camera's intrinsics calibrated first (the arm
+    # holds it still while the board moves), then hand-eye with them.
+    ifolder = tmp / "hand_intr"
+    capture_intrinsics(rig, "hand", spec, ifolder, 30, seed)
+    idets = {n: detect_board(i, spec) for n, i in load_images(list_images(ifolder)).items()}
+    intr = calibrate_intrinsics(idets, spec, (640, 480)).intrinsics
+    res2 = calibrate_hand_eye({n: lookup_pose(poses, n) for n in images}, dets, intr, spec)
+    c = res2.best
+    dp, da = pose_error(c.T_link_camera, cam.T_link_camera)
+    rows.append([c.method + ", calib. intr.", dp * 1e3, np.rad2deg(da), c.spread_m * 1e3, np.rad2deg(c.spread_rad),
+                 c.rms_px])
     print_table(["method (* chosen)", "err mm", "err deg", "spread mm", "spread deg", "RMS px"], rows,
                 title=f"Hand-eye, 'hand' camera with distortion, 15 arm poses "
                       f"(capture {t_cap:.2f} s, detect {t_det:.2f} s, all solvers {t_cal:.2f} s)")
@@ -130,8 +157,8 @@ def main() -> None:
     args = ap.parse_args()
     with tempfile.TemporaryDirectory() as d:
         tmp = Path(d)
-        bench_intrinsics(tmp, args.views, args.seed)
-        bench_extrinsics(tmp)
+        cam_left = bench_intrinsics(tmp, args.views, args.seed)
+        bench_extrinsics(tmp, cam_left)
         bench_hand_eye(tmp, args.seed)
 
 
