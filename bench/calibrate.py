@@ -4,7 +4,8 @@ Three tables:
 
 - intrinsics of cam_left (640x480, plumb_bob k1=-0.22 k2=0.09 p1=0.0006
   p2=-0.0004 k3=-0.015): plain chessboard (whole board in view) vs ChArUco
-  (may run off the image), same board geometry and pose generator;
+  (may run off the image), same board geometry and pose generator; and
+  ChArUco with 0.3 px geometric pixel noise + 2 grey levels of sensor noise;
 - extrinsics of the three fixed cameras (fixed3, same distortion, true
   intrinsics): PnP from the best single view (baseline) vs the joint refinement
   over four known placements;
@@ -42,6 +43,7 @@ from vespro.calib.io import list_images, load_images, lookup_pose, read_pose_csv
 from vespro.camera import CameraIntrinsics  # noqa: E402
 from vespro.rig import Rig, RigCamera, load_rig  # noqa: E402
 from vespro.se3 import pose_error  # noqa: E402
+from vespro.sim.imaging import ImageEffects  # noqa: E402
 from vespro.sim.board import capture_extrinsics, capture_handeye, capture_intrinsics  # noqa: E402
 from vespro.sim.rigs import CAMERAS_DIR  # noqa: E402
 
@@ -63,19 +65,21 @@ def bench_intrinsics(tmp: Path, views: int, seed: int):
     rig = _with_dist(load_rig(CAMERAS_DIR / "fixed1.yaml"))
     true = rig["cam_left"].intrinsics
     rows = []
-    for kind in ("chessboard", "charuco"):
+    charuco = None
+    for kind, noise in (("chessboard", 0.0), ("charuco", 0.0), ("charuco", 0.3)):
         spec = BoardSpec(kind, 11, 8, 0.028, 0.021 if kind == "charuco" else None)
-        folder = tmp / f"intr_{kind}"
-        _, t_cap = _timed(capture_intrinsics, rig, "cam_left", spec, folder, views, seed)
+        folder = tmp / f"intr_{kind}_{noise}"
+        effects = ImageEffects(noise_px=noise, intensity_noise=2.0) if noise else None
+        _, t_cap = _timed(capture_intrinsics, rig, "cam_left", spec, folder, views, seed, effects)
         images = load_images(list_images(folder))
         dets, t_det = _timed(lambda: {n: detect_board(i, spec) for n, i in images.items()})
         res, t_cal = _timed(calibrate_intrinsics, dets, spec, (true.width, true.height))
         e = res.intrinsics
         mx, rms = undistortion_error(e, true)
         rel = 100 * np.array([e.fx / true.fx - 1, e.fy / true.fy - 1, e.cx / true.cx - 1, e.cy / true.cy - 1])
-        rows.append([kind, f"{len(res.used)}/{views}", t_cap, t_det, t_cal, res.rms_px, *np.round(rel, 3).tolist(),
+        rows.append([kind + (f" +{noise} px noise" if noise else ""), f"{len(res.used)}/{views}", t_cap, t_det, t_cal, res.rms_px, *np.round(rel, 3).tolist(),
                      rms, mx, 100 * res.coverage.fraction])
-        if kind == "charuco":
+        if kind == "charuco" and charuco is None:
             charuco = res
     print_table(["board", "views", "capture s", "detect s", "calib s", "RMS px", "fx %", "fy %", "cx %", "cy %",
                  "undist RMS px", "undist max px", "cover %"], rows,

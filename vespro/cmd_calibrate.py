@@ -68,6 +68,10 @@ def _add_sim(p, rig: str, views: int | None) -> None:
     g.add_argument("--sim-rig", default=rig, help="simulated cameras: standard rig name or cameras.yaml (the truth)")
     g.add_argument("--sim-distortion", type=_coeffs, default=DEFAULT_DISTORTION, metavar="K1,K2,P1,P2,K3",
                    help="lens distortion given to every simulated camera")
+    g.add_argument("--sim-noise", type=float, default=0.0, metavar="SIGMA_PX",
+                   help="geometric pixel noise of the simulated images (smooth random displacement), px")
+    g.add_argument("--sim-intensity-noise", type=float, default=0.0, metavar="SIGMA",
+                   help="sensor noise of the simulated images, grey levels")
     if views:
         g.add_argument("--sim-views", type=int, default=views, help="number of views to capture")
     g.add_argument("--seed", type=int, default=0, help="random seed of the simulated poses")
@@ -86,7 +90,7 @@ def add_parser(sub) -> None:
     pi.add_argument("--min-views", type=int, default=6, help="fewest usable views")
     pi.add_argument("--coverage-png", type=Path, help="coverage map to write (default: <rig>_<camera>_coverage.png beside the rig file)")
     _add_board(pi, "intrinsics")
-    _add_sim(pi, "fixed1", 24)
+    _add_sim(pi, "fixed1", 30)
     pi.set_defaults(func=run_intrinsics)
 
     pe = jobs.add_parser("extrinsics", help="T_world_camera of fixed cameras from a board at known world poses",
@@ -137,6 +141,12 @@ def _sim_rig(args, names: list[str] | None = None):
                       c.mount, c.T_world_camera, c.link, c.T_link_camera)
             for c in rig if names is None or c.name in names]
     return Rig(tuple(cams))
+
+
+def _effects(args):
+    from .sim.imaging import ImageEffects
+
+    return ImageEffects(noise_px=args.sim_noise, intensity_noise=args.sim_intensity_noise)
 
 
 def _seed_rig_intrinsics(args, sim_rig) -> None:
@@ -204,7 +214,7 @@ def run_intrinsics(args) -> int:
         if args.camera not in truth.names:
             raise SystemExit(f"vespro calibrate: camera {args.camera!r} is not in the simulated rig {args.sim_rig}")
         t = time.perf_counter()
-        capture_intrinsics(truth, args.camera, spec, args.images, args.sim_views, args.seed)
+        capture_intrinsics(truth, args.camera, spec, args.images, args.sim_views, args.seed, _effects(args))
         print(f"simulated capture: {args.sim_views} views in {args.images} ({time.perf_counter() - t:.1f} s)")
     images = load_images(list_images(args.images))
     size = next(iter(images.values())).shape[1::-1]
@@ -260,7 +270,7 @@ def run_extrinsics(args) -> int:
         truth = _sim_rig(args)
         truth = truth.subset([c.name for c in truth if c.is_fixed])
         _seed_rig_intrinsics(args, truth)
-        capture_extrinsics(truth, spec, args.images, args.sim_placements)
+        capture_extrinsics(truth, spec, args.images, args.sim_placements, _effects(args), args.seed)
         print(f"simulated capture: {args.sim_placements} placements x {len(truth)} cameras in {args.images}")
     if not args.rig.is_file():
         raise CalibrationError(f"{args.rig}: rig file not found; calibrate the cameras' intrinsics first")
@@ -326,7 +336,7 @@ def run_hand_eye(args) -> int:
         if args.camera not in truth.names:
             raise SystemExit(f"vespro calibrate: camera {args.camera!r} is not in the simulated rig {args.sim_rig}")
         _seed_rig_intrinsics(args, truth)
-        capture_handeye(truth, args.camera, spec, args.images, args.sim_views, args.seed)
+        capture_handeye(truth, args.camera, spec, args.images, args.sim_views, args.seed, effects=_effects(args))
         print(f"simulated capture: {args.sim_views} arm poses in {args.images}")
     if not args.rig.is_file():
         raise CalibrationError(f"{args.rig}: rig file not found; calibrate the camera's intrinsics first")

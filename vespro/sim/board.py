@@ -11,8 +11,8 @@ partly emissive so that the pattern keeps its contrast from any angle.
 Captures (``capture_intrinsics``, ``capture_extrinsics``, ``capture_handeye``)
 move the board (mocap) or the arm (:meth:`SimCell.solve_ik`, joints set
 directly, no dynamics) through well-spread poses, render through the usual
-imaging pipeline (the rig's lens distortion is applied) and write image
-folders in the layouts that ``vespro calibrate`` reads from real cameras.
+imaging pipeline (the rig's lens distortion is applied, and optional
+:class:`~vespro.sim.imaging.ImageEffects` noise) and write image folders in the layouts that ``vespro calibrate`` reads from real cameras.
 """
 
 from __future__ import annotations
@@ -217,12 +217,13 @@ def intrinsics_board_poses(intr, spec: BoardSpec, n_views: int, rng: np.random.G
     return [cands[i] for i in chosen]
 
 
-def _cell(rig: Rig, spec: BoardSpec, T_world_board=None, arm: str = "home"):
+def _cell(rig: Rig, spec: BoardSpec, T_world_board=None, arm: str = "home", effects=None, seed: int = 0):
     from .cell import CellConfig, SimCell
     from .motion import Static
 
     hidden = Static(transform_from_rt(np.eye(3), PARK_POS))
-    cfg = CellConfig(MODELS_DIR / "objects" / "box.stl", rig, arm=arm,
+    cfg = CellConfig(MODELS_DIR / "objects" / "box.stl", rig, arm=arm, seed=seed,
+                     **({"effects": effects} if effects is not None else {}),
                      scene_extras=(board_extra(spec, T_world_board),))
     return SimCell(cfg, hidden)
 
@@ -259,7 +260,7 @@ def _write(path: Path, image: np.ndarray) -> None:
 
 
 def capture_intrinsics(rig: Rig, camera: str, spec: BoardSpec, out_dir: Path, n_views: int = 24,
-                       seed: int = 0) -> list[np.ndarray]:
+                       seed: int = 0, effects=None) -> list[np.ndarray]:
     """Render the board in ``n_views`` poses before one camera (the arm holds
     an eye-in-hand camera level at ``INTRINSICS_HAND_EYE_POINT``, looking
     along world +x into free air).
@@ -272,7 +273,7 @@ def capture_intrinsics(rig: Rig, camera: str, spec: BoardSpec, out_dir: Path, n_
     # A ChArUco board may run off the image: its corners then reach the image's corners.
     partial = 0.35 if spec.kind == "charuco" else 1.0
     out_dir = Path(out_dir)
-    with _cell(rig.subset([camera]), spec) as cell:
+    with _cell(rig.subset([camera]), spec, effects=effects, seed=seed) as cell:
         if not cam.is_fixed:
             # Point the eye-in-hand camera into free air over the belt, level.
             T_wc = look_at(INTRINSICS_HAND_EYE_POINT, INTRINSICS_HAND_EYE_POINT + [1.0, 0.0, 0.0])
@@ -310,7 +311,8 @@ def _placements(spec: BoardSpec) -> list[np.ndarray]:
 extrinsics_placements = _placements
 
 
-def capture_extrinsics(rig: Rig, spec: BoardSpec, out_dir: Path, n_placements: int = 3) -> list[np.ndarray]:
+def capture_extrinsics(rig: Rig, spec: BoardSpec, out_dir: Path, n_placements: int = 3, effects=None,
+                       seed: int = 0) -> list[np.ndarray]:
     """Render the board at known placements, every fixed camera of the rig.
 
     Writes ``out_dir/<camera>/<placement:06d>.png`` and
@@ -323,7 +325,7 @@ def capture_extrinsics(rig: Rig, spec: BoardSpec, out_dir: Path, n_placements: i
     placements = _placements(spec)[:n_placements]
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    with _cell(rig.subset(fixed), spec) as cell:
+    with _cell(rig.subset(fixed), spec, effects=effects, seed=seed) as cell:
         for i, T_wb in enumerate(placements):
             set_board_pose(cell, T_wb)
             fs = cell.capture()
@@ -366,7 +368,7 @@ def handeye_camera_poses(T_world_board: np.ndarray, spec: BoardSpec, n_views: in
 
 
 def capture_handeye(rig: Rig, camera: str, spec: BoardSpec, out_dir: Path, n_views: int = 15,
-                    seed: int = 0, min_visible: float = 0.6) -> tuple[list[np.ndarray], np.ndarray]:
+                    seed: int = 0, min_visible: float = 0.6, effects=None) -> tuple[list[np.ndarray], np.ndarray]:
     """Move the arm so that the eye-in-hand camera views a fixed board from
     ``n_views`` poses; write ``out_dir/<index:06d>.png`` and
     ``out_dir/flange_poses.csv`` (``index,x,y,z,qw,qx,qy,qz``: ``T_world_link``
@@ -389,7 +391,7 @@ def capture_handeye(rig: Rig, camera: str, spec: BoardSpec, out_dir: Path, n_vie
     out_dir.mkdir(parents=True, exist_ok=True)
     links = {}
     corners = spec.P_board
-    with _cell(rig.subset([camera]), spec, T_wb) as cell:
+    with _cell(rig.subset([camera]), spec, T_wb, effects=effects, seed=seed) as cell:
         q = cell.data.qpos[:6].copy()
         candidates = handeye_camera_poses(T_wb, spec, 4 * n_views, rng)
         T_lc = cam.T_link_camera
