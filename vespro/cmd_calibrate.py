@@ -283,6 +283,10 @@ def run_extrinsics(args) -> int:
     unknown = [d.name for d in cam_dirs if d.name not in rig.names]
     if unknown:
         raise CalibrationError(f"image folder(s) {unknown} name no camera of {args.rig} ({rig.names})")
+    moving = [d.name for d in cam_dirs if not rig[d.name].is_fixed]
+    if moving:
+        raise CalibrationError(f"camera(s) {moving} ride on the robot (eye_in_hand in {args.rig}): "
+                               "calibrate them with 'vespro calibrate hand-eye'")
     dets, t_det = {}, 0.0
     for d in cam_dirs:
         ds, t = _detect_all(load_images(list_images(d)), spec)

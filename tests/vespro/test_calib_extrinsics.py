@@ -90,3 +90,15 @@ def test_cli_updates_rig(captured, tmp_path):
     for c in rig:
         dp, da = pose_error(out[c.name].T_world_camera, c.T_world_camera)
         assert dp < 1e-3 and np.rad2deg(da) < 0.05
+
+
+def test_cli_refuses_eye_in_hand_camera(captured, tmp_path, capsys):
+    folder, _, _ = captured
+    cams = []
+    for c in _true_rig():
+        if c.name == "cam_top":
+            c = RigCamera(c.name, c.intrinsics, "eye_in_hand", link="flange", T_link_camera=np.eye(4))
+        cams.append(c)
+    save_rig(Rig(tuple(cams)), tmp_path / "cameras.yaml")
+    assert main(["calibrate", "extrinsics", str(folder), "--rig", str(tmp_path / "cameras.yaml")]) == 1
+    assert "['cam_top'] ride on the robot" in capsys.readouterr().err
