@@ -14,6 +14,7 @@ import sys
 # (module, one-line help) in the order shown by --help.
 _COMMANDS = [
     ("vespro.cmd_record", "record"),
+    ("vespro.cmd_calibrate", "calibrate"),
 ]
 
 

@@ -1,0 +1,237 @@
+"""Intrinsic calibration of one camera from board views.
+
+:func:`calibrate_intrinsics` runs OpenCV's calibration (camera matrix and
+plumb_bob ``k1 k2 p1 p2 k3``) on the views whose board was found, then drops
+views whose reprojection RMS is an outlier and calibrates again without them.
+:func:`coverage` says how well the detected corners cover the image (a badly
+covered image extrapolates the distortion model where it was never measured);
+:func:`coverage_image` draws it. :func:`undistortion_error` compares two
+calibrations of one camera where it matters: the distorted-to-ideal pixel map.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from ..camera import CameraIntrinsics, project_points, undistort_pixels
+from ..se3 import exp_so3, transform_from_rt
+from .board import BoardDetection, BoardSpec
+from .errors import CalibrationError
+
+__all__ = ["IntrinsicsResult", "Coverage", "calibrate_intrinsics", "coverage", "coverage_image",
+           "undistortion_error", "reprojection_rms"]
+
+
+@dataclass(frozen=True)
+class Coverage:
+    """Where the detected corners fall in the image.
+
+    Attributes
+    ----------
+    counts : ndarray, shape (rows, cols), int
+        Corners per grid cell.
+    fraction : float
+        Fraction of cells holding at least one corner.
+    warnings : tuple of str
+        Empty when the coverage is good.
+    """
+
+    counts: np.ndarray
+    fraction: float
+    warnings: tuple = ()
+
+    @property
+    def ok(self) -> bool:
+        return not self.warnings
+
+
+@dataclass(frozen=True)
+class IntrinsicsResult:
+    """Outcome of :func:`calibrate_intrinsics`.
+
+    Attributes
+    ----------
+    intrinsics : CameraIntrinsics
+    rms_px : float
+        Reprojection RMS over all corners of the views used, px.
+    view_rms_px : dict
+        View name -> reprojection RMS of that view, px (views used only).
+    T_camera_board : dict
+        View name -> board pose in the camera frame, (4, 4).
+    used : tuple of str
+    failed : tuple of str
+        Views where the board was not found.
+    rejected : dict
+        View name -> its RMS (px) in the calibration that rejected it as an outlier.
+    std : ndarray, shape (9,)
+        Standard deviations of ``fx fy cx cy k1 k2 p1 p2 k3`` reported by OpenCV.
+    coverage : Coverage
+    """
+
+    intrinsics: CameraIntrinsics
+    rms_px: float
+    view_rms_px: dict
+    T_camera_board: dict
+    used: tuple
+    failed: tuple
+    rejected: dict
+    std: np.ndarray
+    coverage: Coverage = field(default=None)
+
+
+def reprojection_rms(intr: CameraIntrinsics, T_camera_board: np.ndarray, det: BoardDetection,
+                     spec: BoardSpec) -> float:
+    """RMS (px) of the distance between detected and projected corners."""
+    uv, _ = project_points(intr, T_camera_board, spec.P_board[det.ids])
+    return float(np.sqrt(np.mean(np.sum((uv - det.uv) ** 2, axis=1))))
+
+
+def _run(dets: dict, spec: BoardSpec, size: tuple, flags: int):
+    names = list(dets)
+    obj = [spec.P_board[dets[n].ids].astype(np.float32) for n in names]
+    img = [dets[n].uv.astype(np.float32) for n in names]
+    crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-12)
+    rms, K, dist, rvecs, tvecs, std_i, _, _ = cv2.calibrateCameraExtended(
+        obj, img, size, None, None, flags=flags, criteria=crit)
+    intr = CameraIntrinsics(size[0], size[1], K, np.asarray(dist).ravel()[:5])
+    poses = {n: transform_from_rt(exp_so3(np.ravel(r)), np.ravel(t)) for n, r, t in zip(names, rvecs, tvecs)}
+    view_rms = {n: reprojection_rms(intr, poses[n], dets[n], spec) for n in names}
+    return intr, poses, view_rms, np.asarray(std_i).ravel()
+
+
+def calibrate_intrinsics(detections: dict, spec: BoardSpec, image_size: tuple, min_views: int = 6,
+                         outlier_factor: float = 3.0, outlier_floor_px: float = 0.3,
+                         max_rounds: int = 3) -> IntrinsicsResult:
+    """Camera matrix and plumb_bob distortion from board detections.
+
+    Parameters
+    ----------
+    detections : dict
+        View name -> :class:`BoardDetection`, or None where the board was not found.
+    spec : BoardSpec
+    image_size : tuple
+        ``(width, height)``, pixels.
+    min_views : int
+        Fewer usable views than this is an error (5 coefficients + 4 camera
+        matrix entries need several well-spread views).
+    outlier_factor, outlier_floor_px : float
+        A view is an outlier when its RMS exceeds both ``outlier_factor`` times
+        the median view RMS and the median plus ``outlier_floor_px`` (the floor
+        keeps a set of near-perfect views from losing its slightly worse ones).
+    max_rounds : int
+        Rejection rounds (each followed by a new calibration).
+
+    Raises
+    ------
+    CalibrationError
+        Too few views with a detected board; the message names the failed ones.
+    """
+    failed = tuple(n for n, d in detections.items() if d is None)
+    dets = {n: d for n, d in detections.items() if d is not None}
+    for n, d in dets.items():
+        if tuple(d.image_size) != tuple(image_size):
+            raise CalibrationError(f"view {n}: image size {d.image_size} differs from {tuple(image_size)}")
+    if len(dets) < min_views:
+        raise CalibrationError(
+            f"only {len(dets)} view(s) with the board ({spec.describe()}) found, need at least {min_views}"
+            + (f"; board not found in: {', '.join(failed)}" if failed else "")
+            + (f"; usable: {', '.join(dets)}" if dets else ""))
+    flags = 0
+    rejected = {}
+    for _ in range(max_rounds + 1):
+        intr, poses, view_rms, std = _run(dets, spec, tuple(image_size), flags)
+        med = float(np.median(list(view_rms.values())))
+        thr = max(outlier_factor * med, med + outlier_floor_px)
+        bad = {n: r for n, r in view_rms.items() if r > thr}
+        if not bad or len(dets) - len(bad) < min_views:
+            break
+        rejected.update(bad)
+        dets = {n: d for n, d in dets.items() if n not in bad}
+    n_pts = sum(len(d) for d in dets.values())
+    total = float(np.sqrt(sum(view_rms[n] ** 2 * len(d) for n, d in dets.items()) / n_pts))
+    cov = coverage(list(dets.values()), tuple(image_size))
+    return IntrinsicsResult(intr, total, view_rms, poses, tuple(dets), failed, rejected, std, cov)
+
+
+def coverage(detections: list, image_size: tuple, grid: tuple = (8, 6), min_fraction: float = 0.75) -> Coverage:
+    """How well corners cover the image.
+
+    Parameters
+    ----------
+    detections : list of BoardDetection
+    image_size : tuple
+        ``(width, height)``, pixels.
+    grid : tuple
+        ``(cols, rows)`` of the coverage grid.
+    min_fraction : float
+        Fewer covered cells than this fraction gives a warning; so does an empty
+        corner cell (distortion is strongest there).
+    """
+    w, h = image_size
+    cols, rows = grid
+    counts = np.zeros((rows, cols), int)
+    for d in detections:
+        c = np.clip((d.uv[:, 0] * cols / w).astype(int), 0, cols - 1)
+        r = np.clip((d.uv[:, 1] * rows / h).astype(int), 0, rows - 1)
+        np.add.at(counts, (r, c), 1)
+    frac = float(np.mean(counts > 0))
+    warns = []
+    if frac < min_fraction:
+        warns.append(f"board corners cover only {100 * frac:.0f}% of the image ({cols}x{rows} grid), "
+                     f"want at least {100 * min_fraction:.0f}%: add views with the board in the empty areas")
+    names = {(0, 0): "top-left", (0, cols - 1): "top-right", (rows - 1, 0): "bottom-left",
+             (rows - 1, cols - 1): "bottom-right"}
+    empty = [nm for rc, nm in names.items() if counts[rc] == 0]
+    if empty:
+        warns.append(f"no board corners in the image's {', '.join(empty)} corner(s): "
+                     "the distortion there is extrapolated")
+    return Coverage(counts, frac, tuple(warns))
+
+
+def coverage_image(cov: Coverage, detections: list, image_size: tuple) -> np.ndarray:
+    """A picture of the coverage: grid cells shaded by corner count (red: empty),
+    each view's corners as dots. Shape (height, width, 3), uint8 BGR."""
+    w, h = image_size
+    rows, cols = cov.counts.shape
+    img = np.full((h, w, 3), 255, np.uint8)
+    top = max(1, int(cov.counts.max()))
+    for r in range(rows):
+        for c in range(cols):
+            x0, x1 = int(c * w / cols), int((c + 1) * w / cols) - 1
+            y0, y1 = int(r * h / rows), int((r + 1) * h / rows) - 1
+            n = cov.counts[r, c]
+            colour = (60, 60, 230) if n == 0 else (255 - int(180 * n / top), 255, 255 - int(180 * n / top))
+            cv2.rectangle(img, (x0, y0), (x1, y1), colour, -1)
+            cv2.rectangle(img, (x0, y0), (x1, y1), (200, 200, 200), 1)
+            cv2.putText(img, str(n), (x0 + 4, y0 + 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (40, 40, 40), 1)
+    rng = np.random.default_rng(0)  # stable view colours
+    for d in detections:
+        colour = tuple(int(v) for v in rng.integers(0, 200, 3))
+        hull = cv2.convexHull(d.uv.astype(np.float32)).astype(np.int32)
+        cv2.polylines(img, [hull], True, colour, 1, cv2.LINE_AA)
+        for u, v in d.uv:
+            cv2.circle(img, (int(round(u)), int(round(v))), 1, colour, -1)
+    text = f"coverage {100 * cov.fraction:.0f}%  ({len(detections)} views)"
+    cv2.putText(img, text, (8, h - 10), cv2.FONT_HERSHEY_SIMPLEX, 0.55, (0, 0, 0), 1, cv2.LINE_AA)
+    return img
+
+
+def undistortion_error(intr_est: CameraIntrinsics, intr_true: CameraIntrinsics, step_px: int = 8) -> tuple[float, float]:
+    """Difference of two distorted-to-ideal pixel maps over the whole image.
+
+    Each calibration maps a pixel ``u`` of the raw image to its ideal pixel
+    ``K n(u)`` (what ``cv2.undistort`` with the same matrix does); the maps are
+    compared on a grid of pixels covering the image, borders included.
+
+    Returns
+    -------
+    max_px, rms_px : float
+    """
+    w, h = intr_true.width, intr_true.height
+    u, v = np.meshgrid(np.r_[np.arange(0, w, step_px), w - 1], np.r_[np.arange(0, h, step_px), h - 1])
+    uv = np.stack([u.ravel(), v.ravel()], 1).astype(float)
+    d = np.linalg.norm(undistort_pixels(intr_est, uv) - undistort_pixels(intr_true, uv), axis=1)
+    return float(d.max()), float(np.sqrt(np.mean(d ** 2)))
