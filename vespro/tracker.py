@@ -81,6 +81,18 @@ class TrackerConfig:
         Consecutive bad frames before the track is declared lost.
     max_pos_std : float
         Position std (m) beyond which the track is lost.
+    confirm_frames : int
+        A started filter publishes ``initializing`` until this many consecutive
+        well-supported frames confirm it: a wrong starting pose is never
+        published as ``tracking``.
+    adaptive_noise : bool
+        Adapt the measurement noise to the innovations (covariance matching):
+        the corner error differs between objects, backgrounds and lenses, and
+        an honest covariance needs the real one. ``sigma_px`` is the start.
+    sigma_min_px, sigma_max_px : float
+        Bounds of the adapted noise, px.
+    noise_adapt_rate : float
+        Weight of each frame in the running estimate.
     """
 
     features_per_camera: int = 8
@@ -98,6 +110,11 @@ class TrackerConfig:
     max_mean_nis: float = 12.0
     lost_after: int = 4
     max_pos_std: float = 0.02
+    confirm_frames: int = 2
+    adaptive_noise: bool = True
+    sigma_min_px: float = 0.3
+    sigma_max_px: float = 3.0
+    noise_adapt_rate: float = 0.15
 
     def __post_init__(self):
         if self.selection not in ("information", "quality"):
@@ -235,6 +252,9 @@ class Tracker:
         self.status = STATUS_INITIALIZING
         self._t_ns: int | None = None
         self._bad = 0
+        self._good = 0
+        self.confirmed = False
+        self.sigma_px = config.sigma_px
         self.frames = 0
         self.lost_events = 0
 
@@ -253,7 +273,9 @@ class Tracker:
                            gate_prob=c.gate_prob, v=v, w=w)
         self._t_ns = t_ns
         self._bad = 0
-        self.status = STATUS_TRACKING
+        self._good = 0
+        self.confirmed = False
+        self.status = STATUS_INITIALIZING
 
     def _lose(self) -> None:
         self.ekf = None
@@ -333,7 +355,7 @@ class Tracker:
         t = time.perf_counter()
         zs, hs, Js, owners = [], [], [], []
         obs = []
-        R = c.sigma_px**2 * np.eye(2)
+        R = self.sigma_px**2 * np.eye(2)
         for k, entry in enumerate(per_cam):
             cam = self.rig.cameras[k]
             if entry is None:
@@ -366,11 +388,17 @@ class Tracker:
             z = h = np.zeros((0, 2))
             Jp = np.zeros((0, 2, 6))
         if len(z):
+            ekf.sigma_px = self.sigma_px
             res = ekf.update(z, h, Jp)
             if res.status == EKFStatus.OK:
                 n_acc = res.n_accepted
                 nis = res.nis[res.accepted]
                 mean_nis = float(np.mean(nis)) if nis.size else float("nan")
+                if c.adaptive_noise and nis.size >= c.min_accepted and np.isfinite(mean_nis):
+                    # Covariance matching: E[NIS] = 2 per point when R is right.
+                    ratio = min(max(mean_nis / 2.0, 0.25), 4.0)
+                    s2 = self.sigma_px**2 * (1.0 + c.noise_adapt_rate * (ratio - 1.0))
+                    self.sigma_px = float(np.clip(np.sqrt(s2), c.sigma_min_px, c.sigma_max_px))
                 # Mark accepted features per camera.
                 offset = 0
                 obs = list(obs)
@@ -384,12 +412,21 @@ class Tracker:
         # Status.
         bad = n_acc < c.min_accepted or (np.isfinite(mean_nis) and mean_nis > c.max_mean_nis)
         self._bad = self._bad + 1 if bad else 0
+        self._good = 0 if bad else self._good + 1
+        if not self.confirmed and self._good >= c.confirm_frames:
+            self.confirmed = True
         pos_std = float(np.sqrt(np.max(np.linalg.eigvalsh(ekf.pose_covariance[:3, :3]))))
         T = ekf.pose
         if not np.all(np.isfinite(T)) or pos_std > c.max_pos_std or self._bad >= c.lost_after:
             self._lose()
             return TrackerOutput(fs.index, fs.t_ns, STATUS_LOST, observations=tuple(obs), n_accepted=n_acc,
                                  mean_nis=mean_nis, stage_ms={k: v * 1e3 for k, v in stage.items()})
+        stage_ms = {k: v * 1e3 for k, v in stage.items()}
+        if not self.confirmed:
+            self.status = STATUS_INITIALIZING
+            return TrackerOutput(fs.index, fs.t_ns, STATUS_INITIALIZING, observations=tuple(obs), n_accepted=n_acc,
+                                 mean_nis=mean_nis, stage_ms=stage_ms)
+        self.status = STATUS_TRACKING
         vel = np.concatenate([ekf.velocity, ekf.angular_velocity])
         return TrackerOutput(fs.index, fs.t_ns, STATUS_TRACKING, T, vel, ekf.pose_covariance, tuple(obs),
-                             n_acc, mean_nis, stage_ms={k: v * 1e3 for k, v in stage.items()})
+                             n_acc, mean_nis, stage_ms=stage_ms)
