@@ -32,6 +32,9 @@ def add_parser(sub) -> None:
     p.add_argument("--record-seconds", type=float, default=120.0, help="recorder capacity, s")
     p.add_argument("--no-latency-compensation", action="store_true", help="do not predict the pose to the tick time")
     p.add_argument("--cpu", type=int, help="pin the loop to this core and ask for SCHED_FIFO")
+    p.add_argument("--robot", default="mujoco",
+                   help="mujoco: the MuJoCo arm in this process; shm:NAME: a plant process on a shared-memory fieldbus")
+    p.add_argument("--stats-json", type=Path, help="write tick, status and link statistics here at the end")
     p.set_defaults(func=run)
 
 
@@ -67,7 +70,22 @@ def run(args) -> int:
     clock = WallClock()
     receiver = PoseReceiver(args.connect, baudrate=args.baud)
     source = LinkSource(receiver)
-    robot = MujocoArm(cfg.model_path)
+    if args.robot.startswith("shm:"):
+        from .shm_robot import ShmArm
+
+        robot = ShmArm(args.robot[4:])
+        t_end = time.monotonic() + 30
+        q = np.zeros(6)
+        while not robot.plant_alive and time.monotonic() < t_end:
+            time.sleep(0.01)
+        if not robot.plant_alive:
+            print("servo run: the plant did not start", file=sys.stderr)
+            return 2
+    elif args.robot == "mujoco":
+        robot = MujocoArm(cfg.model_path)
+    else:
+        print(f"servo run: unknown robot {args.robot!r} (mujoco or shm:NAME)", file=sys.stderr)
+        return 2
     state = LoopState(cfg)
     ticks_per_s = int(round(1e9 / cfg.period_ns))
     recorder = Recorder(int(args.record_seconds * ticks_per_s)) if args.record else None
@@ -77,6 +95,8 @@ def run(args) -> int:
 
     def on_tick(t_ns, out):
         st = Status(state.status) if hasattr(state, "status") else None
+        if not getattr(robot, "plant_alive", True):
+            sched.request_stop()  # the plant (the arm's controller) has gone
         if stopping["sigint"]:
             if stopping["t"] is None:
                 stopping["t"] = t_ns
@@ -120,6 +140,29 @@ def run(args) -> int:
         npz, csv = recorder.save(args.record / "servo")
         print(f"servo run: wrote {npz} and {csv}")
     per = stats.period_ns[1:] - cfg.period_ns
+    if args.stats_json:
+        import json
+
+        st = stats.status.astype(int)
+        rs = receiver.stats()
+        stops = int(np.sum((st[1:] == int(Status.STOPPING)) & (st[:-1] != int(Status.STOPPING))))
+        info = {
+            "ticks": int(stats.n_ticks), "overruns": int(stats.overruns),
+            "compute_us_median": float(np.median(stats.compute_ns) * 1e-3) if stats.n_ticks else None,
+            "compute_us_p99": float(np.percentile(stats.compute_ns, 99) * 1e-3) if stats.n_ticks else None,
+            "period_error_us": {q: float(np.percentile(np.abs(per), p) * 1e-3) if per.size else None
+                                for q, p in (("median", 50), ("p99", 99), ("p99.9", 99.9), ("max", 100))},
+            "status_ticks": {s.name: int(np.sum(st == int(s))) for s in Status},
+            "controlled_stops": stops, "sigint_stop": bool(stopping["sigint"]),
+            "poses_used": source.samples,
+            "link": {"poses": rs.poses, "frames_ok": rs.frames_ok, "rejected": dict(rs.rejected),
+                     "seq_gaps": rs.seq_gaps, "connects": rs.connects, "disconnects": rs.disconnects},
+            "rt_warning": stats.rt_warning,
+        }
+        args.stats_json.parent.mkdir(parents=True, exist_ok=True)
+        args.stats_json.write_text(json.dumps(info, indent=2))
+        hist = np.bincount(np.clip(np.abs(per) // 1000, 0, 2000).astype(int)) if per.size else np.zeros(1)
+        np.save(args.stats_json.with_suffix(".period_hist_us.npy"), hist)
     print(f"servo run: {stats.n_ticks} ticks, {stats.overruns} overruns, compute median "
           f"{np.median(stats.compute_ns) * 1e-3:.0f} us, period error p99 {np.percentile(np.abs(per), 99) * 1e-3:.1f} us"
           if stats.n_ticks > 2 else "servo run: stopped", flush=True)

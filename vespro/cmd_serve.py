@@ -23,7 +23,11 @@ def add_parser(sub) -> None:
         ),
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
-    p.add_argument("--source", choices=["sim", "replay", "camera"], default="sim", help="where frames come from")
+    p.add_argument("--source", choices=["sim", "replay", "camera", "world"], default="sim",
+                   help="where frames come from (world: render a plant process's shared world state, the demo)")
+    p.add_argument("--world-shm", help="world: name of the plant's world-state shared memory")
+    p.add_argument("--record", type=Path, metavar="DIR",
+                   help="also write DIR/recording (frames as served), DIR/poses.csv, DIR/outputs.pkl, DIR/server.json")
     p.add_argument("--recording", type=Path, help="replay: the recording folder")
     p.add_argument("--loop", action="store_true", help="replay: start over at the end")
     p.add_argument("--device", action="append", default=[], help="camera: a cv2.VideoCapture device per rig camera")
@@ -72,6 +76,15 @@ def run(args) -> int:
             cell.settle_arm()
             source = SimSource(cell, clock)
             model = load_model(config.object_mesh, name=name)
+        elif args.source == "world":
+            from .cmd_record import build_config
+            from .sources import WorldSource
+
+            if not args.world_shm:
+                raise ValueError("--source world needs --world-shm NAME")
+            config, _, name = build_config(args)
+            source = WorldSource(args.world_shm, config, clock)
+            model = load_model(config.object_mesh, name=name)
         else:
             from .cmd_record import rig_path
             from .rig import load_rig
@@ -115,7 +128,23 @@ def run(args) -> int:
         host, port = publisher.address
         where = f"tcp: connect to socket://{host}:{port}"
     log = None if args.quiet else (lambda line: print(line, flush=True))
-    server = PoseServer(source, tracker, publisher, clock, initializer, background_init=not args.lockstep, log=log)
+    outputs, writer = [], None
+    if args.record:
+        from .recording import AsyncRecordingWriter
+
+        args.record.mkdir(parents=True, exist_ok=True)
+        mesh = getattr(getattr(source, "cell", None), "config", None)
+        mesh = mesh.object_mesh if mesh is not None else (args.model or rec.model_path)
+        writer = AsyncRecordingWriter(args.record / "recording", source.rig, mesh, source.rate_hz, model.name,
+                                      overwrite=True)
+
+    def on_output(fs, out):
+        if writer is not None:
+            writer.write(fs)
+            outputs.append(out)
+
+    server = PoseServer(source, tracker, publisher, clock, initializer, background_init=not args.lockstep, log=log,
+                        on_output=on_output)
 
     def _stop(signum, frame):
         server.stop()
@@ -128,8 +157,42 @@ def run(args) -> int:
     finally:
         for s, h in old.items():
             signal.signal(s, h)
+        link_stats = publisher.stats()
         publisher.close()
         source.close()
+        if writer is not None:
+            _save_run(args.record, writer, outputs, stats, link_stats, source)
     print(f"vespro serve: stopped after {stats.frames} frames ({stats.tracking} tracking, "
           f"{stats.init_successes} initialisations)", flush=True)
     return 0
+
+
+def _save_run(folder: Path, writer, outputs, stats, link_stats, source) -> None:
+    """What a recorded server run leaves for evaluation (the demo's summary)."""
+    import json
+    import pickle
+
+    import numpy as np
+
+    from .poses import PoseRow, write_poses
+
+    writer.close()
+    t0 = writer.t0_ns or 0
+    write_poses(folder / "poses.csv", [
+        PoseRow(o.index, (o.t_ns - t0) * 1e-9, o.status, o.T_world_object, o.time_ms, o.velocity, o.cov6)
+        for o in outputs])
+    with open(folder / "outputs.pkl", "wb") as f:
+        pickle.dump(outputs, f)
+    lat = np.array(stats.latency_ms) if stats.latency_ms else np.zeros(1)
+    tm = np.array(stats.tracker_ms) if stats.tracker_ms else np.zeros(1)
+    info = {
+        "frames": stats.frames, "tracking": stats.tracking, "init_attempts": stats.init_attempts,
+        "init_successes": stats.init_successes, "recording_dropped": writer.dropped,
+        "missed_captures": getattr(source, "missed", 0),
+        "tracker_ms_median": float(np.median(tm)), "tracker_ms_p99": float(np.percentile(tm, 99)),
+        "latency_ms_median": float(np.median(lat)), "latency_ms_p99": float(np.percentile(lat, 99)),
+        "link": {"frames_published": link_stats.frames_published, "frames_sent": link_stats.frames_sent,
+                 "drops": link_stats.drops, "clients_accepted": link_stats.clients_accepted,
+                 "errors": link_stats.errors},
+    }
+    (folder / "server.json").write_text(json.dumps(info, indent=2))

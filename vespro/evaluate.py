@@ -198,9 +198,12 @@ def draw_overlay(img: np.ndarray, model: Model, intr, T_camera_object: np.ndarra
 
 
 def overlay_video(path: str | Path, rec: Recording, outs: list[TrackerOutput], model: Model, fps: float | None = None,
-                  max_width: int = 1280) -> None:
+                  max_width: int = 1280, inset=None) -> None:
     """MP4 of every camera with the projected model (green), search windows
-    (blue), accepted measurements (yellow) and rejected ones (red)."""
+    (blue), accepted measurements (yellow) and rejected ones (red).
+
+    ``inset(index) -> BGR image`` adds a tile per frame (e.g. a view of the arm).
+    """
     import imageio.v2 as imageio
 
     writer = None
@@ -219,6 +222,10 @@ def overlay_video(path: str | Path, rec: Recording, outs: list[TrackerOutput], m
                 cv2.putText(tile, f"{cam.name}  #{o.index}  {o.status}", (8, 22), cv2.FONT_HERSHEY_SIMPLEX, 0.6,
                             (255, 255, 255), 1, cv2.LINE_AA)
                 tiles.append(tile)
+            if inset is not None:
+                extra = inset(o.index)
+                s = tiles[0].shape[0] / extra.shape[0]
+                tiles.append(cv2.resize(extra, (int(extra.shape[1] * s), tiles[0].shape[0])))
             h = max(t.shape[0] for t in tiles)
             tiles = [cv2.copyMakeBorder(t, 0, h - t.shape[0], 0, 0, cv2.BORDER_CONSTANT) for t in tiles]
             frame = np.hstack(tiles)

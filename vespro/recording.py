@@ -33,7 +33,8 @@ from .frames import FrameSet
 from .rig import Rig, RigError, load_rig, save_rig
 from .se3 import pq_from_transform, transform_from_pq
 
-__all__ = ["RecordingError", "Recording", "RecordingWriter", "FORMAT", "VERSION", "MODEL_EXTS", "pose_columns"]
+__all__ = ["RecordingError", "Recording", "RecordingWriter", "AsyncRecordingWriter", "FORMAT", "VERSION",
+           "MODEL_EXTS", "pose_columns"]
 
 FORMAT = "vespro-recording"
 VERSION = 1
@@ -248,8 +249,9 @@ class RecordingWriter:
     """
 
     def __init__(self, path: str | Path, rig: Rig, model_src: str | Path, rate_hz: float, object_name: str,
-                 overwrite: bool = False, extra_meta: dict | None = None):
+                 overwrite: bool = False, extra_meta: dict | None = None, png_compression: int = 3):
         self.path = Path(path)
+        self._png = [cv2.IMWRITE_PNG_COMPRESSION, int(png_compression)]
         if self.path.exists() and any(self.path.iterdir()):
             if not overwrite:
                 raise FileExistsError(f"{self.path}: exists and is not empty (use overwrite)")
@@ -284,7 +286,7 @@ class RecordingWriter:
         for c in self.rig:
             img = fs.images.get(c.name)
             if img is not None:
-                if not cv2.imwrite(str(self.path / "frames" / c.name / f"{fs.index:06d}.png"), img):
+                if not cv2.imwrite(str(self.path / "frames" / c.name / f"{fs.index:06d}.png"), img, self._png):
                     raise OSError(f"could not write image of camera {c.name} at index {fs.index}")
         row = [str(fs.index), _fmt((fs.t_ns - self._t0_ns) * 1e-9)]
         for name in self._eih:
@@ -300,6 +302,69 @@ class RecordingWriter:
     def close(self) -> None:
         if not self._frames.closed:
             self._frames.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+class AsyncRecordingWriter:
+    """A :class:`RecordingWriter` fed through a queue by a background thread.
+
+    For live loops (the pose server): ``write`` returns at once; PNG encoding
+    (OpenCV releases the interpreter lock while encoding) happens on the writer
+    thread. Frame sets the queue has no room for are dropped and counted: a
+    recording must never slow the tracker down. The recording stays valid: its
+    indices must be consecutive, so the writer fills a gap with frame sets whose
+    images are all missing (as the spec allows), stamped between their
+    neighbours and carrying the next frame set's eye-in-hand poses (unused:
+    without images no tracker looks at them).
+    """
+
+    def __init__(self, *args, max_queue: int = 64, **kwargs):
+        import queue
+        import threading
+
+        kwargs.setdefault("png_compression", 1)
+        self.writer = RecordingWriter(*args, **kwargs)
+        self.dropped = 0
+        self._q = queue.Queue(maxsize=max_queue)
+        self._thread = threading.Thread(target=self._run, name="vespro-recording", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        last_t = None
+        while True:
+            fs = self._q.get()
+            if fs is None:
+                return
+            gap = fs.index - self.writer._next
+            for j in range(gap):
+                i = self.writer._next
+                t = fs.t_ns if last_t is None else last_t + (fs.t_ns - last_t) * (j + 1) // (gap + 1)
+                self.writer.write(FrameSet(i, t, {k: None for k in fs.images}, fs.T_world_camera))
+            self.writer.write(fs)
+            last_t = fs.t_ns
+
+    def write(self, fs: FrameSet) -> None:
+        """Queue a frame set (indices increasing; gaps allowed); never blocks."""
+        import queue
+
+        try:
+            self._q.put_nowait(fs)
+        except queue.Full:
+            self.dropped += 1
+
+    @property
+    def t0_ns(self) -> int | None:
+        return self.writer.t0_ns
+
+    def close(self) -> None:
+        self._q.put(None)
+        self._thread.join()
+        self.writer.close()
 
     def __enter__(self):
         return self

@@ -14,6 +14,8 @@ from __future__ import annotations
 
 from typing import Protocol
 
+import numpy as np
+
 from .clock import Clock, ns_from_s
 from .frames import FrameSet
 from .recording import Recording
@@ -152,3 +154,68 @@ class CameraSource:
     def close(self) -> None:
         for cap in self._caps:
             cap.release()
+
+
+class WorldSource:
+    """Camera frames of a world simulated in another process (the demo's plant).
+
+    At each capture instant (the plant's start time plus ``k / rate``, on the
+    wall clock) it reads the world state from shared memory and renders every
+    rig camera from it, with the simulator's imaging pipeline. If processing
+    fell behind, the capture instants it missed are skipped (counted in
+    ``missed``), as a real camera's frames would be dropped. Returns None once the
+    plant has stopped.
+
+    Parameters
+    ----------
+    world_shm : str
+        Name of the plant's :class:`vespro.sim.plant.WorldShm`.
+    config : vespro.sim.cell.CellConfig
+        Rig, object mesh, imaging effects (its motion and arm settings are unused).
+    clock : Clock
+    """
+
+    def __init__(self, world_shm: str, config, clock: Clock, wait_start_s: float = 30.0):
+        from .sim.cell import SimCell
+        from .sim.motion import Static
+        from .sim.plant import WorldShm
+        from .se3 import transform_from_pq
+
+        self._pq = transform_from_pq
+        self.world = WorldShm(world_shm)
+        self.cell = SimCell(config, Static(np.eye(4)))
+        self.rig = config.rig
+        self.rate_hz = config.rate_hz
+        self.clock = clock
+        self.missed = 0
+        self._k = 0
+        t_end = clock.now_ns() + int(wait_start_s * 1e9)
+        while self.world.t0_ns == 0 and clock.now_ns() < t_end:
+            clock.sleep_until(clock.now_ns() + 5_000_000)
+        if self.world.t0_ns == 0:
+            raise TimeoutError("the plant did not start")
+
+    def next(self) -> FrameSet | None:
+        period = 1e9 / self.rate_hz
+        t0 = self.world.t0_ns
+        now = self.clock.now_ns()
+        k_now = int((now - t0) // period)
+        if k_now > self._k:  # fell behind: drop the missed captures
+            self.missed += k_now - self._k
+            self._k = k_now + 1
+        t_cap = t0 + int(round(self._k * period))
+        self.clock.sleep_until(t_cap)
+        if self.world.finished:
+            return None
+        state = self.world.read()
+        if state is None:
+            return None
+        t_ns, q, pq, _ = state
+        self.cell.set_world(q, self._pq(pq))
+        fs = self.cell.render_frameset(self._k, t_ns, (t_ns - t0) * 1e-9)
+        self._k += 1
+        return fs
+
+    def close(self) -> None:
+        self.cell.close()
+        self.world.close()

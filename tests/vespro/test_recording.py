@@ -186,3 +186,19 @@ def test_only_evaluators_and_the_simulator_import_groundtruth():
             if any("groundtruth" in n for n in names) and rel not in allowed:
                 offenders.append(rel)
     assert not offenders, f"ground truth imported outside evaluators: {offenders}"
+
+
+def test_async_writer_fills_gaps_and_never_blocks(tmp_path):
+    from vespro.recording import AsyncRecordingWriter
+
+    rig = _rig()
+    rng = np.random.default_rng(3)
+    T = transform_from_rt(exp_so3([0.1, 0, 0]), [0, 0, 1])
+    with AsyncRecordingWriter(tmp_path / "rec", rig, BOX, 26.0, "box") as w:
+        for k in (0, 1, 4, 5):  # the source skipped indices 2 and 3
+            imgs = {"a": rng.integers(0, 256, (240, 320, 3), dtype=np.uint8), "h": None}
+            w.write(FrameSet(k, k * 1000, imgs, {"h": T}))
+    rec = Recording(tmp_path / "rec")
+    assert len(rec) == 6
+    assert [rec.image("a", i) is None for i in range(6)] == [False, False, True, True, False, False]
+    np.testing.assert_allclose(rec.t * 1e9, [0, 1000, 2000, 3000, 4000, 5000], atol=1e-3)

@@ -263,8 +263,18 @@ class SimCell:
     def capture(self) -> FrameSet:
         """Render every camera now; returns the frame set (no ground truth)."""
         mujoco.mj_forward(self.model, self.data)  # positions consistent with qpos and scripts
-        t = self.t
-        index = self._next_capture
+        fs = self.render_frameset(self._next_capture, self.clock.now_ns(), self.t)
+        self._next_capture += 1
+        if self.config.arm == "watch":
+            self._arm_target_q = self.solve_ik(self._watch_target(self.t + 1.0 / self.config.rate_hz),
+                                               self.data.qpos[:6])
+        return fs
+
+    def render_frameset(self, index: int, t_ns: int, t: float) -> FrameSet:
+        """Render every camera from the current (forwarded) state.
+
+        ``t`` (s since the start) decides camera dropouts; ``t_ns`` stamps the set.
+        """
         q_meas = self.measured_joints()
         images, poses = {}, {}
         for cam in self.config.rig:
@@ -279,10 +289,15 @@ class SimCell:
             r.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = False
             rgb = r.render()
             images[cam.name] = self._pipelines[cam.name].apply(rgb, self.rng)
-        self._next_capture += 1
-        if self.config.arm == "watch":
-            self._arm_target_q = self.solve_ik(self._watch_target(t + 1.0 / self.config.rate_hz), self.data.qpos[:6])
-        return FrameSet(index, self.clock.now_ns(), images, poses)
+        return FrameSet(index, t_ns, images, poses)
+
+    def set_world(self, q: np.ndarray, T_world_object: np.ndarray) -> None:
+        """Put the arm and the object in a given state (a world simulated elsewhere)."""
+        self.data.qpos[:6] = q
+        self.data.qvel[:] = 0.0
+        self._set_mocap(self._obj_mocap, T_world_object)
+        self.data.mocap_pos[self._occ_mocap] = PARK_POS + [1.0, 0, 0]
+        mujoco.mj_forward(self.model, self.data)
 
     def next_frameset(self) -> FrameSet:
         """Step physics to the next capture instant and capture."""

@@ -1,0 +1,413 @@
+"""The whole cell, end to end: plant, pose server and servo as three processes.
+
+- the plant (``python -m vespro.sim.plant``): the cell's physics at 500 Hz in
+  real time, a part arriving on the conveyor, the arm's drives on a
+  shared-memory fieldbus, the world state for the cameras;
+- the pose server (``vespro serve --source world``): renders the cameras from
+  the world state at 26 Hz, tracks the part from the images alone (automatic
+  initialisation, no ground truth) and publishes every estimate on the link;
+- the servo (``servo run --robot shm:...``): the 500 Hz visual-servoing loop
+  driving the plant's arm from the poses it receives.
+
+The link is TCP on localhost, or with ``link="serial"`` a pair of
+pseudo-terminals bridged by this process at a simulated baud rate (a serial
+cable). Afterwards the demo scores the run against the plant's ground-truth log
+(an evaluator: only here is ground truth read) and writes ``summary.json``,
+plots, the overlay video, the servo's time histories and the recording itself,
+which ``vespro eval`` replays.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["DemoConfig", "run_demo", "CAMERA_SETS"]
+
+CAMERA_SETS = {"fixed": "fixed3", "eye-in-hand": "hand", "hybrid": "hybrid"}
+STANDOFF = 0.15
+
+
+@dataclass(frozen=True)
+class DemoConfig:
+    """What the demo runs.
+
+    Attributes
+    ----------
+    out : Path
+    object : str
+    cameras : str
+        ``fixed`` (three fixed cameras), ``eye-in-hand`` or ``hybrid``.
+    duration : float
+        Simulated (and, in real time, wall) seconds of plant time.
+    speed : float
+        Belt speed, m/s.
+    y0 : float
+        Where the part starts along the belt, m.
+    stop_time : float
+        When the belt starts stopping, s.
+    noise_px : float
+        Pixel noise of the rendered images.
+    link : str
+        ``tcp`` or ``serial``.
+    baud : int
+        Serial link's simulated baud rate.
+    video : bool
+    kill_server_at : float or None
+        Kill the pose server this many seconds into the run (a failure test).
+    """
+
+    out: Path = Path("out/demo")
+    object: str = "bracket"
+    cameras: str = "hybrid"
+    duration: float = 40.0
+    speed: float = 0.05
+    y0: float = -0.30
+    stop_time: float = 11.0
+    noise_px: float = 0.5
+    link: str = "tcp"
+    baud: int = 115200
+    video: bool = True
+    kill_server_at: float | None = None
+    lockstep: bool = False
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class SerialBridge:
+    """Two pty pairs joined by a thread: a serial cable at ``baud`` (8N1)."""
+
+    def __init__(self, baud: int):
+        import pty
+        import tty
+
+        self.m_a, s_a = pty.openpty()
+        self.m_b, s_b = pty.openpty()
+        for fd in (self.m_a, self.m_b, s_a, s_b):
+            tty.setraw(fd)
+        self.path_a, self.path_b = os.ttyname(s_a), os.ttyname(s_b)
+        self._keep = (s_a, s_b)  # keep the slaves open so the masters do not see hang-ups
+        self.bytes_per_s = baud / 10.0
+        self.bytes = 0
+        self._stop = threading.Event()
+        self._t = threading.Thread(target=self._run, daemon=True, name="serial-bridge")
+        self._t.start()
+
+    def _run(self) -> None:
+        import select
+
+        t_free = time.monotonic()
+        while not self._stop.is_set():
+            r, _, _ = select.select([self.m_a], [], [], 0.1)
+            if not r:
+                continue
+            try:
+                data = os.read(self.m_a, 4096)
+            except OSError:
+                time.sleep(0.01)
+                continue
+            # The bytes leave the cable no faster than the line rate.
+            t_free = max(t_free, time.monotonic()) + len(data) / self.bytes_per_s
+            delay = t_free - time.monotonic()
+            if delay > 0:
+                time.sleep(delay)
+            try:
+                os.write(self.m_b, data)
+                self.bytes += len(data)
+            except OSError:
+                pass
+
+    def close(self) -> None:
+        self._stop.set()
+        self._t.join(1)
+        for fd in (self.m_a, self.m_b, *self._keep):
+            try:
+                os.close(fd)
+            except OSError:
+                pass
+
+
+def _spawn(cmd: list[str], log: Path) -> subprocess.Popen:
+    f = open(log, "w")
+    env = dict(os.environ, PYTHONUNBUFFERED="1", MUJOCO_GL=os.environ.get("MUJOCO_GL", "egl"))
+    return subprocess.Popen(cmd, stdout=f, stderr=subprocess.STDOUT, env=env, start_new_session=True)
+
+
+def run_demo(cfg: DemoConfig, log=print) -> dict:
+    """Run the cell; returns the summary (also written to ``out/summary.json``)."""
+    from servo.shm_robot import RobotShm
+
+    from .sim.plant import WorldShm
+
+    out = Path(cfg.out)
+    out.mkdir(parents=True, exist_ok=True)
+    rig = CAMERA_SETS[cfg.cameras]
+    robot = RobotShm(None)
+    world = WorldShm(None)
+    bridge = SerialBridge(cfg.baud) if cfg.link == "serial" else None
+    port = _free_port()
+    py = sys.executable
+    procs = {}
+    t_start = time.monotonic()
+    events = []
+    try:
+        procs["plant"] = _spawn([py, "-m", "vespro.sim.plant", "--robot-shm", robot.name, "--world-shm", world.name,
+                                 "--object", cfg.object, "--duration", str(cfg.duration), "--speed", str(cfg.speed),
+                                 "--y0", str(cfg.y0), "--stop-time", str(cfg.stop_time),
+                                 "--log", str(out / "plant.npz")], out / "plant.log")
+        link_args = ["--serial", bridge.path_a, "--baud", str(cfg.baud)] if bridge else ["--tcp", str(port)]
+        procs["vision"] = _spawn([py, "-m", "vespro", "serve", "--source", "world", "--world-shm", world.name,
+                                  "--object", cfg.object, "--rig", rig, "--noise", str(cfg.noise_px),
+                                  "--record", str(out / "vision"), *link_args], out / "vision.log")
+        url = bridge.path_b if bridge else f"socket://127.0.0.1:{port}"
+        procs["servo"] = _spawn([py, "-m", "servo", "run", "--connect", url, "--baud", str(cfg.baud),
+                                 "--robot", f"shm:{robot.name}", "--standoff", str(STANDOFF),
+                                 "--record", str(out / "servo"), "--record-seconds", str(cfg.duration + 30),
+                                 "--stats-json", str(out / "servo" / "stats.json")], out / "servo.log")
+        log(f"demo: plant, pose server and servo started ({cfg.link} link); {cfg.duration:.0f} s of cell time")
+        killed = False
+        last = -1
+        while procs["plant"].poll() is None:
+            el = time.monotonic() - t_start
+            if cfg.kill_server_at is not None and not killed and world.running and \
+                    (time.monotonic_ns() - world.t0_ns) * 1e-9 > cfg.kill_server_at:
+                os.killpg(procs["vision"].pid, signal.SIGKILL)
+                killed = True
+                events.append({"event": "pose server killed", "t_s": (time.monotonic_ns() - world.t0_ns) * 1e-9})
+                log(f"demo: killed the pose server at t = {events[-1]['t_s']:.1f} s")
+            for name in ("vision", "servo"):
+                if procs[name].poll() is not None and not any(e.get("process") == name for e in events):
+                    events.append({"process": name, "exited": procs[name].returncode,
+                                   "t_s": (time.monotonic_ns() - world.t0_ns) * 1e-9 if world.t0_ns else el})
+            if int(el) // 10 != last:
+                last = int(el) // 10
+                tail = (out / "vision.log").read_text().strip().splitlines()[-1:] if (out / "vision.log").exists() else []
+                log(f"demo: {el:5.1f} s  vision: {tail[0] if tail else '...'}")
+            if el > cfg.duration * 6 + 120:
+                events.append({"event": "timeout"})
+                break
+            time.sleep(0.2)
+        # The plant has stopped: the vision source ends by itself; ask the servo to stop.
+        for name in ("servo", "vision"):
+            p = procs[name]
+            if p.poll() is None:
+                try:
+                    os.killpg(p.pid, signal.SIGINT)
+                except ProcessLookupError:
+                    pass
+        for name, p in procs.items():
+            try:
+                p.wait(timeout=60)
+            except subprocess.TimeoutExpired:
+                os.killpg(p.pid, signal.SIGKILL)
+                p.wait()
+                events.append({"process": name, "event": "killed after timeout"})
+    finally:
+        for p in procs.values():
+            if p.poll() is None:
+                os.killpg(p.pid, signal.SIGKILL)
+        if bridge:
+            bridge.close()
+        robot.close()
+        world.close()
+    log("demo: scoring against the plant's ground truth")
+    summary = summarize(out, cfg, events)
+    (out / "summary.json").write_text(json.dumps(summary, indent=2, default=str))
+    return summary
+
+
+def _pose_arrays(pq: np.ndarray) -> np.ndarray:
+    from .se3 import transform_from_pq
+
+    return np.array([transform_from_pq(r) for r in pq])
+
+
+def summarize(out: Path, cfg: DemoConfig, events: list) -> dict:
+    """Figures of a demo run from the files its processes left (ground truth: the plant log)."""
+    import pickle
+
+    from .groundtruth import GroundTruthWriter
+    from .metrics import pose_error_vector, rmse
+    from .recording import Recording
+
+    plant = np.load(out / "plant.npz")
+    t_log = plant["t_ns"]
+    t0 = int(t_log[0]) - int(round((t_log[1] - t_log[0]))) if len(t_log) > 1 else 0
+    T_obj_log = _pose_arrays(plant["object"])
+    tcp = plant["tcp"]
+    summary = {"config": {k: str(v) if isinstance(v, Path) else v for k, v in asdict(cfg).items()}, "events": events}
+
+    # Pose estimation against the truth at each capture instant.
+    vision = out / "vision"
+    outputs = []
+    if (vision / "outputs.pkl").exists():
+        with open(vision / "outputs.pkl", "rb") as f:
+            outputs = pickle.load(f)
+    est_t, pe, re = [], [], []
+    first_track = None
+    for o in outputs:
+        i = int(np.clip(np.searchsorted(t_log, o.t_ns), 0, len(t_log) - 1))
+        if o.status == "tracking" and o.T_world_object is not None:
+            e = pose_error_vector(o.T_world_object, T_obj_log[i])
+            est_t.append((o.t_ns - t0) * 1e-9)
+            pe.append(np.linalg.norm(e[:3]))
+            re.append(np.linalg.norm(e[3:]))
+            if first_track is None:
+                first_track = (o.t_ns - t0) * 1e-9
+    pe, re = np.array(pe), np.array(re)
+    summary["estimation"] = {
+        "frames": len(outputs), "tracking_frames": int(len(pe)),
+        "acquired": first_track is not None, "time_to_first_track_s": first_track,
+        "position_rmse_mm": rmse(pe) * 1e3 if pe.size else None,
+        "position_max_mm": float(pe.max() * 1e3) if pe.size else None,
+        "orientation_rmse_deg": float(np.rad2deg(rmse(re))) if re.size else None,
+        "orientation_max_deg": float(np.rad2deg(re.max())) if re.size else None,
+    }
+    if (vision / "server.json").exists():
+        summary["vision"] = json.loads((vision / "server.json").read_text())
+
+    # End-effector against the true object: the TCP should be STANDOFF above it, pointing down.
+    goal = T_obj_log[:, :3, 3] + [0.0, 0.0, STANDOFF]
+    err = np.linalg.norm(tcp[:, :3] - goal, axis=1)
+    t_s = (t_log - t0) * 1e-9
+    follow = np.zeros(len(err), bool)
+    if first_track is not None:
+        below = np.flatnonzero((t_s > first_track) & (err < 0.005))
+        if below.size:
+            follow[below[0]:] = True
+    stopped = t_s > cfg.stop_time + cfg.speed / 0.2 + 3.0  # belt at rest for 3 s
+    summary["tracking_error"] = {
+        "reached_standoff": bool(follow.any()),
+        "time_reached_s": float(t_s[follow][0]) if follow.any() else None,
+        "moving_rmse_mm": rmse(err[follow & ~stopped]) * 1e3 if (follow & ~stopped).any() else None,
+        "moving_max_mm": float(err[follow & ~stopped].max() * 1e3) if (follow & ~stopped).any() else None,
+        "settled_rmse_mm": rmse(err[follow & stopped]) * 1e3 if (follow & stopped).any() else None,
+        "settled_max_mm": float(err[follow & stopped].max() * 1e3) if (follow & stopped).any() else None,
+    }
+    if (out / "servo" / "stats.json").exists():
+        summary["servo"] = json.loads((out / "servo" / "stats.json").read_text())
+
+    # Ground truth for the recording, so `vespro eval` can replay it.
+    rec_path = vision / "recording"
+    if (rec_path / "frames.csv").exists():
+        rec = Recording(rec_path)
+        first_ns = outputs[0].t_ns if outputs else t0  # frames.csv times are relative to the first frame set
+        with GroundTruthWriter(rec_path) as gt:
+            for k in range(len(rec)):
+                i = int(np.clip(np.searchsorted(t_log, first_ns + int(round(rec.t[k] * 1e9))), 0, len(t_log) - 1))
+                gt.write(k, float(rec.t[k]), T_obj_log[i])
+        summary["recording"] = str(rec_path)
+    _plots(out, est_t, pe, re, t_s, err, follow)
+    if cfg.video and outputs and (rec_path / "frames.csv").exists():
+        try:
+            _video(out, rec_path, outputs, plant, t0)
+            summary["video"] = str(out / "overlay.mp4")
+        except Exception as e:  # a video problem must not lose the figures
+            summary["video_error"] = repr(e)
+    return summary
+
+
+def _plots(out: Path, est_t, pe, re, t_s, err, follow) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(2, 1, figsize=(9, 5), sharex=True)
+    ax[0].plot(est_t, np.asarray(pe) * 1e3, ".", ms=3)
+    ax[0].set_ylabel("position error (mm)")
+    ax[1].plot(est_t, np.rad2deg(re), ".", ms=3, color="C1")
+    ax[1].set_ylabel("orientation error (deg)")
+    ax[1].set_xlabel("time (s)")
+    ax[0].set_title("Pose estimation error against ground truth (tracking frames)")
+    for a in ax:
+        a.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(out / "estimation_error.png", dpi=100)
+    plt.close(fig)
+
+    fig, ax = plt.subplots(figsize=(9, 3.5))
+    ax.semilogy(t_s[::10], np.maximum(err[::10], 1e-5) * 1e3, lw=1)
+    if follow.any():
+        ax.axvline(t_s[follow][0], color="g", ls="--", label="stand-off reached")
+        ax.legend()
+    ax.set_ylabel("TCP error (mm)")
+    ax.set_xlabel("time (s)")
+    ax.set_title("End-effector error against the true object pose (stand-off target)")
+    ax.grid(alpha=0.3, which="both")
+    fig.tight_layout()
+    fig.savefig(out / "tracking_error.png", dpi=100)
+    plt.close(fig)
+
+    hist_path = out / "servo" / "stats.period_hist_us.npy"
+    if hist_path.exists():
+        h = np.load(hist_path)
+        fig, ax = plt.subplots(figsize=(9, 3.5))
+        x = np.arange(len(h))
+        ax.bar(x, np.maximum(h, 0.1), width=1.0, log=True)
+        ax.set_xlim(-1, max(50, int(np.flatnonzero(h)[-1]) + 2) if h.any() else 50)
+        ax.set_xlabel("|period error| (us, 1 us bins; last bin: >= 2 ms)")
+        ax.set_ylabel("ticks")
+        ax.set_title("Servo loop timing (500 Hz)")
+        fig.tight_layout()
+        fig.savefig(out / "loop_timing.png", dpi=100)
+        plt.close(fig)
+
+
+def _video(out: Path, rec_path: Path, outputs, plant, t0: int) -> None:
+    """Camera views with the projected model and features, plus an inset of the arm."""
+    import cv2
+
+    from .camera import CameraIntrinsics
+    from .evaluate import overlay_video
+    from .model import load_model
+    from .recording import Recording
+    from .rig import Rig, RigCamera
+    from .se3 import transform_from_pq, transform_from_rt
+    from .sim.cell import CellConfig, SimCell
+    from .sim.motion import Static
+
+    rec = Recording(rec_path)
+    model = load_model(rec.model_path)
+    # An overview camera for the inset, looking at the arm and the belt from the side.
+    eye, target = np.array([1.9, -1.7, 1.6]), np.array([0.55, 0.0, 0.6])
+    f = (target - eye) / np.linalg.norm(target - eye)
+    x = np.cross(f, [0, 0, 1.0])
+    x /= np.linalg.norm(x)
+    y = np.cross(f, x)
+    over = RigCamera("overview", CameraIntrinsics.from_fovy(320, 240, 50), "fixed",
+                     T_world_camera=transform_from_rt(np.column_stack([x, y, f]), eye))
+    cell = SimCell(CellConfig(rec.model_path, Rig((over,))), Static(np.eye(4)))
+    t_log = plant["t_ns"]
+    by_index = {o.index: o for o in outputs}
+
+    def inset(index: int) -> np.ndarray:
+        o = by_index.get(index)
+        t_ns = o.t_ns if o is not None else outputs[0].t_ns + int(rec.t[index] * 1e9)
+        i = int(np.clip(np.searchsorted(t_log, t_ns), 0, len(t_log) - 1))
+        cell.set_world(plant["q"][i], transform_from_pq(plant["object"][i]))
+        img = cell.render_frameset(index, t_ns, 0.0).images["overview"]
+        return cv2.rectangle(img, (0, 0), (img.shape[1] - 1, img.shape[0] - 1), (255, 255, 255), 1)
+
+    # Re-index the live outputs by recording index (the recording fills capture gaps).
+    outs = []
+    from .tracker import TrackerOutput
+
+    for k in range(len(rec)):
+        outs.append(by_index.get(k, TrackerOutput(k, 0, "initializing")))
+    overlay_video(out / "overlay.mp4", rec, outs, model, inset=inset)
+    cell.close()

@@ -1,0 +1,236 @@
+"""The cell as a running plant: its own process, physics at 500 Hz in real time.
+
+This is the simulated world of the demo. It steps the cell (arm drives and the
+part on the conveyor) on the wall clock and exposes two shared-memory blocks:
+
+- the robot "fieldbus" (:class:`servo.shm_robot.RobotShm`): measured joints out,
+  joint commands in, as a real arm's controller would; the servo process drives
+  the arm through it exactly as it drives the in-process MuJoCo arm;
+- the world state (:class:`WorldShm`): arm joints and the object's pose, which
+  the vision process renders its camera images from (the cameras "see" the world).
+
+The drive model is the servo's own :class:`servo.robot.MujocoArm` on the cell
+model (one drive model, not two). The ground truth (object pose, TCP pose,
+joints, at every step) goes into a preallocated log written at the end, for
+evaluators only.
+
+Run as ``python -m vespro.sim.plant --help``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import sys
+from multiprocessing import shared_memory
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["WorldShm", "run_plant"]
+
+
+class WorldShm:
+    """World state for the cameras: seqlock, t_ns, q (6), object pose (7), t0_ns, running.
+
+    Layout (float64 words): ``0`` seqlock, ``1`` t_ns, ``2:8`` q, ``8:15`` object
+    ``x y z qw qx qy qz``, ``15`` the plant's start time t0_ns, ``16`` running
+    (1.0 while stepping, 0.0 before start and after the end), ``17`` the step index.
+    """
+
+    SIZE = 18
+
+    def __init__(self, name: str | None = None):
+        if name is None:
+            self._shm = shared_memory.SharedMemory(create=True, size=8 * self.SIZE)
+            self.owner = True
+        else:
+            self._shm = shared_memory.SharedMemory(name=name)
+            self.owner = False
+        self.a = np.ndarray((self.SIZE,), dtype=np.float64, buffer=self._shm.buf)
+        if self.owner:
+            self.a[:] = 0.0
+
+    @property
+    def name(self) -> str:
+        return self._shm.name
+
+    def write(self, t_ns: int, q: np.ndarray, pq_object: np.ndarray, step: int) -> None:
+        a = self.a
+        a[0] += 1.0
+        a[1] = float(t_ns)
+        a[2:8] = q
+        a[8:15] = pq_object
+        a[17] = float(step)
+        a[0] += 1.0
+
+    def read(self) -> tuple[int, np.ndarray, np.ndarray, int] | None:
+        """``(t_ns, q, pq_object, step)``, or None if never written."""
+        a = self.a
+        for _ in range(1000):
+            s1 = a[0]
+            if s1 == 0.0:
+                return None
+            if int(s1) % 2:
+                continue
+            v = a[1:18].copy()
+            if a[0] == s1:
+                return int(v[0]), v[1:7], v[7:14], int(v[16])
+        return None
+
+    @property
+    def t0_ns(self) -> int:
+        return int(self.a[15])
+
+    @property
+    def running(self) -> bool:
+        return bool(self.a[16] > 0.5)
+
+    @property
+    def finished(self) -> bool:
+        """The plant ran and has stopped."""
+        return self.a[15] > 0 and not self.running
+
+    def close(self) -> None:
+        self.a = None
+        self._shm.close()
+        if self.owner:
+            self._shm.unlink()
+
+
+def run_plant(robot_shm: str, world_shm: str, object_mesh: Path, motion, duration_s: float, log_path: Path,
+              realtime: bool = True, log_every: int = 1) -> dict:
+    """Step the cell until ``duration_s`` (or SIGTERM/SIGINT); returns timing statistics.
+
+    Parameters
+    ----------
+    robot_shm, world_shm : str
+        Names of existing shared-memory blocks (created by the demo).
+    object_mesh : Path
+    motion : vespro.sim.motion.Motion
+        The part's trajectory (typically a Conveyor with a stop time).
+    duration_s : float
+    log_path : Path
+        Ground-truth log (NPZ): t_ns, q, object pq, TCP pq per logged step.
+    realtime : bool
+        Pace steps on the wall clock (else as fast as possible).
+    """
+    import mujoco
+
+    from servo.robot import MujocoArm
+    from servo.shm_robot import RobotShm
+
+    from ..clock import WallClock
+    from ..rig import Rig
+    from ..se3 import pq_from_transform, quat_from_matrix
+    from .scene import SceneSpec, build_cell
+
+    model, _ = build_cell(SceneSpec(object_mesh, Rig(())))
+    home = model.key("home")
+    arm = MujocoArm(model, q0=np.array(home.qpos[:6]))
+    d = arm.data
+    obj = model.body("object").mocapid[0]
+    tool = model.site("tool").id
+    robot = RobotShm(robot_shm)
+    world = WorldShm(world_shm)
+    n_steps = int(round(duration_s / model.opt.timestep))
+    dt_ns = int(round(model.opt.timestep * 1e9))
+    n_log = n_steps // log_every + 1
+    log = {"t_ns": np.zeros(n_log, np.int64), "q": np.zeros((n_log, 6)), "object": np.zeros((n_log, 7)),
+           "tcp": np.zeros((n_log, 7)), "drives_on": np.zeros(n_log, np.int8)}
+    cmd = np.zeros(2 + 12)
+    q = np.zeros(6)
+    stop = {"now": False}
+
+    def _stop(signum, frame):
+        stop["now"] = True
+
+    for s in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(s, _stop)
+    clock = WallClock()
+    t0 = clock.now_ns()
+    world.a[15] = float(t0)
+    world.a[16] = 1.0
+    robot.set_alive(True)
+    late = []
+    have_cmd = False
+    k_logged = 0
+    drives = True
+    try:
+        for k in range(n_steps):
+            if stop["now"]:
+                break
+            t_k = t0 + k * dt_ns
+            if realtime:
+                woke = clock.sleep_until(t_k)
+                late.append(woke - t_k)
+            if robot.read_command(cmd):
+                have_cmd = True
+                if cmd[-1] > 0.5:
+                    if not arm.drives_on:
+                        arm.enable()
+                    arm.command(cmd[1:7], cmd[7:13])
+                    drives = True
+                elif drives:
+                    arm.stop()
+                    drives = False
+            elif not have_cmd:
+                arm.stop()  # hold until the servo speaks
+            T_obj = motion.pose(k * dt_ns * 1e-9)
+            d.mocap_pos[obj] = T_obj[:3, 3]
+            d.mocap_quat[obj] = quat_from_matrix(T_obj[:3, :3])
+            arm.plant_step()
+            arm.read(q)
+            t_now = t_k + dt_ns
+            robot.write_state(t_now, q, d.qvel[:6])
+            pq = pq_from_transform(T_obj)
+            world.write(t_now, q, pq, k + 1)
+            if k % log_every == 0:
+                i = k_logged
+                log["t_ns"][i] = t_now
+                log["q"][i] = q
+                log["object"][i] = pq
+                log["tcp"][i, :3] = d.site_xpos[tool]
+                log["tcp"][i, 3:] = quat_from_matrix(d.site_xmat[tool].reshape(3, 3))
+                log["drives_on"][i] = drives
+                k_logged += 1
+    finally:
+        world.a[16] = 0.0
+        robot.set_alive(False)
+        log_path = Path(log_path)
+        log_path.parent.mkdir(parents=True, exist_ok=True)
+        np.savez(log_path, **{k: v[:k_logged] for k, v in log.items()})
+        robot.close()
+        world.close()
+    late = np.array(late, dtype=float) if late else np.zeros(1)
+    _ = mujoco  # the plant owns a MuJoCo model through MujocoArm
+    return {"steps": k_logged, "late_us_median": float(np.median(late) * 1e-3),
+            "late_us_p99": float(np.percentile(late, 99) * 1e-3)}
+
+
+def main(argv=None) -> int:
+    from ..cmd_record import object_mesh_path
+    from .motion import Conveyor
+
+    p = argparse.ArgumentParser(prog="python -m vespro.sim.plant", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--robot-shm", required=True)
+    p.add_argument("--world-shm", required=True)
+    p.add_argument("--object", default="bracket")
+    p.add_argument("--duration", type=float, default=40.0)
+    p.add_argument("--speed", type=float, default=0.05, help="belt speed, m/s")
+    p.add_argument("--y0", type=float, default=-0.35, help="part position along the belt at t = 0, m")
+    p.add_argument("--stop-time", type=float, default=12.0, help="the belt starts stopping at this time, s")
+    p.add_argument("--log", type=Path, required=True)
+    p.add_argument("--lockstep", action="store_true", help="as fast as possible (no real-time pacing)")
+    args = p.parse_args(argv)
+    motion = Conveyor(speed=args.speed, y0=args.y0, stop_time=args.stop_time)
+    stats = run_plant(args.robot_shm, args.world_shm, object_mesh_path(args.object), motion, args.duration,
+                      args.log, realtime=not args.lockstep)
+    print(f"plant: {stats['steps']} steps, wake-up lateness median {stats['late_us_median']:.1f} us "
+          f"p99 {stats['late_us_p99']:.1f} us", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
