@@ -35,6 +35,8 @@ def add_parser(sub) -> None:
     p.add_argument("--robot", default="mujoco",
                    help="mujoco: the MuJoCo arm in this process; shm:NAME: a plant process on a shared-memory fieldbus")
     p.add_argument("--stats-json", type=Path, help="write tick, status and link statistics here at the end")
+    p.add_argument("--max-dt-ticks", type=int,
+                   help="a tick later than this many periods is a timing FAULT (default from the loop config: 5)")
     p.set_defaults(func=run)
 
 
@@ -65,6 +67,8 @@ def run(args) -> int:
         return 2
     if cfg.task is None:
         cfg = LoopConfig(**{**cfg.__dict__, "task": follow_task(args.standoff)})
+    if args.max_dt_ticks:
+        cfg = LoopConfig(**{**cfg.__dict__, "max_dt_ticks": args.max_dt_ticks})
     if args.no_latency_compensation:
         cfg = LoopConfig(**{**cfg.__dict__, "latency_compensation": False})
     clock = WallClock()
@@ -127,7 +131,7 @@ def run(args) -> int:
         stopping["sigint"] = True
 
     old = {s: signal.signal(s, _sigint) for s in (signal.SIGINT, signal.SIGTERM)}
-    n = int(args.duration * ticks_per_s) if args.duration else 2**62
+    n = int(args.duration * ticks_per_s) if args.duration else 2**62  # statistics are kept in a ring
     print(f"servo run: connecting to {args.connect}; following {args.standoff:.3f} m above the object", flush=True)
     try:
         stats = sched.run(n)

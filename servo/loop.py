@@ -493,6 +493,7 @@ class Scheduler:
         self.period_ns = state.cfg.period_ns
         self.out = Command(state.n)
         self._stop_requested = False
+        self.stats_capacity = 300_000  # ticks of statistics kept: 10 min at 500 Hz
         self.q_meas = np.zeros(state.n)
         self._drives_off = False
 
@@ -551,11 +552,13 @@ class Scheduler:
         """Run ``n_ticks`` ticks (or until :meth:`request_stop`); returns their timing."""
         clock, robot, state, out = self.clock, self.robot, self.state, self.out
         period = self.period_ns
-        compute = np.zeros(n_ticks, dtype=np.int64)
-        tick = np.zeros(n_ticks, dtype=np.int64)
-        late = np.zeros(n_ticks, dtype=np.int64)
-        per = np.zeros(n_ticks, dtype=np.int64)
-        stat = np.zeros(n_ticks, dtype=np.int8)
+        # Statistics of the last `cap` ticks (a ring: a run may last for days).
+        cap = max(1, min(int(n_ticks), self.stats_capacity))
+        compute = np.zeros(cap, dtype=np.int64)
+        tick = np.zeros(cap, dtype=np.int64)
+        late = np.zeros(cap, dtype=np.int64)
+        per = np.zeros(cap, dtype=np.int64)
+        stat = np.zeros(cap, dtype=np.int8)
         overruns = 0
         rt_msg = None
         saved_aff = saved_pol = None
@@ -590,10 +593,11 @@ class Scheduler:
                 if self._stop_requested:
                     n_ticks = k
                     break
+                j = k % cap
                 t_next += period
                 t_wake = clock.sleep_until(t_next)
-                late[k] = t_wake - t_next
-                per[k] = 0 if t_wake_prev is None else t_wake - t_wake_prev
+                late[j] = t_wake - t_next
+                per[j] = 0 if t_wake_prev is None else t_wake - t_wake_prev
                 t_wake_prev = t_wake
                 t_tick = t_wake if self.realtime else t_next
                 robot.read(q_meas)
@@ -612,9 +616,9 @@ class Scheduler:
                         drives_off = True
                 robot.plant_step()
                 t_end = clock.now_ns()
-                compute[k] = c1 - c0
-                tick[k] = t_end - t_wake if self.realtime else c1 - c0
-                stat[k] = int(st)
+                compute[j] = c1 - c0
+                tick[j] = t_end - t_wake if self.realtime else c1 - c0
+                stat[j] = int(st)
                 if self.realtime and t_end > t_next + period:
                     overruns += 1
                     # skip the missed deadlines: the next step sees a longer dt
@@ -631,8 +635,10 @@ class Scheduler:
                 if gc_was:
                     gc.enable()
                 self._leave_realtime(saved_aff, saved_pol)
-        return TickStats(compute[:n_ticks], tick[:n_ticks], late[:n_ticks], per[:n_ticks], stat[:n_ticks], overruns,
-                         n_ticks, rt_msg)
+        m = min(n_ticks, cap)
+        shift = -(n_ticks % cap) if n_ticks > cap else 0  # oldest first
+        arrs = [np.roll(a, shift)[:m] for a in (compute, tick, late, per, stat)]
+        return TickStats(*arrs, overruns, n_ticks, rt_msg)
 
     @staticmethod
     def _record(rec, ch, t_ns, out, q_meas, compute_ns):

@@ -32,6 +32,17 @@ import numpy as np
 __all__ = ["RobotShm", "ShmArm"]
 
 
+def _untrack(shm) -> None:
+    """Only the creator may unlink a block: before Python 3.13 merely attaching
+    registers it with this process's resource tracker, which unlinks it at exit."""
+    try:
+        from multiprocessing import resource_tracker
+
+        resource_tracker.unregister(shm._name, "shared_memory")
+    except Exception:
+        pass
+
+
 class RobotShm:
     """The shared block, from either side.
 
@@ -52,6 +63,7 @@ class RobotShm:
         else:
             self._shm = shared_memory.SharedMemory(name=name)
             self.owner = False
+            _untrack(self._shm)
         self.a = np.ndarray((6 + 4 * n,), dtype=np.float64, buffer=self._shm.buf)
         if self.owner:
             self.a[:] = 0.0
@@ -106,7 +118,10 @@ class RobotShm:
         self.a = None
         self._shm.close()
         if self.owner:
-            self._shm.unlink()
+            try:
+                self._shm.unlink()
+            except FileNotFoundError:
+                pass
 
 
 class ShmArm:

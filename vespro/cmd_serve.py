@@ -99,7 +99,7 @@ def run(args) -> int:
         return 2
 
     tracker = Tracker(source.rig, model, tracker_config(args))
-    initializer = None
+    initializer = factory = None
     if args.init_pose:
         T0 = parse_pose(args.init_pose)
         fired = []
@@ -111,9 +111,12 @@ def run(args) -> int:
             return InitResult(T0)
     else:
         try:
+            from functools import partial
+
             from .init import make_initializer
 
             initializer = make_initializer(source.rig, model)
+            factory = partial(make_initializer, source.rig, model)
         except ImportError:
             print("vespro serve: automatic initialisation is not available; pass --init-pose", file=sys.stderr)
             return 2
@@ -143,8 +146,9 @@ def run(args) -> int:
             writer.write(fs)
             outputs.append(out)
 
-    server = PoseServer(source, tracker, publisher, clock, initializer, background_init=not args.lockstep, log=log,
-                        on_output=on_output)
+    mode = False if args.lockstep else ("process" if factory is not None else "thread")
+    server = PoseServer(source, tracker, publisher, clock, initializer, background_init=mode, log=log,
+                        on_output=on_output, initializer_factory=factory)
 
     def _stop(signum, frame):
         server.stop()
@@ -155,13 +159,13 @@ def run(args) -> int:
     try:
         stats = server.run(max_frames=args.frames)
     finally:
-        for s, h in old.items():
-            signal.signal(s, h)
         link_stats = publisher.stats()
         publisher.close()
         source.close()
         if writer is not None:
-            _save_run(args.record, writer, outputs, stats, link_stats, source)
+            _save_run(args.record, writer, outputs, server.stats, link_stats, source)
+        for s, h in old.items():  # restored last: a late signal must not interrupt the saving
+            signal.signal(s, h)
     print(f"vespro serve: stopped after {stats.frames} frames ({stats.tracking} tracking, "
           f"{stats.init_successes} initialisations)", flush=True)
     return 0

@@ -19,7 +19,7 @@ latency (capture to send), status and link statistics.
 from __future__ import annotations
 
 import threading
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Future, ProcessPoolExecutor, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Callable
 
@@ -32,6 +32,18 @@ from .tracker import Tracker, TrackerOutput
 from .wire import PoseMsg, PoseStatus
 
 __all__ = ["PoseServer", "ServerStats", "pose_message"]
+
+_WORKER_INIT = None
+
+
+def _worker_setup(factory) -> None:
+    """In the initialisation worker process: build the initialiser once."""
+    global _WORKER_INIT
+    _WORKER_INIT = factory()
+
+
+def _worker_run(fs: FrameSet):
+    return _WORKER_INIT(fs)
 
 _STATUS = {"tracking": PoseStatus.TRACKING, "initializing": PoseStatus.INITIALIZING, "lost": PoseStatus.LOST}
 
@@ -66,6 +78,7 @@ class ServerStats:
     init_attempts: int = 0
     init_successes: int = 0
     publish_failures: int = 0
+    tracker_errors: int = 0
     tracker_ms: list = field(default_factory=list)
     latency_ms: list = field(default_factory=list)
     statuses: list = field(default_factory=list)
@@ -86,9 +99,13 @@ class PoseServer:
         Stamps sends; paces nothing (the source paces).
     initializer : callable, optional
         ``initializer(frameset) -> InitResult | None``.
-    background_init : bool
-        Run the initialiser in a thread (real time); False runs it inline
-        (lockstep, reproducible).
+    background_init : bool or str
+        ``"process"``: run the initialiser in a worker process built from
+        ``initializer_factory`` (real time: the tracking loop keeps its rate
+        while the initialiser uses another core); ``True`` or ``"thread"``: in
+        a thread; False: inline (lockstep, reproducible).
+    initializer_factory : callable, optional
+        Picklable ``() -> initializer``, for the worker process.
     log : callable, optional
         Receives the once-a-second status line.
     on_output : callable, optional
@@ -97,7 +114,8 @@ class PoseServer:
 
     def __init__(self, source, tracker: Tracker, publisher, clock: Clock,
                  initializer: Callable[[FrameSet], object] | None = None, background_init: bool = True,
-                 log: Callable[[str], None] | None = print, on_output=None, object_id: int = 0):
+                 log: Callable[[str], None] | None = print, on_output=None, object_id: int = 0,
+                 initializer_factory=None):
         self.source = source
         self.tracker = tracker
         self.tracker.initializer = None
@@ -110,7 +128,16 @@ class PoseServer:
         self.object_id = object_id
         self.stats = ServerStats()
         self._stop = threading.Event()
-        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="vespro-init") if background_init else None
+        if background_init == "process":
+            if initializer_factory is None:
+                raise ValueError("background_init='process' needs an initializer_factory")
+            self._pool = ProcessPoolExecutor(max_workers=1, initializer=_worker_setup, initargs=(initializer_factory,))
+            self._submit = lambda fs: self._pool.submit(_worker_run, fs)
+        elif background_init:
+            self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="vespro-init")
+            self._submit = lambda fs: self._pool.submit(self.initializer, fs)
+        else:
+            self._pool = None
         self._job: Future | None = None
         self._job_t_ns = 0
         self._seq = 0
@@ -124,7 +151,7 @@ class PoseServer:
 
     # -- initialisation ---------------------------------------------------------
     def _maybe_start(self, fs: FrameSet) -> None:
-        if self.tracker.ekf is not None or self.initializer is None:
+        if self.tracker.ekf is not None or (self.initializer is None and self._pool is None):
             return
         if not self.background_init:
             self.stats.init_attempts += 1
@@ -149,13 +176,21 @@ class PoseServer:
         if self._job is None:
             self.stats.init_attempts += 1
             self._job_t_ns = fs.t_ns
-            self._job = self._pool.submit(self.initializer, fs)
+            self._job = self._submit(fs)
 
     # -- the loop -------------------------------------------------------------------
     def step(self, fs: FrameSet) -> TrackerOutput:
         """Process and publish one frame set."""
-        self._maybe_start(fs)
-        out = self.tracker.process(fs)
+        try:
+            self._maybe_start(fs)
+            out = self.tracker.process(fs)
+        except Exception as e:  # a tracker bug must not take the server down: drop the track
+            self.stats.tracker_errors += 1
+            if self.stats.tracker_errors <= 3 and self.log:
+                self.log(f"tracker error on frame {fs.index}: {e!r}")
+            self.tracker.ekf = None
+            self.tracker.status = "lost"
+            out = TrackerOutput(fs.index, fs.t_ns, "lost")
         if out.status == "tracking":
             self._last_T = out.T_world_object
             self.stats.tracking += 1

@@ -40,8 +40,7 @@ from .model import Model
 from .projection import project_with_jacobian
 from .rig import Rig
 from .selection import select_information_joint, select_quality
-from .se3 import invert_transform
-from .visibility import query_visibility
+from .visibility import SceneBody, VisibilityScene
 
 __all__ = ["TrackerConfig", "CameraObservation", "TrackerOutput", "InitResult", "Tracker"]
 
@@ -247,6 +246,7 @@ class Tracker:
         self.config = config
         self.initializer = initializer
         self.tree = load_or_build_bsp(model, cache_dir=bsp_cache_dir)
+        self.scene = VisibilityScene([SceneBody(model.name, model, self.tree)])
         self.salient = salient_corners(model)
         self.ekf: PoseEKF | None = None
         self.status = STATUS_INITIALIZING
@@ -312,6 +312,9 @@ class Tracker:
             self._t_ns = fs.t_ns
         T_pred = ekf.pose
         P6 = ekf.pose_covariance
+        if not (np.all(np.isfinite(T_pred)) and np.all(np.isfinite(P6))):
+            self._lose()
+            return TrackerOutput(fs.index, fs.t_ns, STATUS_LOST)
 
         # Visibility and projection per camera.
         t = time.perf_counter()
@@ -322,8 +325,7 @@ class Tracker:
             if img is None or T_wc is None:
                 per_cam.append(None)
                 continue
-            T_co = invert_transform(T_wc) @ T_pred
-            vis = _Candidates.of(query_visibility(self.model, self.tree, T_co, cam.intrinsics), self.salient)
+            vis = _Candidates.of(self.scene.query(0, T_wc, [T_pred], cam.intrinsics), self.salient)
             if vis.indices.size == 0:
                 per_cam.append((cam, img, T_wc, vis, None, None))
                 continue

@@ -28,6 +28,9 @@ from ..camera import CameraIntrinsics, undistort_pixels
 
 __all__ = ["ImageEffects", "ImagePipeline"]
 
+#: Displacement fields drawn per camera at start-up (each frame crops one).
+FIELD_BANK = 8
+
 
 @dataclass(frozen=True)
 class ImageEffects:
@@ -74,6 +77,7 @@ class ImagePipeline:
         self.render = render
         self.effects = effects
         self._bank = None
+        self._fields = None
         self.identity = intr is render or (
             intr.width == render.width and intr.height == render.height
             and np.allclose(intr.K, render.K) and not intr.has_distortion
@@ -91,10 +95,25 @@ class ImagePipeline:
             self.map_y = (render.fy * yn + render.cy).reshape(intr.height, intr.width).astype(np.float32)
 
     def _displacement(self, rng: np.random.Generator) -> np.ndarray:
+        """A displacement field for one frame: a random crop of a bank of fields.
+
+        Drawing a fresh field costs more than the render; a bank of
+        ``FIELD_BANK`` fields drawn once, cropped at a random offset each frame,
+        keeps every frame's statistics exact and frames independent wherever the
+        crops are more than a correlation length apart.
+        """
+        h, w = self.intr.height, self.intr.width
+        pad = 64
+        if self._fields is None:
+            self._fields = [self._draw_field(rng, h + pad, w + pad) for _ in range(FIELD_BANK)]
+        f = self._fields[int(rng.integers(0, FIELD_BANK))]
+        dy, dx = rng.integers(0, pad, size=2)
+        return f[dy:dy + h, dx:dx + w]
+
+    def _draw_field(self, rng: np.random.Generator, h: int, w: int) -> np.ndarray:
         # The field is smooth over noise_corr_px, so it is drawn on a coarse grid
         # (half the correlation length per cell) and upsampled: ~1/9 of the
         # random numbers and blur work of a full-resolution draw.
-        h, w = self.intr.height, self.intr.width
         e = self.effects
         step = max(1, int(e.noise_corr_px // 2))
         hc, wc = -(-h // step) + 2, -(-w // step) + 2

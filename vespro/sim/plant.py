@@ -30,6 +30,17 @@ import numpy as np
 __all__ = ["WorldShm", "run_plant"]
 
 
+def _untrack(shm) -> None:
+    """Only the creator may unlink a block: before Python 3.13 merely attaching
+    registers it with this process's resource tracker, which unlinks it at exit."""
+    try:
+        from multiprocessing import resource_tracker
+
+        resource_tracker.unregister(shm._name, "shared_memory")
+    except Exception:
+        pass
+
+
 class WorldShm:
     """World state for the cameras: seqlock, t_ns, q (6), object pose (7), t0_ns, running.
 
@@ -47,6 +58,7 @@ class WorldShm:
         else:
             self._shm = shared_memory.SharedMemory(name=name)
             self.owner = False
+            _untrack(self._shm)
         self.a = np.ndarray((self.SIZE,), dtype=np.float64, buffer=self._shm.buf)
         if self.owner:
             self.a[:] = 0.0
@@ -95,7 +107,10 @@ class WorldShm:
         self.a = None
         self._shm.close()
         if self.owner:
-            self._shm.unlink()
+            try:
+                self._shm.unlink()
+            except FileNotFoundError:
+                pass
 
 
 def run_plant(robot_shm: str, world_shm: str, object_mesh: Path, motion, duration_s: float, log_path: Path,

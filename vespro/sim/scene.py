@@ -188,9 +188,10 @@ def build_cell(spec: SceneSpec) -> tuple[mujoco.MjModel, dict]:
         parent.add_camera(name=mj_name, pos=pos.tolist(), quat=quat.tolist(), fovy=fovy)
         render[cam.name] = (rintr, mj_name)
 
-    max_w = max([r.width for r, _ in render.values()] + [640])
-    max_h = max([r.height for r, _ in render.values()] + [480])
-    s.visual.global_.offwidth = max(int(s.visual.global_.offwidth), max_w)
-    s.visual.global_.offheight = max(int(s.visual.global_.offheight), max_h)
+    # The offscreen buffer as large as the largest render, no larger: with
+    # multisampling a larger buffer costs render time on a CPU rasteriser.
+    if render:
+        s.visual.global_.offwidth = max(r.width for r, _ in render.values())
+        s.visual.global_.offheight = max(r.height for r, _ in render.values())
     model = s.compile()
     return model, {"render": render}
