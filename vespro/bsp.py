@@ -32,7 +32,7 @@ import numpy as np
 
 from vespro.model import Model
 
-__all__ = ["OUT", "IN", "BSPTree", "build_bsp", "load_or_build_bsp", "default_cache_dir", "FORMAT_VERSION"]
+__all__ = ["OUT", "IN", "BSPTree", "build_bsp", "planar_vertices", "save_bsp", "load_bsp", "load_or_build_bsp", "default_cache_dir", "FORMAT_VERSION"]
 
 #: Leaf codes in the child arrays (non-negative values are node indices).
 OUT = -1
@@ -76,9 +76,11 @@ class BSPTree:
         ``Model.content_hash`` of the model it was built from.
     depth : int
         Longest root-to-leaf path (number of nodes).
+    plane_eps : float
+        Plane thickness used by the build and the queries, m (float64
+        rounding only).
     build_seconds : float
-        Wall time of the build (0 when loaded from cache is not recorded: the
-        build time of the original build is kept).
+        Wall time of the original build (kept when loaded from the cache).
     """
 
     normal: np.ndarray
@@ -91,6 +93,7 @@ class BSPTree:
     poly_face: np.ndarray
     content_hash: str
     depth: int
+    plane_eps: float = 0.0
     build_seconds: float = 0.0
 
     @property
@@ -125,6 +128,15 @@ class BSPTree:
             idx, node = idx[keep], node[keep]
         return out
 
+    def plane_distances(self, P: np.ndarray) -> np.ndarray:
+        """Signed distances of points to every node plane, shape (M, N), m.
+
+        For fixed points (a model's own corners) this is set-up work that
+        ``segments_blocked_from`` reuses on every query.
+        """
+        P = np.asarray(P, dtype=float).reshape(-1, 3)
+        return P @ self.normal.T - self.offset
+
     def segments_blocked(self, A: np.ndarray, B: np.ndarray, t_lo=0.0, t_hi=1.0, min_length: float = 0.0) -> np.ndarray:
         """Whether segments pass through the solid.
 
@@ -136,7 +148,10 @@ class BSPTree:
 
         Parameters
         ----------
-        A, B : ndarray, shape (K, 3)
+        A : ndarray, shape (K, 3) or (3,)
+            Segment starts, object frame, m; a single point (3,) when all
+            segments start there (a camera centre), which is faster.
+        B : ndarray, shape (K, 3)
             Segment ends, object frame, m.
         t_lo, t_hi : float or ndarray, shape (K,)
         min_length : float
@@ -146,73 +161,196 @@ class BSPTree:
         -------
         ndarray, shape (K,), bool
         """
-        A = np.asarray(A, dtype=float).reshape(-1, 3)
         B = np.asarray(B, dtype=float).reshape(-1, 3)
-        k = A.shape[0]
-        blocked = np.zeros(k, dtype=bool)
-        seg = np.arange(k)
-        node = np.zeros(k, dtype=np.int64)
+        A = np.asarray(A, dtype=float)
+        N, D = self.normal, self.offset
+        if A.shape == (3,):
+            h_start = N @ A - D  # the common start's distance to every node plane
+
+            def ha_of(seg, node):
+                return h_start[node]
+
+        else:
+            A = A.reshape(-1, 3)
+
+            def ha_of(seg, node):
+                return np.einsum("ij,ij->i", A[seg], N[node]) - D[node]
+
+        def hb_of(seg, node):
+            return np.einsum("ij,ij->i", B[seg], N[node]) - D[node]
+
+        return self._traverse(B.shape[0], np.arange(B.shape[0]), ha_of, hb_of, t_lo, t_hi, min_length)
+
+    def segments_blocked_from(self, a: np.ndarray, end_dist: np.ndarray, rows: np.ndarray, t_lo=0.0, t_hi=1.0) -> np.ndarray:
+        """``segments_blocked`` from one start point to fixed, pre-measured ends.
+
+        Parameters
+        ----------
+        a : ndarray, shape (3,)
+            Common start (camera centre), object frame, m.
+        end_dist : ndarray, shape (R, N)
+            ``plane_distances`` of all candidate end points (set-up).
+        rows : ndarray, shape (K,), int
+            The end point (row of ``end_dist``) of each segment.
+        t_lo, t_hi : float or ndarray, shape (K,)
+
+        Returns
+        -------
+        ndarray, shape (K,), bool
+        """
+        h_start = self.normal @ np.asarray(a, dtype=float).reshape(3) - self.offset
+        rows = np.asarray(rows, dtype=np.int64)
+
+        def ha_of(seg, node):
+            return h_start[node]
+
+        def hb_of(seg, node):
+            return end_dist[seg, node]
+
+        # Items carry the row as their segment id, so the table is indexed
+        # directly; the result is mapped back to segments at the end.
+        t_lo = np.broadcast_to(np.asarray(t_lo, dtype=float), rows.shape)
+        t_hi = np.broadcast_to(np.asarray(t_hi, dtype=float), rows.shape)
+        blocked_rows = self._traverse(end_dist.shape[0], rows, ha_of, hb_of, t_lo, t_hi, 0.0)
+        return blocked_rows[rows]
+
+    def _traverse(self, n_ids, ids, ha_of, hb_of, t_lo, t_hi, min_length):
+        """Core of the segment queries; ``ids`` (K,) distinct segment ids < n_ids."""
+        k = ids.shape[0]
+        pe = self.plane_eps
+        CH = self._children
+        blocked = np.zeros(n_ids, dtype=bool)
         t0 = np.broadcast_to(np.asarray(t_lo, dtype=float), (k,)).copy()
         t1 = np.broadcast_to(np.asarray(t_hi, dtype=float), (k,)).copy()
         live = t1 - t0 > min_length
-        seg, node, t0, t1 = seg[live], node[live], t0[live], t1[live]
-        N, D, FR, BK = self.normal, self.offset, self.front, self.back
-        # Distances of the ends to every node plane are computed lazily per
-        # visited (segment, node) pair: the tree can be far larger than the
-        # number of pairs visited.
+        seg, t0, t1 = ids[live], t0[live], t1[live]
+        node = np.zeros(seg.size, dtype=np.int64)
+        # Breadth-first over (segment, node, t-interval) items, one vectorised
+        # step per tree level. A piece on one side of the node plane moves to
+        # that child; a straddling piece splits at the crossing. A piece that
+        # reaches an IN leaf blocks its segment.
         while seg.size:
-            n = N[node]
-            d = D[node]
-            ha = np.einsum("ij,ij->i", A[seg], n) - d
-            hb = np.einsum("ij,ij->i", B[seg], n) - d
-            dh = hb - ha
+            ha = ha_of(seg, node)
+            dh = hb_of(seg, node) - ha
             h0 = ha + t0 * dh
             h1 = ha + t1 * dh
-            gf = (h0 > 0) | (h1 > 0)
-            gb = (h0 < 0) | (h1 < 0)
-            gf |= ~(gf | gb)  # lying in the plane: a grazing view, call it front
-            span = gf & gb
-            with np.errstate(divide="ignore", invalid="ignore"):
-                ts = np.where(span, -ha / dh, 0.0)
-            first_front = h0 > 0
-            # Front piece: [t0, ts] if it starts in front, else [ts, t1].
-            f0 = np.where(span & ~first_front, ts, t0)[gf]
-            f1 = np.where(span & first_front, ts, t1)[gf]
-            b0 = np.where(span & first_front, ts, t0)[gb]
-            b1 = np.where(span & ~first_front, ts, t1)[gb]
-            seg = np.concatenate([seg[gf], seg[gb]])
-            node = np.concatenate([FR[node[gf]], BK[node[gb]]])
-            t0 = np.concatenate([f0, b0])
-            t1 = np.concatenate([f1, b1])
-            inside = node == IN
-            if inside.any():
-                hit = inside & (t1 - t0 > min_length)
-                blocked[seg[hit]] = True
-                keep = (node >= 0) & ~blocked[seg]
+            # Within plane_eps of the plane counts as on it, so a piece that
+            # only touches a plane at an end is not split into a sliver.
+            b0, b1 = h0 < -pe, h1 < -pe
+            f0, f1 = h0 > pe, h1 > pe
+            # Side of the first part of the piece (True: back). A piece lying
+            # in the plane is a grazing view and goes front.
+            side0 = b0 | (~f0 & b1)
+            sp = np.flatnonzero((b0 & f1) | (f0 & b1))
+            new_node = CH[node, side0.view(np.int8)]
+            if sp.size:
+                ts = -ha[sp] / dh[sp]
+                other = CH[node[sp], (~side0[sp]).view(np.int8)]
+                t1_sp = t1[sp]
+                t1[sp] = ts
+                seg = np.concatenate([seg, seg[sp]])
+                node = np.concatenate([new_node, other])
+                t0 = np.concatenate([t0, ts])
+                t1 = np.concatenate([t1, t1_sp])
             else:
-                keep = node >= 0
-            seg, node, t0, t1 = seg[keep], node[keep], t0[keep], t1[keep]
+                node = new_node
+            leaf = node < 0
+            if leaf.any():
+                inside = node == IN
+                if min_length > 0:
+                    inside &= t1 - t0 > min_length
+                blocked[seg[inside]] = True
+                keep = ~leaf & ~blocked[seg]
+                seg, node, t0, t1 = seg[keep], node[keep], t0[keep], t1[keep]
         return blocked
+
+    @property
+    def _children(self) -> np.ndarray:
+        ch = self.__dict__.get("_ch")
+        if ch is None:
+            ch = np.stack([self.front, self.back], axis=1)  # (N, 2): child by side (0 front, 1 back)
+            ch.setflags(write=False)
+            object.__setattr__(self, "_ch", ch)  # derived cache, not state
+        return ch
 
     def arrays(self) -> dict:
         return {name: getattr(self, name) for name in _ARRAYS}
 
 
-def build_bsp(model: Model, max_candidates: int = 24, split_weight: float = 6.0, rel_eps: float = 1e-7) -> BSPTree:
+def planar_vertices(model: Model, max_move_rel: float = 1e-4):
+    """Model vertices moved onto their faces' planes.
+
+    Each vertex becomes the point nearest to it on all the distinct planes of
+    its faces (least squares; directions the planes do not pin down keep the
+    original coordinate). CAD files store float32, so a planar face is planar
+    only to ~1e-8 m; after this it is planar to float64 rounding, which a
+    consistent BSP needs: classifying vertices against a fitted plane with a
+    matching tolerance leaves thin slabs of wrong inside/outside along nearly
+    coplanar faces.
+
+    Parameters
+    ----------
+    model : Model
+    max_move_rel : float
+        A vertex that would move more than this times the model diameter
+        keeps its position (an ill-posed set of nearly parallel planes).
+
+    Returns
+    -------
+    V : ndarray, shape (V, 3)
+        m, object frame.
+    face_planar : ndarray, shape (P,), bool
+        Whether each face's vertices now lie on its plane to float64 rounding;
+        the BSP falls back to exact triangle planes for the others.
+    """
+    V = np.array(model.vertices, dtype=float)
+    F = np.asarray(model.triangles)
+    tplane = np.asarray(model.face_plane)[np.asarray(model.triangle_face)]
+    vp = np.unique(np.stack([F.ravel(), np.repeat(tplane, 3)], 1), axis=0)  # (vertex, plane) pairs
+    ptr = np.concatenate([[0], np.cumsum(np.bincount(vp[:, 0], minlength=len(V)))])
+    pn, pd = np.asarray(model.plane_normals), np.asarray(model.plane_offsets)
+    limit = max_move_rel * model.diameter
+    one = np.flatnonzero(np.diff(ptr) == 1)  # on a single plane: project
+    p1 = vp[ptr[one], 1]
+    V[one] += (pd[p1] - np.einsum("ij,ij->i", pn[p1], V[one]))[:, None] * pn[p1]
+    for v in np.flatnonzero(np.diff(ptr) > 1):
+        ps = vp[ptr[v] : ptr[v + 1], 1]
+        Nm = pn[ps]
+        r = pd[ps] - Nm @ V[v]
+        U, s, Wt = np.linalg.svd(Nm, full_matrices=False)
+        keep = s > 1e-9
+        step = Wt[keep].T @ ((U[:, keep].T @ r) / s[keep])
+        if np.linalg.norm(step) <= limit:
+            V[v] += step
+    fn, fd = np.asarray(model.face_normals), np.asarray(model.face_offsets)
+    res = np.abs(np.einsum("fvj,fj->fv", V[F], fn[model.triangle_face]) - fd[model.triangle_face][:, None]).max(1)
+    tol = 1e-12 * model.diameter + 8 * np.finfo(float).eps * np.abs(V).max()
+    face_planar = np.ones(len(model.faces), dtype=bool)
+    face_planar[np.asarray(model.triangle_face)[res > tol]] = False
+    return V, face_planar
+
+
+def build_bsp(model: Model, max_candidates: int = 24, split_weight: float = 6.0, rel_eps: float = 1e-11) -> BSPTree:
     """Build the solid BSP tree of a model.
+
+    Node planes are the model's distinct planes (``Model.plane_normals``),
+    oriented as the face they come from, with the vertices first moved onto
+    them (``planar_vertices``, moves of ~1e-8 m) so that every vertex is
+    classified by its true side of every plane and every cell is consistently
+    inside or outside. Triangles of a face that cannot be made planar that way
+    keep their own exact planes.
 
     Parameters
     ----------
     model : Model
     max_candidates : int
         Planes scored per node: those of the largest faces (by fragment area)
-        in the node.
+        present in the node.
     split_weight : float
         Cost of one split relative to one triangle of imbalance.
     rel_eps : float
-        Plane thickness as a fraction of the model diameter: vertices closer
-        than this to a plane count as on it (float32 CAD coordinates are good
-        to ~6e-8 relative).
+        Plane thickness as a fraction of the model diameter, for float64
+        rounding only: points closer count as on the plane.
 
     Returns
     -------
@@ -220,53 +358,70 @@ def build_bsp(model: Model, max_candidates: int = 24, split_weight: float = 6.0,
     """
     t_start = time.perf_counter()
     eps = rel_eps * model.diameter
-    fn, fd = np.asarray(model.face_normals), np.asarray(model.face_offsets)
-    tri = np.asarray(model.vertices)[np.asarray(model.triangles)]  # (F, 3, 3)
+    Vp, face_planar = planar_vertices(model)
+    F = np.asarray(model.triangles)
+    tri = Vp[F]  # (F, 3, 3)
     tface = np.asarray(model.triangle_face)
+    # Plane (unoriented id) and orientation of every source triangle.
+    pn = [np.asarray(model.plane_normals)]
+    pd = [np.asarray(model.plane_offsets)]
+    tplane = np.asarray(model.face_plane)[tface].copy()
+    tsign = np.asarray(model.face_plane_sign)[tface].copy()
+    loose = np.flatnonzero(~face_planar[tface])
+    if loose.size:
+        cr = np.cross(tri[loose, 1] - tri[loose, 0], tri[loose, 2] - tri[loose, 0])
+        n = cr / np.linalg.norm(cr, axis=1, keepdims=True)
+        tplane[loose] = len(pd[0]) + np.arange(loose.size)
+        tsign[loose] = 1.0
+        pn.append(n)
+        pd.append(np.einsum("ij,ij->i", n, tri[loose, 0]))
+    pn, pd = np.concatenate(pn), np.concatenate(pd)
 
-    normal, offset, face, front, back, polys, pface = [], [], [], [], [], [], []
-    # Stack of (triangles, their faces, parent node, is_front_child, depth).
-    stack = [(tri, tface, -1, True, 1)]
+    normal, offset, face, front, back, polys, psrc = [], [], [], [], [], [], []
+    # Stack of (fragments (M, 3, 3), source triangles (M,), parent, is_front_child, depth).
+    stack = [(tri, np.arange(len(F)), -1, True, 1)]
     depth = 0
     while stack:
-        T, TF, parent, is_front, dep = stack.pop()
+        T, S, parent, is_front, dep = stack.pop()
         i = len(normal)
         if parent >= 0:
             (front if is_front else back)[parent] = i
         depth = max(depth, dep)
-        f = _choose_face(T, TF, fn, fd, eps, max_candidates, split_weight)
-        n, d = fn[f], fd[f]
+        s = _choose_source(T, S, tplane, tsign, pn, pd, eps, max_candidates, split_weight)
+        n, d = tsign[s] * pn[tplane[s]], tsign[s] * pd[tplane[s]]
         h = T @ n - d  # (M, 3)
+        h[tplane[S] == tplane[s]] = 0.0  # fragments in this very plane
         pos = (h > eps).any(1)
         neg = (h < -eps).any(1)
         on = ~pos & ~neg
         span = pos & neg
         only_f = pos & ~neg
         only_b = neg & ~pos
-        Tf, TFf = [T[only_f]], [TF[only_f]]
-        Tb, TFb = [T[only_b]], [TF[only_b]]
+        Tf, Sf = [T[only_f]], [S[only_f]]
+        Tb, Sb = [T[only_b]], [S[only_b]]
         for j in np.flatnonzero(span):
             pf, pb = _split_triangle(T[j], h[j], eps)
             Tf.append(pf)
-            TFf.append(np.full(len(pf), TF[j]))
+            Sf.append(np.full(len(pf), S[j]))
             Tb.append(pb)
-            TFb.append(np.full(len(pb), TF[j]))
-        Tf, TFf = np.concatenate(Tf), np.concatenate(TFf)
-        Tb, TFb = np.concatenate(Tb), np.concatenate(TFb)
+            Sb.append(np.full(len(pb), S[j]))
+        Tf, Sf = np.concatenate(Tf), np.concatenate(Sf)
+        Tb, Sb = np.concatenate(Tb), np.concatenate(Sb)
         normal.append(n)
         offset.append(d)
-        face.append(f)
+        face.append(tface[s])
         front.append(OUT)
         back.append(IN)
         polys.append(T[on])
-        pface.append(TF[on])
+        psrc.append(S[on])
         # Push back first so the front subtree is numbered right after its parent.
         if len(Tb):
-            stack.append((Tb, TFb, i, False, dep + 1))
+            stack.append((Tb, Sb, i, False, dep + 1))
         if len(Tf):
-            stack.append((Tf, TFf, i, True, dep + 1))
+            stack.append((Tf, Sf, i, True, dep + 1))
 
     counts = np.array([len(p) for p in polys], dtype=np.int64)
+    psrc = np.concatenate(psrc).astype(np.int64)
     return BSPTree(
         normal=_ro(np.array(normal, dtype=float).reshape(-1, 3)),
         offset=_ro(np.array(offset, dtype=float)),
@@ -275,30 +430,36 @@ def build_bsp(model: Model, max_candidates: int = 24, split_weight: float = 6.0,
         back=_ro(np.array(back, dtype=np.int64)),
         poly_ptr=_ro(np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)),
         poly_vertices=_ro(np.concatenate(polys).reshape(-1, 3, 3)),
-        poly_face=_ro(np.concatenate(pface).astype(np.int64)),
+        poly_face=_ro(tface[psrc]),
         content_hash=model.content_hash,
         depth=int(depth),
+        plane_eps=float(eps),
         build_seconds=time.perf_counter() - t_start,
     )
 
 
-def _choose_face(T, TF, fn, fd, eps, max_candidates, split_weight) -> int:
-    """Face whose plane splits the triangles ``T`` (M, 3, 3) best."""
-    faces, local = np.unique(TF, return_inverse=True)
-    if faces.size == 1:
-        return int(faces[0])
+def _choose_source(T, S, tplane, tsign, pn, pd, eps, max_candidates, split_weight) -> int:
+    """Source triangle whose oriented plane splits the fragments ``T`` (M, 3, 3) best."""
+    key = 2 * tplane[S] + (tsign[S] < 0)
+    keys, first, local = np.unique(key, return_index=True, return_inverse=True)
+    if keys.size == 1:
+        return int(S[0])
     e1, e2 = T[:, 1] - T[:, 0], T[:, 2] - T[:, 0]
-    area = np.bincount(local, weights=np.linalg.norm(np.cross(e1, e2), axis=1), minlength=faces.size)
-    # Largest faces first; stable so that ties keep a deterministic order.
-    cand = faces[np.argsort(-area, kind="stable")[:max_candidates]]
-    h = np.einsum("kc,mvc->kmv", fn[cand], T) - fd[cand][:, None, None]  # (K, M, 3)
+    area = np.bincount(local, weights=np.linalg.norm(np.cross(e1, e2), axis=1), minlength=keys.size)
+    # Largest planes first ("prefer planes of large faces"); stable so that
+    # ties keep a deterministic order.
+    top = np.argsort(-area, kind="stable")[:max_candidates]
+    src = S[first[top]]
+    sg = tsign[src]
+    h = np.einsum("kc,mvc->kmv", sg[:, None] * pn[tplane[src]], T) - (sg * pd[tplane[src]])[:, None, None]
+    h[tplane[S][None, :] == tplane[src][:, None]] = 0.0  # (K, M, 3)
     pos = (h > eps).any(2)
     neg = (h < -eps).any(2)
     n_span = (pos & neg).sum(1)
     n_front = (pos & ~neg).sum(1)
     n_back = (neg & ~pos).sum(1)
     score = split_weight * n_span + np.abs(n_front - n_back)
-    return int(cand[int(np.argmin(score))])
+    return int(src[int(np.argmin(score))])
 
 
 def _split_triangle(tri, h, eps):
@@ -342,7 +503,9 @@ def save_bsp(tree: BSPTree, path) -> None:
     """Write a tree atomically (temporary file then rename) as ``.npz``."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    meta = np.array([tree.content_hash, str(FORMAT_VERSION), str(tree.depth), repr(tree.build_seconds)])
+    meta = np.array(
+        [tree.content_hash, str(FORMAT_VERSION), str(tree.depth), repr(tree.plane_eps), repr(tree.build_seconds)]
+    )
     fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
     try:
         with os.fdopen(fd, "wb") as fh:
@@ -362,7 +525,7 @@ def load_bsp(path, content_hash: str) -> BSPTree:
             arrs = {name: z[name] for name in _ARRAYS}
     except Exception as e:
         raise ValueError(f"{path}: unreadable BSP cache ({type(e).__name__}: {e})") from e
-    if len(meta) != 4 or meta[0] != content_hash or meta[1] != str(FORMAT_VERSION):
+    if len(meta) != 5 or meta[0] != content_hash or meta[1] != str(FORMAT_VERSION):
         raise ValueError(f"{path}: BSP cache is for another model or format")
     n = arrs["normal"].shape[0]
     ok = (
@@ -388,7 +551,8 @@ def load_bsp(path, content_hash: str) -> BSPTree:
         **{k: _ro(v) for k, v in arrs.items()},
         content_hash=meta[0],
         depth=int(meta[2]),
-        build_seconds=float(meta[3]),
+        plane_eps=float(meta[3]),
+        build_seconds=float(meta[4]),
     )
 
 

@@ -115,6 +115,16 @@ class Model:
         ``d`` of each face plane ``n . x = d``, m.
     face_areas : ndarray, shape (P,)
         m^2.
+    face_plane : ndarray, shape (P,), int64
+        Index of the face's plane: faces in one plane (adjacent or not, facing
+        either way) share one plane, so coplanarity is an identity.
+    face_plane_sign : ndarray, shape (P,)
+        +1 or -1: ``face_normals[f] == face_plane_sign[f] * plane_normals[face_plane[f]]``
+        (and the same for offsets), exactly.
+    plane_normals : ndarray, shape (Q, 3)
+        Distinct planes of the model (unit normals), object frame.
+    plane_offsets : ndarray, shape (Q,)
+        Their offsets, m.
     corner_vertex : ndarray, shape (C,), int64
         Vertex index of each corner.
     corners : ndarray, shape (C, 3)
@@ -158,6 +168,10 @@ class Model:
     face_normals: np.ndarray
     face_offsets: np.ndarray
     face_areas: np.ndarray
+    face_plane: np.ndarray
+    face_plane_sign: np.ndarray
+    plane_normals: np.ndarray
+    plane_offsets: np.ndarray
     corner_vertex: np.ndarray
     corners: np.ndarray
     corner_face_ptr: np.ndarray
@@ -376,6 +390,19 @@ def model_from_arrays(vertices, triangles, unit: str = "m", name: str = "model",
     face_d = np.bincount(tri_face, weights=np.einsum("ij,ij->i", face_n[tri_face], centroid) * tri_area, minlength=n_faces)
     face_d /= face_area
 
+    # Faces in one plane (not necessarily adjacent, either orientation) share
+    # one exact plane: the BSP and the corner test need "same plane" to be an
+    # identity, not a tolerance. Greedy clustering, largest faces first.
+    plane_of_face, sign_of_face, reps = _cluster_planes(face_n, face_d, face_area, cos_tol, dist_tol)
+    w = face_area * sign_of_face
+    n_planes = len(reps)
+    pn = np.stack([np.bincount(plane_of_face, weights=w * face_n[:, k], minlength=n_planes) for k in range(3)], 1)
+    pn /= np.linalg.norm(pn, axis=1, keepdims=True)
+    pd = np.bincount(plane_of_face, weights=w * face_d, minlength=n_planes)
+    pd /= np.bincount(plane_of_face, weights=face_area, minlength=n_planes)
+    face_n = pn[plane_of_face] * sign_of_face[:, None]
+    face_d = pd[plane_of_face] * sign_of_face
+
     # Boundary loops of each face: directed edges whose twin lies in another face.
     fa, fb = tri_face[ta], tri_face[tb]
     sharp_pair = fa != fb
@@ -412,17 +439,12 @@ def model_from_arrays(vertices, triangles, unit: str = "m", name: str = "model",
     corner_v, c_faces = [], []
     for v in np.flatnonzero(np.diff(v_ptr) >= 3):
         fs = vf[v_ptr[v] : v_ptr[v + 1], 1]
-        nrm = face_n[fs]
-        # Distinct planes: greedy clustering of (normal, offset).
-        reps = []
-        for k in range(len(fs)):
-            if not any(nrm[k] @ face_n[fs[r]] > cos_tol and abs(face_d[fs[k]] - face_d[fs[r]]) < dist_tol for r in reps):
-                reps.append(k)
-        if len(reps) < 3:
+        distinct = np.unique(plane_of_face[fs])
+        if len(distinct) < 3:
             continue
         # Smallest singular value of the distinct normals: 0 when all planes
         # share a line direction (no point feature there).
-        if np.linalg.svd(nrm[reps], compute_uv=False)[2] < 1e-3:
+        if np.linalg.svd(pn[distinct], compute_uv=False)[2] < 1e-3:
             continue
         corner_v.append(v)
         c_faces.append(fs)
@@ -465,6 +487,10 @@ def model_from_arrays(vertices, triangles, unit: str = "m", name: str = "model",
         face_normals=_ro(face_n),
         face_offsets=_ro(face_d),
         face_areas=_ro(face_area),
+        face_plane=_ro(plane_of_face, np.int64),
+        face_plane_sign=_ro(sign_of_face),
+        plane_normals=_ro(pn),
+        plane_offsets=_ro(pd),
         corner_vertex=_ro(corner_v, np.int64),
         corners=_ro(V[corner_v].reshape(-1, 3)),
         corner_face_ptr=_ro(c_ptr),
@@ -482,6 +508,33 @@ def model_from_arrays(vertices, triangles, unit: str = "m", name: str = "model",
         content_hash=content_hash(V, F),
         unit=unit,
     )
+
+
+def _cluster_planes(face_n, face_d, face_area, cos_tol, dist_tol):
+    """Group faces lying in one plane (either orientation).
+
+    Returns (plane index per face (P,), sign per face (P,) float, representative faces).
+    """
+    P = len(face_n)
+    plane = -np.ones(P, dtype=np.int64)
+    sign = np.ones(P)
+    reps: list[int] = []
+    rep_n = np.zeros((0, 3))
+    rep_d = np.zeros(0)
+    for f in np.argsort(-face_area, kind="stable"):
+        if reps:
+            c = rep_n @ face_n[f]
+            s = np.where(c >= 0, 1.0, -1.0)
+            hit = np.flatnonzero((np.abs(c) > cos_tol) & (np.abs(face_d[f] - s * rep_d) < dist_tol))
+            if hit.size:
+                plane[f] = hit[0]
+                sign[f] = s[hit[0]]
+                continue
+        plane[f] = len(reps)
+        reps.append(int(f))
+        rep_n = np.vstack([rep_n, face_n[f]])
+        rep_d = np.append(rep_d, face_d[f])
+    return plane, sign, reps
 
 
 def _face_loops(V, b_edges, b_face, n_faces, face_n):
