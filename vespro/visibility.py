@@ -54,6 +54,8 @@ DEFAULT_END_EPS = 1e-5
 #: Silhouette distances below this (px) are reported as 0: a corner on the
 #: outline lands there up to floating-point rounding of the projection.
 SILHOUETTE_SNAP_PX = 1e-6
+#: Outline rings smaller than this (px^2) are numerical cracks, not see-through gaps.
+MIN_RING_AREA_PX2 = 1e-6
 
 
 def _ro(a, dtype=None):
@@ -394,7 +396,14 @@ def _outline(model: Model, T_camera_object: np.ndarray, intr: CameraIntrinsics, 
     except shapely.errors.GEOSException:
         # Snap-rounding overlay is robust where floating overlay can fail.
         region = shapely.union_all(polys, grid_size=1e-6)
-    return region.boundary
+    # Floating-point union leaves zero-width cracks along shared edges of
+    # adjacent faces (rings of ~1e-14 px^2); no real gap is that small.
+    parts = []
+    for g in getattr(region, "geoms", [region]):
+        if isinstance(g, shapely.Polygon) and g.area > MIN_RING_AREA_PX2:
+            holes = [r for r in g.interiors if shapely.Polygon(r).area > MIN_RING_AREA_PX2]
+            parts.append(shapely.Polygon(g.exterior, holes))
+    return shapely.MultiPolygon(parts).boundary if parts else None
 
 
 def silhouette_distance(model: Model, T_camera_object: np.ndarray, intr: CameraIntrinsics, uv: np.ndarray) -> np.ndarray:
