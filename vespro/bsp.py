@@ -1,15 +1,23 @@
 """Solid BSP tree of a closed model, for batched line-of-sight queries.
 
-The tree is an auto-partition: every node's plane is the plane of one of the
-model's planar faces, and the polygons (triangle fragments) lying in that plane
-within the node's cell are stored at the node. Polygons that straddle a node's
-plane are split. Because the model is a closed, outward-oriented solid, an
-empty side is a leaf whose cell is entirely outside (front side) or entirely
-inside (back side) the solid: a "solid-leaf" tree (Naylor). A segment is
-blocked by the solid exactly when part of it lies in an inside leaf, so the
-occlusion query only clips segments against node planes and never tests
-polygons; the polygons stay in the tree (and the cache) for other uses such as
-rendering or hit reporting.
+The tree is an auto-partition: every node's plane is one of the model's
+distinct face planes (``Model.plane_normals``, oriented as the face it was
+taken from), and the polygons (triangle fragments) lying in that plane within
+the node's cell are stored at the node. Polygons that straddle a node's plane
+are split. Because the model is a closed, outward-oriented solid, an empty side
+is a leaf whose cell is entirely outside (front side) or entirely inside (back
+side) the solid: a "solid-leaf" tree (Naylor). A segment is blocked by the
+solid exactly when part of it lies in an inside leaf, so the occlusion query
+only clips segments against node planes, level by level for all segments at
+once, and never tests polygons; the polygons stay in the tree (and the cache)
+for other uses such as rendering or hit reporting.
+
+Robustness: CAD coordinates are float32, so a "planar" face is planar only to
+~1e-8 m. Before building, vertices are moved (by ~1e-8 m) onto the exact planes
+of their faces (``planar_vertices``); every later side test is then exact up to
+float64 rounding, and the cells are consistently inside or outside. A
+fitted-plane tree with a matching tolerance instead leaves thin slabs of wrong
+inside/outside along nearly coplanar faces (seen on boolean-union models).
 
 Splitting-plane heuristic: among the planes of the largest faces present in
 the node (up to ``max_candidates``), pick the one minimising
