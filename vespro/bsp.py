@@ -47,9 +47,12 @@ OUT = -1
 IN = -2
 
 #: Bump when the build or the file layout changes: old cache files are ignored.
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
 
-_ARRAYS = ("normal", "offset", "face", "front", "back", "poly_ptr", "poly_vertices", "poly_face")
+_ARRAYS = (
+    "normal", "offset", "face", "front", "back", "node_plane", "plane_normal", "plane_offset",
+    "bounds", "poly_ptr", "poly_vertices", "poly_face",
+)
 
 
 def _ro(a, dtype=None):
@@ -74,6 +77,15 @@ class BSPTree:
     front, back : ndarray, shape (N,), int64
         Child node index, or ``OUT`` (-1) / ``IN`` (-2) for a leaf outside /
         inside the solid. Node 0 is the root.
+    node_plane : ndarray, shape (N,), int64
+        Distinct (unoriented) plane of each node: ``normal[i] == s *
+        plane_normal[node_plane[i]]`` with ``s = +-1``, exactly.
+    plane_normal, plane_offset : ndarray, shapes (Q, 3), (Q,)
+        The distinct planes used by the nodes (fewer than nodes: a plane is
+        reused in several cells), for per-plane distance tables.
+    bounds : ndarray, shape (2, 3)
+        Axis-aligned box (min, max) containing the solid, m; segments are
+        clipped to it first (outside it everything is outside the solid).
     poly_ptr : ndarray, shape (N + 1,), int64
         The polygons of node ``i`` are ``poly_ptr[i]:poly_ptr[i+1]``.
     poly_vertices : ndarray, shape (Q, 3, 3)
@@ -96,6 +108,10 @@ class BSPTree:
     face: np.ndarray
     front: np.ndarray
     back: np.ndarray
+    node_plane: np.ndarray
+    plane_normal: np.ndarray
+    plane_offset: np.ndarray
+    bounds: np.ndarray
     poly_ptr: np.ndarray
     poly_vertices: np.ndarray
     poly_face: np.ndarray
@@ -137,13 +153,46 @@ class BSPTree:
         return out
 
     def plane_distances(self, P: np.ndarray) -> np.ndarray:
-        """Signed distances of points to every node plane, shape (M, N), m.
+        """Signed distances of points to the distinct planes, shape (M, Q), m.
 
         For fixed points (a model's own corners) this is set-up work that
         ``segments_blocked_from`` reuses on every query.
         """
         P = np.asarray(P, dtype=float).reshape(-1, 3)
-        return P @ self.normal.T - self.offset
+        return P @ self.plane_normal.T - self.plane_offset
+
+    @property
+    def node_sign(self) -> np.ndarray:
+        """+1 / -1 per node: its orientation relative to ``plane_normal[node_plane]``."""
+        sg = self.__dict__.get("_sign")
+        if sg is None:
+            sg = np.where(np.einsum("ij,ij->i", self.normal, self.plane_normal[self.node_plane]) < 0, -1.0, 1.0)
+            sg.setflags(write=False)
+            object.__setattr__(self, "_sign", sg)  # derived cache, not state
+        return sg
+
+    def clip_to_bounds(self, A: np.ndarray, B: np.ndarray, t_lo, t_hi):
+        """Clip segments ``A + t (B - A)``, ``t in [t_lo, t_hi]``, to ``bounds``.
+
+        ``A`` is (3,) or (K, 3), ``B`` (K, 3). Returns new (t_lo, t_hi), each
+        (K,); an empty piece has ``t_hi <= t_lo``. Exact: the solid lies in
+        the box, so nothing outside it can block.
+        """
+        d = B - A
+        t0 = np.array(np.broadcast_to(t_lo, (B.shape[0],)), dtype=float)
+        t1 = np.array(np.broadcast_to(t_hi, (B.shape[0],)), dtype=float)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ta = (self.bounds[0] - A) / d
+            tb = (self.bounds[1] - A) / d
+        lo = np.fmin(ta, tb)  # fmin/fmax skip the NaN of 0/0 (d = 0 on an axis)
+        hi = np.fmax(ta, tb)
+        # d == 0: inside the slab -> no constraint (+-inf); outside -> empty.
+        A_ = np.broadcast_to(A, B.shape)
+        flat = d == 0
+        out_slab = flat & ((A_ < self.bounds[0]) | (A_ > self.bounds[1]))
+        lo = np.where(flat, np.where(out_slab, np.inf, -np.inf), lo)
+        hi = np.where(flat, np.where(out_slab, -np.inf, np.inf), hi)
+        return np.maximum(t0, lo.max(1)), np.minimum(t1, hi.min(1))
 
     def segments_blocked(self, A: np.ndarray, B: np.ndarray, t_lo=0.0, t_hi=1.0, min_length: float = 0.0) -> np.ndarray:
         """Whether segments pass through the solid.
@@ -187,16 +236,21 @@ class BSPTree:
         def hb_of(seg, node):
             return np.einsum("ij,ij->i", B[seg], N[node]) - D[node]
 
+        t_lo, t_hi = self.clip_to_bounds(A, B, t_lo, t_hi)
         return self._traverse(B.shape[0], np.arange(B.shape[0]), ha_of, hb_of, t_lo, t_hi, min_length)
 
-    def segments_blocked_from(self, a: np.ndarray, end_dist: np.ndarray, rows: np.ndarray, t_lo=0.0, t_hi=1.0) -> np.ndarray:
+    def segments_blocked_from(
+        self, a: np.ndarray, B: np.ndarray, end_dist: np.ndarray, rows: np.ndarray, t_lo=0.0, t_hi=1.0
+    ) -> np.ndarray:
         """``segments_blocked`` from one start point to fixed, pre-measured ends.
 
         Parameters
         ----------
         a : ndarray, shape (3,)
             Common start (camera centre), object frame, m.
-        end_dist : ndarray, shape (R, N)
+        B : ndarray, shape (K, 3)
+            Segment ends (``end_dist`` rows ``rows`` measured these), m.
+        end_dist : ndarray, shape (R, Q)
             ``plane_distances`` of all candidate end points (set-up).
         rows : ndarray, shape (K,), int
             The end point (row of ``end_dist``) of each segment.
@@ -206,19 +260,20 @@ class BSPTree:
         -------
         ndarray, shape (K,), bool
         """
-        h_start = self.normal @ np.asarray(a, dtype=float).reshape(3) - self.offset
+        a = np.asarray(a, dtype=float).reshape(3)
+        h_start = self.normal @ a - self.offset
         rows = np.asarray(rows, dtype=np.int64)
+        plane, sign = self.node_plane, self.node_sign
 
         def ha_of(seg, node):
             return h_start[node]
 
         def hb_of(seg, node):
-            return end_dist[seg, node]
+            return sign[node] * end_dist[seg, plane[node]]
 
         # Items carry the row as their segment id, so the table is indexed
         # directly; the result is mapped back to segments at the end.
-        t_lo = np.broadcast_to(np.asarray(t_lo, dtype=float), rows.shape)
-        t_hi = np.broadcast_to(np.asarray(t_hi, dtype=float), rows.shape)
+        t_lo, t_hi = self.clip_to_bounds(a, np.asarray(B, dtype=float).reshape(-1, 3), t_lo, t_hi)
         blocked_rows = self._traverse(end_dist.shape[0], rows, ha_of, hb_of, t_lo, t_hi, 0.0)
         return blocked_rows[rows]
 
@@ -385,7 +440,7 @@ def build_bsp(model: Model, max_candidates: int = 24, split_weight: float = 6.0,
         pd.append(np.einsum("ij,ij->i", n, tri[loose, 0]))
     pn, pd = np.concatenate(pn), np.concatenate(pd)
 
-    normal, offset, face, front, back, polys, psrc = [], [], [], [], [], [], []
+    normal, offset, face, nplane, front, back, polys, psrc = [], [], [], [], [], [], [], []
     # Stack of (fragments (M, 3, 3), source triangles (M,), parent, is_front_child, depth).
     stack = [(tri, np.arange(len(F)), -1, True, 1)]
     depth = 0
@@ -418,6 +473,7 @@ def build_bsp(model: Model, max_candidates: int = 24, split_weight: float = 6.0,
         normal.append(n)
         offset.append(d)
         face.append(tface[s])
+        nplane.append(tplane[s])
         front.append(OUT)
         back.append(IN)
         polys.append(T[on])
@@ -430,12 +486,19 @@ def build_bsp(model: Model, max_candidates: int = 24, split_weight: float = 6.0,
 
     counts = np.array([len(p) for p in polys], dtype=np.int64)
     psrc = np.concatenate(psrc).astype(np.int64)
+    used, node_plane = np.unique(np.array(nplane, dtype=np.int64), return_inverse=True)
+    pad = eps + 1e-12
+    bounds = np.stack([Vp.min(0) - pad, Vp.max(0) + pad])
     return BSPTree(
         normal=_ro(np.array(normal, dtype=float).reshape(-1, 3)),
         offset=_ro(np.array(offset, dtype=float)),
         face=_ro(np.array(face, dtype=np.int64)),
         front=_ro(np.array(front, dtype=np.int64)),
         back=_ro(np.array(back, dtype=np.int64)),
+        node_plane=_ro(node_plane.astype(np.int64)),
+        plane_normal=_ro(pn[used]),
+        plane_offset=_ro(pd[used]),
+        bounds=_ro(bounds),
         poly_ptr=_ro(np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)),
         poly_vertices=_ro(np.concatenate(polys).reshape(-1, 3, 3)),
         poly_face=_ro(tface[psrc]),
@@ -546,6 +609,12 @@ def load_bsp(path, content_hash: str) -> BSPTree:
         and arrs["poly_face"].shape == (arrs["poly_vertices"].shape[0],)
         and int(arrs["poly_ptr"][-1]) == arrs["poly_vertices"].shape[0]
         and all(np.all((arrs[k] >= IN) & (arrs[k] < n)) for k in ("front", "back"))
+        and arrs["node_plane"].shape == (n,)
+        and arrs["plane_normal"].ndim == 2
+        and arrs["plane_normal"].shape[1:] == (3,)
+        and arrs["plane_offset"].shape == (arrs["plane_normal"].shape[0],)
+        and np.all((arrs["node_plane"] >= 0) & (arrs["node_plane"] < arrs["plane_offset"].shape[0]))
+        and arrs["bounds"].shape == (2, 3)
         and np.all(np.isfinite(arrs["normal"]))
         and np.all(np.isfinite(arrs["offset"]))
     )

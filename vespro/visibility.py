@@ -200,16 +200,16 @@ def query_visibility(
     return VisibilityScene([body]).query(0, np.eye(4), [T], intr, facing_eps, end_eps)
 
 
-#: Largest corner x node table (entries) a body precomputes: 4M float64 = 32 MB.
-MAX_TABLE_ENTRIES = 1 << 22
+#: Largest corner x plane table (entries) a body precomputes: 8M float64 = 64 MB.
+MAX_TABLE_ENTRIES = 1 << 23
 
 
 @dataclass(frozen=True)
 class SceneBody:
     """One rigid body of a scene: its model and tree (both in its own frame).
 
-    Set-up also measures the distances of the model's corners to every node
-    plane (``corner_plane_dist``, shape (C, N), m; None when larger than
+    Set-up also measures the distances of the model's corners to every plane
+    of the tree (``corner_plane_dist``, shape (C, Q), m; None when larger than
     ``MAX_TABLE_ENTRIES``), which the corner queries then only look up.
     """
 
@@ -221,13 +221,13 @@ class SceneBody:
     def __post_init__(self):
         if self.tree.content_hash != self.model.content_hash:
             raise ValueError(f"body {self.name!r}: BSP tree was built for another model")
-        if self.model.n_corners * self.tree.n_nodes <= MAX_TABLE_ENTRIES:
+        if self.model.n_corners * self.tree.plane_offset.shape[0] <= MAX_TABLE_ENTRIES:
             object.__setattr__(self, "corner_plane_dist", _ro(self.tree.plane_distances(self.model.corners)))
 
     def corners_blocked(self, c_object: np.ndarray, idx: np.ndarray, t_lo, t_hi) -> np.ndarray:
         """Whether the lines of sight from ``c_object`` (3,) to corners ``idx`` (K,) are blocked by this body."""
         if self.corner_plane_dist is not None:
-            return self.tree.segments_blocked_from(c_object, self.corner_plane_dist, idx, t_lo, t_hi)
+            return self.tree.segments_blocked_from(c_object, self.model.corners[idx], self.corner_plane_dist, idx, t_lo, t_hi)
         return self.tree.segments_blocked(c_object, self.model.corners[idx], t_lo, t_hi)
 
     def visible_mask(

@@ -54,7 +54,7 @@ def test_segments_match_brute_force(bodies, name):
     np.testing.assert_array_equal(tree.segments_blocked(c, B), tree.segments_blocked(np.broadcast_to(c, B.shape), B))
     rows = np.arange(len(B))[::-1]
     np.testing.assert_array_equal(
-        tree.segments_blocked_from(c, tree.plane_distances(B), rows), tree.segments_blocked(c, B[rows])
+        tree.segments_blocked_from(c, B[rows], tree.plane_distances(B), rows), tree.segments_blocked(c, B[rows])
     )
 
 
