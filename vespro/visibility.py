@@ -274,6 +274,9 @@ class VisibilityScene:
         return tuple(b.name for b in self.bodies)
 
     def index(self, name: str) -> int:
+        """Scene index of body ``name``."""
+        if name not in self.names:
+            raise ValueError(f"no body {name!r} in the scene; have {list(self.names)}")
         return self.names.index(name)
 
     def query(
@@ -324,13 +327,13 @@ class VisibilityScene:
                 continue
             T_j_i = invert_transform(Tb[j]) @ Tb[i]
             live = np.flatnonzero(~blocked)
-            Aj = np.broadcast_to(transform_points(T_j_i, c[None])[0], (live.size, 3))
+            c_j = transform_points(T_j_i, c[None])[0]  # camera centre in body j's frame
             Bj = transform_points(T_j_i, P[live])
-            near = _segments_near_sphere(Aj, Bj, *self._spheres[j])
+            near = _segments_near_sphere(c_j, Bj, *self._spheres[j])
             if not near.any():
                 continue
             sel = live[near]
-            blocked[sel] = other.tree.segments_blocked(Aj[near], Bj[near], t_lo[sel], t_hi[sel])
+            blocked[sel] = other.tree.segments_blocked(c_j, Bj[near], t_lo[sel], t_hi[sel])
         vis = idx[~blocked]
         mask = np.zeros(model.n_corners, dtype=bool)
         mask[vis] = True
@@ -356,7 +359,8 @@ class VisibilityScene:
 
 
 def _segments_near_sphere(A, B, ctr, r):
-    """Whether segments A->B (K, 3) come within r of ctr (3,)."""
+    """Whether segments A->B (A (3,) or (K, 3), B (K, 3)) come within r of ctr (3,)."""
+    A = np.broadcast_to(A, B.shape)
     d = B - A
     dd = np.einsum("ij,ij->i", d, d)
     with np.errstate(divide="ignore", invalid="ignore"):
