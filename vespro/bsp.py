@@ -61,7 +61,7 @@ def _ro(a, dtype=None):
     return a
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class BSPTree:
     """Solid-leaf BSP tree of one model, in that model's (object) frame.
 

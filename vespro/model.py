@@ -66,7 +66,7 @@ def _ro(a: np.ndarray, dtype=None) -> np.ndarray:
     return a
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class PlanarFace:
     """One planar face of a model: coplanar, edge-connected triangles.
 
@@ -93,9 +93,12 @@ class PlanarFace:
     loops: tuple
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Model:
     """A validated closed CAD model and its tracking features (object frame, m).
+
+    Frozen, with read-only arrays; compared by identity (``content_hash``
+    says whether two models have the same geometry).
 
     Attributes
     ----------

@@ -64,7 +64,7 @@ def _ro(a, dtype=None):
     return a
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Visibility:
     """Visible corners of one body for one camera pose.
 
@@ -204,7 +204,7 @@ def query_visibility(
 MAX_TABLE_ENTRIES = 1 << 23
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class SceneBody:
     """One rigid body of a scene: its model and tree (both in its own frame).
 

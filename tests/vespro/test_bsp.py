@@ -21,10 +21,16 @@ def bodies():
     R = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
     Vb = b.vertices @ R.T
     out["two_boxes"] = model_from_arrays(np.vstack([a.vertices, Vb]), np.vstack([a.triangles, b.triangles + len(a.vertices)]))
+    # A hollow box: an inward-facing inner shell bounds a closed cavity.
+    outer, inner = box_model([0.1, 0.08, 0.06]), box_model([0.06, 0.04, 0.03], center=[0.005, 0.0, 0.004])
+    out["hollow"] = model_from_arrays(
+        np.vstack([outer.vertices, inner.vertices]),
+        np.vstack([outer.triangles, inner.triangles[:, ::-1] + len(outer.vertices)]),
+    )
     return {n: (m, build_bsp(m)) for n, m in out.items()}
 
 
-@pytest.mark.parametrize("name", list(NAMES) + ["two_boxes"])
+@pytest.mark.parametrize("name", list(NAMES) + ["two_boxes", "hollow"])
 def test_inside_test_matches_winding_number(bodies, name):
     m, tree = bodies[name]
     rng = np.random.default_rng(0)
@@ -35,7 +41,7 @@ def test_inside_test_matches_winding_number(bodies, name):
     np.testing.assert_array_equal(tree.contains(P), inside_ref)
 
 
-@pytest.mark.parametrize("name", list(NAMES) + ["two_boxes"])
+@pytest.mark.parametrize("name", list(NAMES) + ["two_boxes", "hollow"])
 def test_segments_match_brute_force(bodies, name):
     """Random segments with both ends outside: blocked iff they cross a triangle."""
     m, tree = bodies[name]
@@ -151,3 +157,12 @@ def test_default_cache_dir_env(monkeypatch, tmp_path):
     assert bsp.default_cache_dir() == tmp_path / "c"
     monkeypatch.delenv("VESPRO_BSP_CACHE")
     assert bsp.default_cache_dir() == Path.home() / ".cache" / "vespro" / "bsp"
+
+
+def test_unwritable_cache_still_returns_a_tree(bodies, tmp_path):
+    m, tree = bodies["box"]
+    blocker = tmp_path / "not_a_dir"
+    blocker.write_text("a file where the cache folder should be")
+    t = load_or_build_bsp(m, cache_dir=blocker / "bsp")
+    assert t.n_nodes == tree.n_nodes
+    assert load_or_build_bsp(m, use_cache=False).n_nodes == tree.n_nodes

@@ -311,3 +311,12 @@ def test_bad_inputs_are_rejected(bodies):
         VisibilityScene([bodies["box"], bodies["box"]])
     with pytest.raises(ValueError, match="another model"):
         SceneBody("x", bodies["box"].model, bodies["lblock"].tree)
+
+
+def test_lookup_table_and_direct_paths_agree(bodies):
+    """SceneBody's precomputed corner/plane table gives the same masks as the direct query."""
+    body = bodies["bracket"]
+    assert body.corner_plane_dist is not None
+    rng = np.random.default_rng(40)
+    for c in random_viewpoints(body.model, 200, rng):
+        np.testing.assert_array_equal(body.visible_mask(c), visible_corners(body.model, body.tree, c))
