@@ -40,7 +40,18 @@ import numpy as np
 
 from vespro.model import Model
 
-__all__ = ["OUT", "IN", "BSPTree", "build_bsp", "planar_vertices", "save_bsp", "load_bsp", "load_or_build_bsp", "default_cache_dir", "FORMAT_VERSION"]
+__all__ = [
+    "OUT",
+    "IN",
+    "FORMAT_VERSION",
+    "BSPTree",
+    "build_bsp",
+    "planar_vertices",
+    "save_bsp",
+    "load_bsp",
+    "load_or_build_bsp",
+    "default_cache_dir",
+]
 
 #: Leaf codes in the child arrays (non-negative values are node indices).
 OUT = -1

@@ -335,7 +335,8 @@ def model_from_arrays(vertices, triangles, unit: str = "m", name: str = "model",
     bad |= 0.5 * dbl_area <= DEGENERATE_REL_AREA * size * size
     if np.any(bad):
         raise ModelError(
-            f"{where}: {int(bad.sum())} degenerate (zero-area) triangle(s), first at index {int(np.flatnonzero(bad)[0])}"
+            f"{where}: {int(bad.sum())} degenerate (zero-area) triangle(s), "
+            f"first at index {int(np.flatnonzero(bad)[0])}"
         )
 
     # Edge structure: a closed, consistently wound mesh has every undirected
@@ -390,7 +391,8 @@ def model_from_arrays(vertices, triangles, unit: str = "m", name: str = "model",
     nsum = np.stack([np.bincount(tri_face, weights=tri_n[:, k] * tri_area, minlength=n_faces) for k in range(3)], 1)
     face_n = nsum / np.linalg.norm(nsum, axis=1, keepdims=True)
     centroid = V[F].mean(1)
-    face_d = np.bincount(tri_face, weights=np.einsum("ij,ij->i", face_n[tri_face], centroid) * tri_area, minlength=n_faces)
+    w_d = np.einsum("ij,ij->i", face_n[tri_face], centroid) * tri_area
+    face_d = np.bincount(tri_face, weights=w_d, minlength=n_faces)
     face_d /= face_area
 
     # Faces in one plane (not necessarily adjacent, either orientation) share

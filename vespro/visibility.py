@@ -227,7 +227,9 @@ class SceneBody:
     def corners_blocked(self, c_object: np.ndarray, idx: np.ndarray, t_lo, t_hi) -> np.ndarray:
         """Whether the lines of sight from ``c_object`` (3,) to corners ``idx`` (K,) are blocked by this body."""
         if self.corner_plane_dist is not None:
-            return self.tree.segments_blocked_from(c_object, self.model.corners[idx], self.corner_plane_dist, idx, t_lo, t_hi)
+            return self.tree.segments_blocked_from(
+                c_object, self.model.corners[idx], self.corner_plane_dist, idx, t_lo, t_hi
+            )
         return self.tree.segments_blocked(c_object, self.model.corners[idx], t_lo, t_hi)
 
     def visible_mask(
@@ -410,7 +412,9 @@ def _outline(model: Model, T_camera_object: np.ndarray, intr: CameraIntrinsics, 
     return shapely.MultiPolygon(parts).boundary if parts else None
 
 
-def silhouette_distance(model: Model, T_camera_object: np.ndarray, intr: CameraIntrinsics, uv: np.ndarray) -> np.ndarray:
+def silhouette_distance(
+    model: Model, T_camera_object: np.ndarray, intr: CameraIntrinsics, uv: np.ndarray
+) -> np.ndarray:
     """Distance in pixels from image points to the object's projected outline.
 
     Parameters

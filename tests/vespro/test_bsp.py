@@ -20,7 +20,9 @@ def bodies():
     c, s = np.cos(0.3), np.sin(0.3)
     R = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
     Vb = b.vertices @ R.T
-    out["two_boxes"] = model_from_arrays(np.vstack([a.vertices, Vb]), np.vstack([a.triangles, b.triangles + len(a.vertices)]))
+    out["two_boxes"] = model_from_arrays(
+        np.vstack([a.vertices, Vb]), np.vstack([a.triangles, b.triangles + len(a.vertices)])
+    )
     # A hollow box: an inward-facing inner shell bounds a closed cavity.
     outer, inner = box_model([0.1, 0.08, 0.06]), box_model([0.06, 0.04, 0.03], center=[0.005, 0.0, 0.004])
     out["hollow"] = model_from_arrays(

@@ -103,7 +103,8 @@ def test_features_are_consistent(models, name):
             np.testing.assert_allclose(m.face_normals[f] @ V[[a, b]].T, m.face_offsets[f], atol=1e-7)
         assert m.face_normals[fa] @ m.face_normals[fb] < 1 - 1e-6
     # Planar faces partition the triangles; areas add up to the mesh area.
-    tri_area = 0.5 * np.linalg.norm(np.cross(V[m.triangles[:, 1]] - V[m.triangles[:, 0]], V[m.triangles[:, 2]] - V[m.triangles[:, 0]]), axis=1)
+    T = V[m.triangles]
+    tri_area = 0.5 * np.linalg.norm(np.cross(T[:, 1] - T[:, 0], T[:, 2] - T[:, 0]), axis=1)
     assert sorted(np.concatenate([f.triangles for f in m.faces]).tolist()) == list(range(len(m.triangles)))
     np.testing.assert_allclose(m.face_areas.sum(), tri_area.sum(), rtol=1e-12)
     # Loops (shoelace, independent of the triangles): outer minus holes = face area.
@@ -203,8 +204,6 @@ def test_degenerate_triangle_is_rejected():
     # (a, b) at its midpoint m on one side and close the crack with (m, a, b).
     V, F = box_arrays()
     a, b, c = F[0]
-    nb = next(j for j in range(1, len(F)) if {a, b} <= set(F[j]))
-    d = [v for v in F[nb] if v not in (a, b)][0]
     V = np.vstack([V, 0.5 * (V[a] + V[b])])
     m = len(V) - 1
     F2 = [f for j, f in enumerate(F.tolist()) if j != 0]
@@ -214,16 +213,13 @@ def test_degenerate_triangle_is_rejected():
     # The same mesh without the zero-area triangle has a hole: caught too.
     with pytest.raises(ModelError):
         model_from_arrays(V, np.array(F2[:-1]), name="sliver")
-    assert d is not None
 
 
 def test_non_manifold_edge_is_rejected():
+    # The same box twice over the same vertices: every edge is used four times.
     V, F = box_arrays()
-    V2 = np.vstack([V, V + [0.12, 0.0, 0.0]])
-    # Two boxes sharing an edge only via duplicated triangles is easiest as the
-    # same box twice: every edge is then used four times.
-    with pytest.raises(ModelError):
-        model_from_arrays(V2, np.vstack([F, F]), name="twice")
+    with pytest.raises(ModelError, match="manifold"):
+        model_from_arrays(V, np.vstack([F, F]), name="twice")
 
 
 @pytest.mark.parametrize(

@@ -130,7 +130,9 @@ def test_facing_tolerance_is_settable(bodies):
     assert not body.visible_mask(c)[back_top].any()
     assert body.visible_mask(c, facing_eps=1e-6)[back_top].all()
     # visible_corners (no precomputed table) agrees.
-    np.testing.assert_array_equal(visible_corners(m, body.tree, c, facing_eps=1e-6), body.visible_mask(c, facing_eps=1e-6))
+    np.testing.assert_array_equal(
+        visible_corners(m, body.tree, c, facing_eps=1e-6), body.visible_mask(c, facing_eps=1e-6)
+    )
 
 
 def test_camera_inside_sees_nothing(bodies):
@@ -189,7 +191,9 @@ def test_two_bodies_match_brute_force(bodies):
             vis = scene.query(body_name, T_world_camera, [T_world_part, T_world_link])
             T_body_other = se3.invert_transform(T_world_body) @ T_world_other
             c_body = se3.transform_points(se3.invert_transform(T_world_body), c_world[None])[0]
-            ref = brute_visible(model, c_body, DEFAULT_FACING_EPS, DEFAULT_END_EPS, occluders=[(T_body_other, other)])
+            ref = brute_visible(
+                model, c_body, DEFAULT_FACING_EPS, DEFAULT_END_EPS, occluders=[(T_body_other, other)]
+            )
             alone = brute_visible(model, c_body, DEFAULT_FACING_EPS, DEFAULT_END_EPS)
             by_other += int((alone & ~ref).sum())
             total += len(ref)
