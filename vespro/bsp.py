@@ -276,11 +276,15 @@ class BSPTree:
         rows = np.asarray(rows, dtype=np.int64)
         plane, sign = self.node_plane, self.node_sign
 
+        Q = end_dist.shape[1]
+        flat = np.ascontiguousarray(end_dist).reshape(-1)
+
+        # np.take on flat arrays: much less per-call overhead than fancy indexing.
         def ha_of(seg, node):
-            return h_start[node]
+            return h_start.take(node)
 
         def hb_of(seg, node):
-            return sign[node] * end_dist[seg, plane[node]]
+            return sign.take(node) * flat.take(seg * Q + plane.take(node))
 
         # Items carry the row as their segment id, so the table is indexed
         # directly; the result is mapped back to segments at the end.
@@ -292,7 +296,7 @@ class BSPTree:
         """Core of the segment queries; ``ids`` (K,) distinct segment ids < n_ids."""
         k = ids.shape[0]
         pe = self.plane_eps
-        CH = self._children
+        CHf = self._children.reshape(-1)  # child of node i on side s at 2 i + s
         blocked = np.zeros(n_ids, dtype=bool)
         t0 = np.broadcast_to(np.asarray(t_lo, dtype=float), (k,)).copy()
         t1 = np.broadcast_to(np.asarray(t_hi, dtype=float), (k,)).copy()
@@ -316,10 +320,11 @@ class BSPTree:
             # in the plane is a grazing view and goes front.
             side0 = b0 | (~f0 & b1)
             sp = np.flatnonzero((b0 & f1) | (f0 & b1))
-            new_node = CH[node, side0.view(np.int8)]
+            node2 = node + node
+            new_node = CHf.take(node2 + side0)
             if sp.size:
                 ts = -ha[sp] / dh[sp]
-                other = CH[node[sp], (~side0[sp]).view(np.int8)]
+                other = CHf.take(node2[sp] + ~side0[sp])
                 t1_sp = t1[sp]
                 t1[sp] = ts
                 seg = np.concatenate([seg, seg[sp]])
