@@ -196,8 +196,8 @@ def query_visibility(
     -------
     Visibility
     """
-    T = check_transform(T_camera_object, "T_camera_object")
-    return VisibilityScene([body]).query(0, np.eye(4), [T], intr, facing_eps, end_eps)
+    # The camera frame serves as the world frame; query() validates the pose.
+    return VisibilityScene([body]).query(0, np.eye(4), [T_camera_object], intr, facing_eps, end_eps)
 
 
 #: Largest corner x plane table (entries) a body precomputes: 8M float64 = 64 MB.
@@ -217,10 +217,15 @@ class SceneBody:
     model: Model
     tree: BSPTree
     corner_plane_dist: np.ndarray | None = field(init=False, repr=False, compare=False, default=None)
+    #: Bounding sphere (centre (3,) in the body frame, radius m), to skip
+    #: bodies that no line of sight comes near.
+    sphere: tuple = field(init=False, repr=False, compare=False, default=None)
 
     def __post_init__(self):
         if self.tree.content_hash != self.model.content_hash:
             raise ValueError(f"body {self.name!r}: BSP tree was built for another model")
+        ctr = 0.5 * (self.model.bounds[0] + self.model.bounds[1])
+        object.__setattr__(self, "sphere", (_ro(ctr), float(np.linalg.norm(self.model.vertices - ctr, axis=1).max())))
         if self.model.n_corners * self.tree.plane_offset.shape[0] <= MAX_TABLE_ENTRIES:
             object.__setattr__(self, "corner_plane_dist", _ro(self.tree.plane_distances(self.model.corners)))
 
@@ -263,13 +268,6 @@ class VisibilityScene:
         names = [b.name for b in self.bodies]
         if len(set(names)) != len(names):
             raise ValueError(f"body names must be unique, got {names}")
-        # Bounding sphere of each body (centre in its frame, radius), to skip
-        # bodies that no line of sight comes near.
-        self._spheres = []
-        for b in self.bodies:
-            ctr = 0.5 * (b.model.bounds[0] + b.model.bounds[1])
-            r = float(np.linalg.norm(b.model.vertices - ctr, axis=1).max())
-            self._spheres.append((ctr, r))
 
     @property
     def names(self) -> tuple:
@@ -331,7 +329,7 @@ class VisibilityScene:
             live = np.flatnonzero(~blocked)
             c_j = transform_points(T_j_i, c[None])[0]  # camera centre in body j's frame
             Bj = transform_points(T_j_i, P[live])
-            near = _segments_near_sphere(c_j, Bj, *self._spheres[j])
+            near = _segments_near_sphere(c_j, Bj, *other.sphere)
             if not near.any():
                 continue
             sel = live[near]
