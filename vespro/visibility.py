@@ -196,8 +196,8 @@ def query_visibility(
     -------
     Visibility
     """
-    # The camera frame serves as the world frame; query() validates the pose.
-    return VisibilityScene([body]).query(0, np.eye(4), [T_camera_object], intr, facing_eps, end_eps)
+    T = check_transform(T_camera_object, "T_camera_object")  # named in the message
+    return VisibilityScene([body]).query(0, np.eye(4), [T], intr, facing_eps, end_eps)
 
 
 #: Largest corner x plane table (entries) a body precomputes: 8M float64 = 64 MB.

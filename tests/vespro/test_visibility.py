@@ -306,8 +306,10 @@ def test_result_is_frozen_and_read_only(bodies):
 
 
 def test_bad_inputs_are_rejected(bodies):
-    with pytest.raises(ValueError, match="shape"):
+    with pytest.raises(ValueError, match="T_camera_object.*shape"):
         query_visibility(bodies["box"], np.eye(3))
+    with pytest.raises(ValueError, match="scene"):
+        VisibilityScene([bodies["box"]]).query("nope", np.eye(4), [np.eye(4)])
     scene = VisibilityScene([bodies["box"], bodies["link"]])
     with pytest.raises(ValueError, match="poses"):
         scene.query("box", np.eye(4), [np.eye(4)])
