@@ -1,0 +1,679 @@
+"""Solid BSP tree of a closed model, for batched line-of-sight queries.
+
+The tree is an auto-partition: every node's plane is one of the model's
+distinct face planes (``Model.plane_normals``, oriented as the face it was
+taken from), and the polygons (triangle fragments) lying in that plane within
+the node's cell are stored at the node. Polygons that straddle a node's plane
+are split. Because the model is a closed, outward-oriented solid, an empty side
+is a leaf whose cell is entirely outside (front side) or entirely inside (back
+side) the solid: a "solid-leaf" tree (Naylor). A segment is blocked by the
+solid exactly when part of it lies in an inside leaf, so the occlusion query
+only clips segments against node planes, level by level for all segments at
+once, and never tests polygons; the polygons stay in the tree (and the cache)
+for other uses such as rendering or hit reporting.
+
+Robustness: CAD coordinates are float32, so a "planar" face is planar only to
+~1e-8 m. Before building, vertices are moved (by ~1e-8 m) onto the exact planes
+of their faces (``planar_vertices``); every later side test is then exact up to
+float64 rounding, and the cells are consistently inside or outside. A
+fitted-plane tree with a matching tolerance instead leaves thin slabs of wrong
+inside/outside along nearly coplanar faces (seen on boolean-union models).
+
+Splitting-plane heuristic: among the planes of the largest faces present in
+the node (up to ``max_candidates``), pick the one minimising
+``split_weight * splits + |front - back|`` (triangle counts), which keeps the
+tree shallow and the number of fragments small.
+
+Storage is flat numpy arrays (one row per node, child indices, CSR polygon
+lists), so a tree is cached as ``.npz`` keyed by the model's content hash.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from vespro.model import Model
+
+__all__ = [
+    "OUT",
+    "IN",
+    "FORMAT_VERSION",
+    "BSPTree",
+    "build_bsp",
+    "planar_vertices",
+    "save_bsp",
+    "load_bsp",
+    "load_or_build_bsp",
+    "default_cache_dir",
+]
+
+#: Leaf codes in the child arrays (non-negative values are node indices).
+OUT = -1
+IN = -2
+
+#: Bump when the build or the file layout changes: old cache files are ignored.
+FORMAT_VERSION = 2
+
+_ARRAYS = (
+    "normal", "offset", "face", "front", "back", "node_plane", "plane_normal", "plane_offset",
+    "bounds", "poly_ptr", "poly_vertices", "poly_face",
+)
+
+
+def _ro(a, dtype=None):
+    a = np.array(a, dtype=dtype)
+    a.setflags(write=False)
+    return a
+
+
+@dataclass(frozen=True, eq=False)
+class BSPTree:
+    """Solid-leaf BSP tree of one model, in that model's (object) frame.
+
+    Attributes
+    ----------
+    normal : ndarray, shape (N, 3)
+        Unit normal of each node plane (the outward normal of the face it came
+        from), object frame.
+    offset : ndarray, shape (N,)
+        Plane offset ``d`` in ``normal . x = d``, m.
+    face : ndarray, shape (N,), int64
+        Planar face (``Model.faces`` index) whose plane the node uses.
+    front, back : ndarray, shape (N,), int64
+        Child node index, or ``OUT`` (-1) / ``IN`` (-2) for a leaf outside /
+        inside the solid. Node 0 is the root.
+    node_plane : ndarray, shape (N,), int64
+        Distinct (unoriented) plane of each node: ``normal[i] == s *
+        plane_normal[node_plane[i]]`` with ``s = +-1``, exactly.
+    plane_normal, plane_offset : ndarray, shapes (Q, 3), (Q,)
+        The distinct planes used by the nodes (fewer than nodes: a plane is
+        reused in several cells), for per-plane distance tables.
+    bounds : ndarray, shape (2, 3)
+        Axis-aligned box (min, max) containing the solid, m; segments are
+        clipped to it first (outside it everything is outside the solid).
+    poly_ptr : ndarray, shape (N + 1,), int64
+        The polygons of node ``i`` are ``poly_ptr[i]:poly_ptr[i+1]``.
+    poly_vertices : ndarray, shape (Q, 3, 3)
+        Triangle fragments lying in their node's plane, m.
+    poly_face : ndarray, shape (Q,), int64
+        Planar face each fragment comes from.
+    content_hash : str
+        ``Model.content_hash`` of the model it was built from.
+    depth : int
+        Longest root-to-leaf path (number of nodes).
+    plane_eps : float
+        Plane thickness used by the build and the queries, m (float64
+        rounding only).
+    build_seconds : float
+        Wall time of the original build (kept when loaded from the cache).
+    """
+
+    normal: np.ndarray
+    offset: np.ndarray
+    face: np.ndarray
+    front: np.ndarray
+    back: np.ndarray
+    node_plane: np.ndarray
+    plane_normal: np.ndarray
+    plane_offset: np.ndarray
+    bounds: np.ndarray
+    poly_ptr: np.ndarray
+    poly_vertices: np.ndarray
+    poly_face: np.ndarray
+    content_hash: str
+    depth: int
+    plane_eps: float = 0.0
+    build_seconds: float = 0.0
+
+    @property
+    def n_nodes(self) -> int:
+        return int(self.normal.shape[0])
+
+    @property
+    def n_polygons(self) -> int:
+        return int(self.poly_vertices.shape[0])
+
+    def contains(self, P: np.ndarray) -> np.ndarray:
+        """Whether points are inside the solid (points on a plane go to the back).
+
+        Parameters
+        ----------
+        P : ndarray, shape (M, 3)
+            Object frame, m.
+
+        Returns
+        -------
+        ndarray, shape (M,), bool
+        """
+        P = np.asarray(P, dtype=float).reshape(-1, 3)
+        node = np.zeros(len(P), dtype=np.int64)
+        idx = np.arange(len(P))
+        out = np.zeros(len(P), dtype=bool)
+        while idx.size:
+            h = np.einsum("ij,ij->i", P[idx], self.normal[node]) - self.offset[node]
+            node = np.where(h > 0, self.front[node], self.back[node])
+            out[idx[node == IN]] = True
+            keep = node >= 0
+            idx, node = idx[keep], node[keep]
+        return out
+
+    def plane_distances(self, P: np.ndarray) -> np.ndarray:
+        """Signed distances of points to the distinct planes, shape (M, Q), m.
+
+        For fixed points (a model's own corners) this is set-up work that
+        ``segments_blocked_from`` reuses on every query.
+        """
+        P = np.asarray(P, dtype=float).reshape(-1, 3)
+        return P @ self.plane_normal.T - self.plane_offset
+
+    @property
+    def node_sign(self) -> np.ndarray:
+        """+1 / -1 per node: its orientation relative to ``plane_normal[node_plane]``."""
+        sg = self.__dict__.get("_sign")
+        if sg is None:
+            sg = np.where(np.einsum("ij,ij->i", self.normal, self.plane_normal[self.node_plane]) < 0, -1.0, 1.0)
+            sg.setflags(write=False)
+            object.__setattr__(self, "_sign", sg)  # derived cache, not state
+        return sg
+
+    def clip_to_bounds(self, A: np.ndarray, B: np.ndarray, t_lo, t_hi):
+        """Clip segments ``A + t (B - A)``, ``t in [t_lo, t_hi]``, to ``bounds``.
+
+        ``A`` is (3,) or (K, 3), ``B`` (K, 3). Returns new (t_lo, t_hi), each
+        (K,); an empty piece has ``t_hi <= t_lo``. Exact: the solid lies in
+        the box, so nothing outside it can block.
+        """
+        d = B - A
+        t0 = np.array(np.broadcast_to(t_lo, (B.shape[0],)), dtype=float)
+        t1 = np.array(np.broadcast_to(t_hi, (B.shape[0],)), dtype=float)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ta = (self.bounds[0] - A) / d
+            tb = (self.bounds[1] - A) / d
+        lo = np.fmin(ta, tb)  # fmin/fmax skip the NaN of 0/0 (d = 0 on an axis)
+        hi = np.fmax(ta, tb)
+        # d == 0: inside the slab -> no constraint (+-inf); outside -> empty.
+        A_ = np.broadcast_to(A, B.shape)
+        flat = d == 0
+        out_slab = flat & ((A_ < self.bounds[0]) | (A_ > self.bounds[1]))
+        lo = np.where(flat, np.where(out_slab, np.inf, -np.inf), lo)
+        hi = np.where(flat, np.where(out_slab, -np.inf, np.inf), hi)
+        return np.maximum(t0, lo.max(1)), np.minimum(t1, hi.min(1))
+
+    def segments_blocked(self, A: np.ndarray, B: np.ndarray, t_lo=0.0, t_hi=1.0, min_length: float = 0.0) -> np.ndarray:
+        """Whether segments pass through the solid.
+
+        The segment ``i`` is ``x(t) = A[i] + t (B[i] - A[i])`` for ``t`` in
+        ``[t_lo[i], t_hi[i]]``; it is blocked when a piece of it longer than
+        ``min_length`` (in ``t``) lies in an inside cell. Trimming ``t`` keeps
+        the surfaces at the segment ends (a corner on the model itself) from
+        counting.
+
+        Parameters
+        ----------
+        A : ndarray, shape (K, 3) or (3,)
+            Segment starts, object frame, m; a single point (3,) when all
+            segments start there (a camera centre), which is faster.
+        B : ndarray, shape (K, 3)
+            Segment ends, object frame, m.
+        t_lo, t_hi : float or ndarray, shape (K,)
+        min_length : float
+            Pieces this short (in ``t``) are ignored: tangent touches.
+
+        Returns
+        -------
+        ndarray, shape (K,), bool
+        """
+        B = np.asarray(B, dtype=float).reshape(-1, 3)
+        A = np.asarray(A, dtype=float)
+        N, D = self.normal, self.offset
+        if A.shape == (3,):
+            h_start = N @ A - D  # the common start's distance to every node plane
+
+            def ha_of(seg, node):
+                return h_start[node]
+
+        else:
+            A = A.reshape(-1, 3)
+
+            def ha_of(seg, node):
+                return np.einsum("ij,ij->i", A[seg], N[node]) - D[node]
+
+        def hb_of(seg, node):
+            return np.einsum("ij,ij->i", B[seg], N[node]) - D[node]
+
+        t_lo, t_hi = self.clip_to_bounds(A, B, t_lo, t_hi)
+        return self._traverse(B.shape[0], np.arange(B.shape[0]), ha_of, hb_of, t_lo, t_hi, min_length)
+
+    def segments_blocked_from(
+        self, a: np.ndarray, B: np.ndarray, end_dist: np.ndarray, rows: np.ndarray, t_lo=0.0, t_hi=1.0
+    ) -> np.ndarray:
+        """``segments_blocked`` from one start point to fixed, pre-measured ends.
+
+        Parameters
+        ----------
+        a : ndarray, shape (3,)
+            Common start (camera centre), object frame, m.
+        B : ndarray, shape (K, 3)
+            Segment ends (``end_dist`` rows ``rows`` measured these), m.
+        end_dist : ndarray, shape (R, Q)
+            ``plane_distances`` of all candidate end points (set-up).
+        rows : ndarray, shape (K,), int
+            The end point (row of ``end_dist``) of each segment.
+        t_lo, t_hi : float or ndarray, shape (K,)
+
+        Returns
+        -------
+        ndarray, shape (K,), bool
+        """
+        a = np.asarray(a, dtype=float).reshape(3)
+        h_start = self.normal @ a - self.offset
+        rows = np.asarray(rows, dtype=np.int64)
+        plane, sign = self.node_plane, self.node_sign
+
+        Q = end_dist.shape[1]
+        flat = np.ascontiguousarray(end_dist).reshape(-1)
+
+        # np.take on flat arrays: much less per-call overhead than fancy indexing.
+        def ha_of(seg, node):
+            return h_start.take(node)
+
+        def hb_of(seg, node):
+            return sign.take(node) * flat.take(seg * Q + plane.take(node))
+
+        # Items carry the row as their segment id, so the table is indexed
+        # directly; the result is mapped back to segments at the end.
+        t_lo, t_hi = self.clip_to_bounds(a, np.asarray(B, dtype=float).reshape(-1, 3), t_lo, t_hi)
+        blocked_rows = self._traverse(end_dist.shape[0], rows, ha_of, hb_of, t_lo, t_hi, 0.0)
+        return blocked_rows[rows]
+
+    def _traverse(self, n_ids, ids, ha_of, hb_of, t_lo, t_hi, min_length):
+        """Core of the segment queries; ``ids`` (K,) distinct segment ids < n_ids."""
+        k = ids.shape[0]
+        pe = self.plane_eps
+        CHf = self._children.reshape(-1)  # child of node i on side s at 2 i + s
+        blocked = np.zeros(n_ids, dtype=bool)
+        t0 = np.broadcast_to(np.asarray(t_lo, dtype=float), (k,)).copy()
+        t1 = np.broadcast_to(np.asarray(t_hi, dtype=float), (k,)).copy()
+        live = t1 - t0 > min_length
+        seg, t0, t1 = ids[live], t0[live], t1[live]
+        node = np.zeros(seg.size, dtype=np.int64)
+        # Breadth-first over (segment, node, t-interval) items, one vectorised
+        # step per tree level. A piece on one side of the node plane moves to
+        # that child; a straddling piece splits at the crossing. A piece that
+        # reaches an IN leaf blocks its segment.
+        while seg.size:
+            ha = ha_of(seg, node)
+            dh = hb_of(seg, node) - ha
+            h0 = ha + t0 * dh
+            h1 = ha + t1 * dh
+            # Within plane_eps of the plane counts as on it, so a piece that
+            # only touches a plane at an end is not split into a sliver.
+            b0, b1 = h0 < -pe, h1 < -pe
+            f0, f1 = h0 > pe, h1 > pe
+            # Side of the first part of the piece (True: back). A piece lying
+            # in the plane is a grazing view and goes front.
+            side0 = b0 | (~f0 & b1)
+            sp = np.flatnonzero((b0 & f1) | (f0 & b1))
+            node2 = node + node
+            new_node = CHf.take(node2 + side0)
+            if sp.size:
+                ts = -ha[sp] / dh[sp]
+                other = CHf.take(node2[sp] + ~side0[sp])
+                t1_sp = t1[sp]
+                t1[sp] = ts
+                seg = np.concatenate([seg, seg[sp]])
+                node = np.concatenate([new_node, other])
+                t0 = np.concatenate([t0, ts])
+                t1 = np.concatenate([t1, t1_sp])
+            else:
+                node = new_node
+            leaf = node < 0
+            if leaf.any():
+                inside = node == IN
+                if min_length > 0:
+                    inside &= t1 - t0 > min_length
+                blocked[seg[inside]] = True
+                keep = ~leaf & ~blocked[seg]
+                seg, node, t0, t1 = seg[keep], node[keep], t0[keep], t1[keep]
+        return blocked
+
+    @property
+    def _children(self) -> np.ndarray:
+        ch = self.__dict__.get("_ch")
+        if ch is None:
+            ch = np.stack([self.front, self.back], axis=1)  # (N, 2): child by side (0 front, 1 back)
+            ch.setflags(write=False)
+            object.__setattr__(self, "_ch", ch)  # derived cache, not state
+        return ch
+
+    def arrays(self) -> dict:
+        return {name: getattr(self, name) for name in _ARRAYS}
+
+
+def planar_vertices(model: Model, max_move_rel: float = 1e-4):
+    """Model vertices moved onto their faces' planes.
+
+    Each vertex becomes the point nearest to it on all the distinct planes of
+    its faces (least squares; directions the planes do not pin down keep the
+    original coordinate). CAD files store float32, so a planar face is planar
+    only to ~1e-8 m; after this it is planar to float64 rounding, which a
+    consistent BSP needs: classifying vertices against a fitted plane with a
+    matching tolerance leaves thin slabs of wrong inside/outside along nearly
+    coplanar faces.
+
+    Parameters
+    ----------
+    model : Model
+    max_move_rel : float
+        A vertex that would move more than this times the model diameter
+        keeps its position (an ill-posed set of nearly parallel planes).
+
+    Returns
+    -------
+    V : ndarray, shape (V, 3)
+        m, object frame.
+    face_planar : ndarray, shape (P,), bool
+        Whether each face's vertices now lie on its plane to float64 rounding;
+        the BSP falls back to exact triangle planes for the others.
+    """
+    V = np.array(model.vertices, dtype=float)
+    F = np.asarray(model.triangles)
+    tplane = np.asarray(model.face_plane)[np.asarray(model.triangle_face)]
+    vp = np.unique(np.stack([F.ravel(), np.repeat(tplane, 3)], 1), axis=0)  # (vertex, plane) pairs
+    ptr = np.concatenate([[0], np.cumsum(np.bincount(vp[:, 0], minlength=len(V)))])
+    pn, pd = np.asarray(model.plane_normals), np.asarray(model.plane_offsets)
+    limit = max_move_rel * model.diameter
+    one = np.flatnonzero(np.diff(ptr) == 1)  # on a single plane: project
+    p1 = vp[ptr[one], 1]
+    V[one] += (pd[p1] - np.einsum("ij,ij->i", pn[p1], V[one]))[:, None] * pn[p1]
+    for v in np.flatnonzero(np.diff(ptr) > 1):
+        ps = vp[ptr[v] : ptr[v + 1], 1]
+        Nm = pn[ps]
+        r = pd[ps] - Nm @ V[v]
+        U, s, Wt = np.linalg.svd(Nm, full_matrices=False)
+        keep = s > 1e-9
+        step = Wt[keep].T @ ((U[:, keep].T @ r) / s[keep])
+        if np.linalg.norm(step) <= limit:
+            V[v] += step
+    fn, fd = np.asarray(model.face_normals), np.asarray(model.face_offsets)
+    res = np.abs(np.einsum("fvj,fj->fv", V[F], fn[model.triangle_face]) - fd[model.triangle_face][:, None]).max(1)
+    tol = 1e-12 * model.diameter + 8 * np.finfo(float).eps * np.abs(V).max()
+    face_planar = np.ones(len(model.faces), dtype=bool)
+    face_planar[np.asarray(model.triangle_face)[res > tol]] = False
+    return V, face_planar
+
+
+def build_bsp(model: Model, max_candidates: int = 24, split_weight: float = 6.0, rel_eps: float = 1e-11) -> BSPTree:
+    """Build the solid BSP tree of a model.
+
+    Node planes are the model's distinct planes (``Model.plane_normals``),
+    oriented as the face they come from, with the vertices first moved onto
+    them (``planar_vertices``, moves of ~1e-8 m) so that every vertex is
+    classified by its true side of every plane and every cell is consistently
+    inside or outside. Triangles of a face that cannot be made planar that way
+    keep their own exact planes.
+
+    Parameters
+    ----------
+    model : Model
+    max_candidates : int
+        Planes scored per node: those of the largest faces (by fragment area)
+        present in the node.
+    split_weight : float
+        Cost of one split relative to one triangle of imbalance.
+    rel_eps : float
+        Plane thickness as a fraction of the model diameter, for float64
+        rounding only: points closer count as on the plane.
+
+    Returns
+    -------
+    BSPTree
+    """
+    t_start = time.perf_counter()
+    eps = rel_eps * model.diameter
+    Vp, face_planar = planar_vertices(model)
+    F = np.asarray(model.triangles)
+    tri = Vp[F]  # (F, 3, 3)
+    tface = np.asarray(model.triangle_face)
+    # Plane (unoriented id) and orientation of every source triangle.
+    pn = [np.asarray(model.plane_normals)]
+    pd = [np.asarray(model.plane_offsets)]
+    tplane = np.asarray(model.face_plane)[tface].copy()
+    tsign = np.asarray(model.face_plane_sign)[tface].copy()
+    loose = np.flatnonzero(~face_planar[tface])
+    if loose.size:
+        cr = np.cross(tri[loose, 1] - tri[loose, 0], tri[loose, 2] - tri[loose, 0])
+        n = cr / np.linalg.norm(cr, axis=1, keepdims=True)
+        tplane[loose] = len(pd[0]) + np.arange(loose.size)
+        tsign[loose] = 1.0
+        pn.append(n)
+        pd.append(np.einsum("ij,ij->i", n, tri[loose, 0]))
+    pn, pd = np.concatenate(pn), np.concatenate(pd)
+
+    normal, offset, face, nplane, front, back, polys, psrc = [], [], [], [], [], [], [], []
+    # Stack of (fragments (M, 3, 3), source triangles (M,), parent, is_front_child, depth).
+    stack = [(tri, np.arange(len(F)), -1, True, 1)]
+    depth = 0
+    while stack:
+        T, S, parent, is_front, dep = stack.pop()
+        i = len(normal)
+        if parent >= 0:
+            (front if is_front else back)[parent] = i
+        depth = max(depth, dep)
+        s = _choose_source(T, S, tplane, tsign, pn, pd, eps, max_candidates, split_weight)
+        n, d = tsign[s] * pn[tplane[s]], tsign[s] * pd[tplane[s]]
+        h = T @ n - d  # (M, 3)
+        h[tplane[S] == tplane[s]] = 0.0  # fragments in this very plane
+        pos = (h > eps).any(1)
+        neg = (h < -eps).any(1)
+        on = ~pos & ~neg
+        span = pos & neg
+        only_f = pos & ~neg
+        only_b = neg & ~pos
+        Tf, Sf = [T[only_f]], [S[only_f]]
+        Tb, Sb = [T[only_b]], [S[only_b]]
+        for j in np.flatnonzero(span):
+            pf, pb = _split_triangle(T[j], h[j], eps)
+            Tf.append(pf)
+            Sf.append(np.full(len(pf), S[j]))
+            Tb.append(pb)
+            Sb.append(np.full(len(pb), S[j]))
+        Tf, Sf = np.concatenate(Tf), np.concatenate(Sf)
+        Tb, Sb = np.concatenate(Tb), np.concatenate(Sb)
+        normal.append(n)
+        offset.append(d)
+        face.append(tface[s])
+        nplane.append(tplane[s])
+        front.append(OUT)
+        back.append(IN)
+        polys.append(T[on])
+        psrc.append(S[on])
+        # Push back first so the front subtree is numbered right after its parent.
+        if len(Tb):
+            stack.append((Tb, Sb, i, False, dep + 1))
+        if len(Tf):
+            stack.append((Tf, Sf, i, True, dep + 1))
+
+    counts = np.array([len(p) for p in polys], dtype=np.int64)
+    psrc = np.concatenate(psrc).astype(np.int64)
+    used, node_plane = np.unique(np.array(nplane, dtype=np.int64), return_inverse=True)
+    pad = eps + 1e-12
+    bounds = np.stack([Vp.min(0) - pad, Vp.max(0) + pad])
+    return BSPTree(
+        normal=_ro(np.array(normal, dtype=float).reshape(-1, 3)),
+        offset=_ro(np.array(offset, dtype=float)),
+        face=_ro(np.array(face, dtype=np.int64)),
+        front=_ro(np.array(front, dtype=np.int64)),
+        back=_ro(np.array(back, dtype=np.int64)),
+        node_plane=_ro(node_plane.astype(np.int64)),
+        plane_normal=_ro(pn[used]),
+        plane_offset=_ro(pd[used]),
+        bounds=_ro(bounds),
+        poly_ptr=_ro(np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)),
+        poly_vertices=_ro(np.concatenate(polys).reshape(-1, 3, 3)),
+        poly_face=_ro(tface[psrc]),
+        content_hash=model.content_hash,
+        depth=int(depth),
+        plane_eps=float(eps),
+        build_seconds=time.perf_counter() - t_start,
+    )
+
+
+def _choose_source(T, S, tplane, tsign, pn, pd, eps, max_candidates, split_weight) -> int:
+    """Source triangle whose oriented plane splits the fragments ``T`` (M, 3, 3) best."""
+    key = 2 * tplane[S] + (tsign[S] < 0)
+    keys, first, local = np.unique(key, return_index=True, return_inverse=True)
+    if keys.size == 1:
+        return int(S[0])
+    e1, e2 = T[:, 1] - T[:, 0], T[:, 2] - T[:, 0]
+    area = np.bincount(local, weights=np.linalg.norm(np.cross(e1, e2), axis=1), minlength=keys.size)
+    # Largest planes first ("prefer planes of large faces"); stable so that
+    # ties keep a deterministic order.
+    top = np.argsort(-area, kind="stable")[:max_candidates]
+    src = S[first[top]]
+    sg = tsign[src]
+    h = np.einsum("kc,mvc->kmv", sg[:, None] * pn[tplane[src]], T) - (sg * pd[tplane[src]])[:, None, None]
+    h[tplane[S][None, :] == tplane[src][:, None]] = 0.0  # (K, M, 3)
+    pos = (h > eps).any(2)
+    neg = (h < -eps).any(2)
+    n_span = (pos & neg).sum(1)
+    n_front = (pos & ~neg).sum(1)
+    n_back = (neg & ~pos).sum(1)
+    score = split_weight * n_span + np.abs(n_front - n_back)
+    return int(src[int(np.argmin(score))])
+
+
+def _split_triangle(tri, h, eps):
+    """Split one triangle (3, 3) with vertex plane distances h (3,).
+
+    Returns the front and back pieces as triangle arrays (a, 3, 3), (b, 3, 3).
+    """
+    h = np.where(np.abs(h) <= eps, 0.0, h)
+    fpoly, bpoly = [], []
+    for k in range(3):
+        p, q = tri[k], tri[(k + 1) % 3]
+        hp, hq = h[k], h[(k + 1) % 3]
+        if hp >= 0:
+            fpoly.append(p)
+        if hp <= 0:
+            bpoly.append(p)
+        if (hp > 0 and hq < 0) or (hp < 0 and hq > 0):
+            x = p + (hp / (hp - hq)) * (q - p)
+            fpoly.append(x)
+            bpoly.append(x)
+    return _fan(fpoly), _fan(bpoly)
+
+
+def _fan(poly):
+    if len(poly) < 3:
+        return np.zeros((0, 3, 3))
+    return np.array([[poly[0], poly[j], poly[j + 1]] for j in range(1, len(poly) - 1)])
+
+
+def default_cache_dir() -> Path:
+    """``$VESPRO_BSP_CACHE`` if set, else ``~/.cache/vespro/bsp``."""
+    env = os.environ.get("VESPRO_BSP_CACHE")
+    return Path(env) if env else Path.home() / ".cache" / "vespro" / "bsp"
+
+
+def _cache_path(model: Model, cache_dir: Path) -> Path:
+    return Path(cache_dir) / f"{model.content_hash}.v{FORMAT_VERSION}.npz"
+
+
+def save_bsp(tree: BSPTree, path) -> None:
+    """Write a tree atomically (temporary file then rename) as ``.npz``."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    meta = np.array(
+        [tree.content_hash, str(FORMAT_VERSION), str(tree.depth), repr(tree.plane_eps), repr(tree.build_seconds)]
+    )
+    fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            np.savez(fh, meta=meta, **tree.arrays())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def load_bsp(path, content_hash: str) -> BSPTree:
+    """Read a cached tree; raises ``ValueError`` if it is corrupt or for another model."""
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            meta = [str(s) for s in z["meta"]]
+            arrs = {name: z[name] for name in _ARRAYS}
+    except Exception as e:
+        raise ValueError(f"{path}: unreadable BSP cache ({type(e).__name__}: {e})") from e
+    if len(meta) != 5 or meta[0] != content_hash or meta[1] != str(FORMAT_VERSION):
+        raise ValueError(f"{path}: BSP cache is for another model or format")
+    n = arrs["normal"].shape[0]
+    ok = (
+        n > 0
+        and arrs["normal"].shape == (n, 3)
+        and all(arrs[k].shape == (n,) for k in ("offset", "face", "front", "back"))
+        and arrs["poly_ptr"].shape == (n + 1,)
+        and arrs["poly_vertices"].ndim == 3
+        and arrs["poly_vertices"].shape[1:] == (3, 3)
+        and arrs["poly_face"].shape == (arrs["poly_vertices"].shape[0],)
+        and int(arrs["poly_ptr"][-1]) == arrs["poly_vertices"].shape[0]
+        and all(np.all((arrs[k] >= IN) & (arrs[k] < n)) for k in ("front", "back"))
+        and arrs["node_plane"].shape == (n,)
+        and arrs["plane_normal"].ndim == 2
+        and arrs["plane_normal"].shape[1:] == (3,)
+        and arrs["plane_offset"].shape == (arrs["plane_normal"].shape[0],)
+        and np.all((arrs["node_plane"] >= 0) & (arrs["node_plane"] < arrs["plane_offset"].shape[0]))
+        and arrs["bounds"].shape == (2, 3)
+        and np.all(np.isfinite(arrs["normal"]))
+        and np.all(np.isfinite(arrs["offset"]))
+    )
+    # Children always have larger indices than their parent (pre-order), so a
+    # tree that passes this check cannot loop.
+    idx = np.arange(n)
+    ok = ok and all(np.all((arrs[k] < 0) | (arrs[k] > idx)) for k in ("front", "back"))
+    if not ok:
+        raise ValueError(f"{path}: BSP cache has inconsistent arrays")
+    return BSPTree(
+        **{k: _ro(v) for k, v in arrs.items()},
+        content_hash=meta[0],
+        depth=int(meta[2]),
+        plane_eps=float(meta[3]),
+        build_seconds=float(meta[4]),
+    )
+
+
+def load_or_build_bsp(model: Model, cache_dir=None, use_cache: bool = True) -> BSPTree:
+    """The model's BSP tree, from the disk cache if there, else built and cached.
+
+    Parameters
+    ----------
+    model : Model
+    cache_dir : str or Path, optional
+        Defaults to ``default_cache_dir()``.
+    use_cache : bool
+        False builds without touching the disk.
+
+    A corrupt or mismatching cache file is rebuilt and overwritten; a cache
+    directory that cannot be written only costs the rebuild next time.
+    """
+    if not use_cache:
+        return build_bsp(model)
+    path = _cache_path(model, Path(cache_dir) if cache_dir is not None else default_cache_dir())
+    if path.is_file():
+        try:
+            return load_bsp(path, model.content_hash)
+        except ValueError:
+            pass
+    tree = build_bsp(model)
+    try:
+        save_bsp(tree, path)
+    except OSError:
+        pass
+    return tree
