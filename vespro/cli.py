@@ -14,6 +14,10 @@ import sys
 # (module, one-line help) in the order shown by --help.
 _COMMANDS = [
     ("vespro.cmd_record", "record"),
+    ("vespro.cmd_track", "track"),
+    ("vespro.cmd_eval", "eval"),
+    ("vespro.cmd_serve", "serve"),
+    ("vespro.cmd_demo", "demo"),
     ("vespro.cmd_calibrate", "calibrate"),
 ]
 
