@@ -1,0 +1,125 @@
+"""The pose server: a recording replayed through the tracker and the TCP link."""
+
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from servo.receiver import PoseReceiver
+from vespro.clock import SimClock
+from vespro.groundtruth import read_groundtruth
+from vespro.link import PosePublisher
+from vespro.model import load_model
+from vespro.recording import Recording
+from vespro.rig import load_rig
+from vespro.se3 import pq_from_transform
+from vespro.server import PoseServer
+from vespro.sim.cell import CellConfig
+from vespro.sim.imaging import ImageEffects
+from vespro.sim.motion import Conveyor
+from vespro.sim.record import record
+from vespro.sim.rigs import CAMERAS_DIR
+from vespro.sim.scene import MODELS_DIR
+from vespro.sources import ReplaySource
+from vespro.tracker import InitResult, Tracker
+from vespro.wire import HelloMsg, PoseStatus
+
+
+@pytest.fixture(scope="module")
+def rec_path(tmp_path_factory):
+    cfg = CellConfig(MODELS_DIR / "objects" / "box.stl", load_rig(CAMERAS_DIR / "fixed2.yaml"),
+                     effects=ImageEffects(noise_px=0.5))
+    return record(tmp_path_factory.mktemp("srv") / "rec", cfg, Conveyor(speed=0.1, y0=-0.2), 30, "box")
+
+
+def test_replayed_recording_is_served_in_order_over_tcp(rec_path):
+    rec = Recording(rec_path)
+    _, _, T = read_groundtruth(rec_path)
+    clock = SimClock()
+    pub = PosePublisher.tcp(HelloMsg(rec.rate_hz, ("box",)), port=0, clock_ns=clock.now_ns)
+    host, port = pub.address
+    rx = PoseReceiver(f"socket://{host}:{port}")
+    deadline = time.monotonic() + 10
+    while rx.stats().state.name != "CONNECTED" and time.monotonic() < deadline:
+        rx.poll()
+        time.sleep(0.01)
+    model = load_model(rec.model_path)
+    fired = []
+
+    def init(fs):  # the user's pose, once (as --init-pose)
+        if fired:
+            return None
+        fired.append(1)
+        return InitResult(T[0])
+
+    got = []
+    server = PoseServer(ReplaySource(rec, clock), Tracker(rec.rig, model), pub, clock, init,
+                        background_init=False, log=None)
+
+    def on_output(fs, out):  # wait for each pose to arrive: a deterministic, in-order check
+        until = time.monotonic() + 5
+        while time.monotonic() < until:
+            m = rx.poll()
+            if m is not None:
+                got.append(m)
+                return
+
+    server.on_output = on_output
+    stats = server.run()
+    rx.close()
+    pub.close()
+    assert stats.frames == len(rec) == len(got)
+    assert [m.seq for m in got] == list(range(len(rec)))
+    assert got[0].status == PoseStatus.INITIALIZING  # the start is confirmed first
+    tracking = [m for m in got if m.status == PoseStatus.TRACKING]
+    assert len(tracking) >= len(rec) - 3
+    for m in tracking:
+        i = [x.seq for x in got].index(m.seq)
+        assert np.linalg.norm(m.p_world_object - T[i][:3, 3]) < 3e-3  # the box tracked to a few mm
+        assert m.t_send_ns >= m.t_capture_ns and np.all(np.linalg.eigvalsh(m.cov.astype(float)) > 0)
+
+
+def test_a_failing_tracker_never_stops_the_server(rec_path):
+    rec = Recording(rec_path)
+    clock = SimClock()
+    tracker = Tracker(rec.rig, load_model(rec.model_path))
+
+    def boom(fs):
+        raise RuntimeError("bug in the tracker")
+
+    tracker.process = boom
+    server = PoseServer(ReplaySource(rec, clock), tracker, None, clock, None, background_init=False, log=None)
+    stats = server.run(max_frames=5)
+    assert stats.frames == 5 and stats.tracker_errors == 5 and set(stats.statuses) == {"lost"}
+
+
+def test_serve_process_streams_and_stops_cleanly_on_sigterm(rec_path):
+    _, _, T = read_groundtruth(rec_path)
+    pose = ",".join(f"{v:.9f}" for v in pq_from_transform(T[0]))
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    proc = subprocess.Popen([sys.executable, "-m", "vespro", "serve", "--source", "replay", "--recording", str(rec_path),
+                             "--loop", "--init-pose", pose, "--tcp", str(port)],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        rx = PoseReceiver(f"socket://127.0.0.1:{port}")
+        poses, deadline = 0, time.monotonic() + 60
+        while poses < 20 and time.monotonic() < deadline:
+            if rx.poll() is not None:
+                poses += 1
+            time.sleep(0.005)
+        rx.close()
+        assert poses >= 20
+        proc.send_signal(signal.SIGTERM)
+        out, _ = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0, out
+    assert "stopped after" in out and "Traceback" not in out
