@@ -1,0 +1,79 @@
+"""Per-frame tracker time by stage, for 1, 2 and 3 cameras.
+
+For each rig (fixed1, fixed2, fixed3) a short recording of the bracket on the
+conveyor (0.5 px pixel noise) is made once (cached under --cache), then tracked
+from its first pose. Printed per rig: the median and p99 of each stage
+(visibility, selection, extraction, update) and of the whole frame, beside the
+per-frame baseline run in this process on the same detections (OpenCV
+solvePnP per camera, no filter), and the ratio. Accuracy (position RMSE) is
+printed too, so speed is never read without it.
+
+Usage: ``python bench/tracker.py [--frames 78] [--object bracket] [--cache DIR]``
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import numpy as np  # noqa: E402
+from _table import print_table  # noqa: E402
+
+from vespro.evaluate import pnp_baseline, score  # noqa: E402
+from vespro.groundtruth import read_groundtruth  # noqa: E402
+from vespro.recording import Recording  # noqa: E402
+from vespro.rig import load_rig  # noqa: E402
+from vespro.sim.cell import CellConfig  # noqa: E402
+from vespro.sim.imaging import ImageEffects  # noqa: E402
+from vespro.sim.motion import Conveyor  # noqa: E402
+from vespro.sim.record import record  # noqa: E402
+from vespro.sim.rigs import CAMERAS_DIR  # noqa: E402
+from vespro.sim.scene import MODELS_DIR  # noqa: E402
+from vespro.track import make_tracker, track_recording  # noqa: E402
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--frames", type=int, default=78)
+    ap.add_argument("--object", default="bracket")
+    ap.add_argument("--cache", type=Path, default=Path("out/bench_tracker"))
+    args = ap.parse_args()
+    rows = []
+    for rig_name in ("fixed1", "fixed2", "fixed3"):
+        path = args.cache / f"{args.object}_{rig_name}_{args.frames}"
+        if not (path / "groundtruth.csv").exists():
+            cfg = CellConfig(MODELS_DIR / "objects" / f"{args.object}.stl", load_rig(CAMERAS_DIR / f"{rig_name}.yaml"),
+                             effects=ImageEffects(noise_px=0.5))
+            record(path, cfg, Conveyor(speed=0.1, y0=-0.2), args.frames, args.object, overwrite=True)
+        rec = Recording(path)
+        _, _, T = read_groundtruth(path)
+        tr = make_tracker(rec)
+        outs = track_recording(rec, tr, T[0])
+        s = score([o.T_world_object for o in outs], [o.status for o in outs], T, rec.t, tr.model)
+        # Baseline on the same detections, timed in this process.
+        t0 = time.perf_counter()
+        base = []
+        for o in outs:
+            t = time.perf_counter()
+            pnp_baseline(rec, [o], tr.model)
+            base.append((time.perf_counter() - t) * 1e3)
+        b_med = float(np.median(base))
+        tot = np.array([o.time_ms for o in outs])
+        for stage in ("visibility", "selection", "extraction", "update"):
+            v = np.array([o.stage_ms.get(stage, np.nan) for o in outs])
+            rows.append([rig_name, stage, float(np.nanmedian(v)), float(np.nanpercentile(v, 99)), "", ""])
+        rows.append([rig_name, "whole frame", float(np.median(tot)), float(np.percentile(tot, 99)),
+                     f"{s['position_rmse_mm']:.2f}", ""])
+        rows.append([rig_name, "baseline solvePnP", b_med, float(np.percentile(base, 99)), "",
+                     f"{np.median(tot) / b_med:.1f}x"])
+        _ = t0
+    print_table(["rig", "stage", "median ms", "p99 ms", "pos RMSE mm", "frame/baseline"], rows,
+                title=f"Tracker time per frame set ({args.object}, {args.frames} frames, 640x480, 0.5 px noise)")
+
+
+if __name__ == "__main__":
+    main()
