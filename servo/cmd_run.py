@@ -49,6 +49,36 @@ def follow_task(standoff: float):
     return FollowTask(T_object_tcp=T, standoff_m=0.10)
 
 
+def write_stats_json(path: Path, stats, receiver, poses_used: int, period_ns: int, sigint: bool) -> dict:
+    """Tick, status and link statistics of a run (JSON), plus a 1 us histogram of |period error|."""
+    import json
+
+    from .safety import Status
+
+    st = stats.status.astype(int)
+    per = stats.period_ns[1:] - period_ns
+    rs = receiver.stats()
+    stops = int(np.sum((st[1:] == int(Status.STOPPING)) & (st[:-1] != int(Status.STOPPING))))
+    info = {
+        "ticks": int(stats.n_ticks), "overruns": int(stats.overruns),
+        "compute_us_median": float(np.median(stats.compute_ns) * 1e-3) if stats.n_ticks else None,
+        "compute_us_p99": float(np.percentile(stats.compute_ns, 99) * 1e-3) if stats.n_ticks else None,
+        "period_error_us": {q: float(np.percentile(np.abs(per), p) * 1e-3) if per.size else None
+                            for q, p in (("median", 50), ("p99", 99), ("p99.9", 99.9), ("max", 100))},
+        "status_ticks": {s.name: int(np.sum(st == int(s))) for s in Status},
+        "controlled_stops": stops, "sigint_stop": sigint, "poses_used": poses_used,
+        "link": {"poses": rs.poses, "frames_ok": rs.frames_ok, "rejected": dict(rs.rejected),
+                 "seq_gaps": rs.seq_gaps, "connects": rs.connects, "disconnects": rs.disconnects},
+        "rt_warning": stats.rt_warning,
+    }
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(info, indent=2))
+    hist = np.bincount(np.clip(np.abs(per) // 1000, 0, 2000).astype(int)) if per.size else np.zeros(1)
+    np.save(path.with_suffix(".period_hist_us.npy"), hist)
+    return info
+
+
 def run(args) -> int:
     import yaml
 
@@ -145,28 +175,7 @@ def run(args) -> int:
         print(f"servo run: wrote {npz} and {csv}")
     per = stats.period_ns[1:] - cfg.period_ns
     if args.stats_json:
-        import json
-
-        st = stats.status.astype(int)
-        rs = receiver.stats()
-        stops = int(np.sum((st[1:] == int(Status.STOPPING)) & (st[:-1] != int(Status.STOPPING))))
-        info = {
-            "ticks": int(stats.n_ticks), "overruns": int(stats.overruns),
-            "compute_us_median": float(np.median(stats.compute_ns) * 1e-3) if stats.n_ticks else None,
-            "compute_us_p99": float(np.percentile(stats.compute_ns, 99) * 1e-3) if stats.n_ticks else None,
-            "period_error_us": {q: float(np.percentile(np.abs(per), p) * 1e-3) if per.size else None
-                                for q, p in (("median", 50), ("p99", 99), ("p99.9", 99.9), ("max", 100))},
-            "status_ticks": {s.name: int(np.sum(st == int(s))) for s in Status},
-            "controlled_stops": stops, "sigint_stop": bool(stopping["sigint"]),
-            "poses_used": source.samples,
-            "link": {"poses": rs.poses, "frames_ok": rs.frames_ok, "rejected": dict(rs.rejected),
-                     "seq_gaps": rs.seq_gaps, "connects": rs.connects, "disconnects": rs.disconnects},
-            "rt_warning": stats.rt_warning,
-        }
-        args.stats_json.parent.mkdir(parents=True, exist_ok=True)
-        args.stats_json.write_text(json.dumps(info, indent=2))
-        hist = np.bincount(np.clip(np.abs(per) // 1000, 0, 2000).astype(int)) if per.size else np.zeros(1)
-        np.save(args.stats_json.with_suffix(".period_hist_us.npy"), hist)
+        write_stats_json(args.stats_json, stats, receiver, source.samples, cfg.period_ns, bool(stopping["sigint"]))
     print(f"servo run: {stats.n_ticks} ticks, {stats.overruns} overruns, compute median "
           f"{np.median(stats.compute_ns) * 1e-3:.0f} us, period error p99 {np.percentile(np.abs(per), 99) * 1e-3:.1f} us"
           if stats.n_ticks > 2 else "servo run: stopped", flush=True)

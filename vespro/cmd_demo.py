@@ -31,6 +31,8 @@ def add_parser(sub) -> None:
     p.add_argument("--noise", type=float, default=0.5, help="image pixel noise, px")
     p.add_argument("--no-video", action="store_true")
     p.add_argument("--kill-server-at", type=float, help="kill the pose server after this many seconds (failure test)")
+    p.add_argument("--lockstep", action="store_true",
+                   help="run everything on one simulated clock in one process (slow machines, exact reproducibility)")
     p.set_defaults(func=run)
 
 
@@ -43,7 +45,8 @@ def run(args) -> int:
 
     cfg = DemoConfig(out=args.out, object=args.object, cameras=args.cameras, duration=args.duration,
                      speed=args.speed, stop_time=args.stop_time, noise_px=args.noise, link=args.link,
-                     baud=args.baud, video=not args.no_video, kill_server_at=args.kill_server_at)
+                     baud=args.baud, video=not args.no_video, kill_server_at=args.kill_server_at,
+                     lockstep=args.lockstep)
     s = run_demo(cfg, log=lambda m: print(m, flush=True))
     e, te, sv = s["estimation"], s["tracking_error"], s.get("servo", {})
     vis = s.get("vision", {})

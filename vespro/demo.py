@@ -149,6 +149,8 @@ def _spawn(cmd: list[str], log: Path) -> subprocess.Popen:
 
 def run_demo(cfg: DemoConfig, log=print) -> dict:
     """Run the cell; returns the summary (also written to ``out/summary.json``)."""
+    if cfg.lockstep:
+        return run_demo_lockstep(cfg, log)
     from servo.shm_robot import RobotShm
 
     from .sim.plant import WorldShm
@@ -231,6 +233,155 @@ def run_demo(cfg: DemoConfig, log=print) -> dict:
         world.close()
     log("demo: scoring against the plant's ground truth")
     summary = summarize(out, cfg, events)
+    (out / "summary.json").write_text(json.dumps(summary, indent=2, default=str))
+    return summary
+
+
+#: Vision latency in lockstep mode (capture to send), simulated: fixed so runs repeat exactly.
+LOCKSTEP_LATENCY_NS = 40_000_000
+
+
+class _DelayedPublisher:
+    """Holds each pose until the simulated clock reaches its capture time plus the
+    vision latency, then sends it on the real link (lockstep mode)."""
+
+    def __init__(self, publisher, latency_ns: int):
+        from collections import deque
+
+        self.publisher = publisher
+        self.latency_ns = latency_ns
+        self.pending = deque()
+
+    def publish(self, msg) -> None:
+        self.pending.append(msg)
+
+    def pump(self, now_ns: int) -> list:
+        from dataclasses import replace
+
+        sent = []
+        while self.pending and self.pending[0].t_capture_ns + self.latency_ns <= now_ns:
+            msg = replace(self.pending.popleft(), t_send_ns=now_ns)
+            self.publisher.publish(msg)
+            sent.append(msg)
+        return sent
+
+    def stats(self):
+        return self.publisher.stats()
+
+
+def run_demo_lockstep(cfg: DemoConfig, log=print) -> dict:
+    """The same plant, pose server and servo code on one simulated clock, in one process.
+
+    Each 2 ms tick the servo's scheduler ticks, then steps the plant (through the
+    same shared-memory fieldbus); at each capture instant the pose server renders
+    and tracks (initialisation inline: it takes no simulated time); poses go over
+    the real TCP link, each released ``LOCKSTEP_LATENCY_NS`` after its capture,
+    and the tick waits until the servo's receiver has it. Reproducible to the bit
+    for a given configuration, whatever the machine's speed.
+    """
+    from servo.cmd_run import follow_task, write_stats_json
+    from servo.link_source import LinkSource
+    from servo.loop import LoopConfig, LoopState, Scheduler
+    from servo.receiver import PoseReceiver
+    from servo.recorder import Recorder
+    from servo.shm_robot import RobotShm, ShmArm
+
+    from .clock import SimClock
+    from .cmd_record import object_mesh_path
+    from .cmd_serve import _save_run
+    from .link import PosePublisher
+    from .model import load_model
+    from .recording import AsyncRecordingWriter
+    from .rig import load_rig
+    from .server import PoseServer
+    from .sim.cell import CellConfig
+    from .sim.imaging import ImageEffects
+    from .sim.motion import Conveyor
+    from .sim.plant import Plant, WorldShm
+    from .sim.rigs import CAMERAS_DIR
+    from .sources import WorldSource
+    from .tracker import Tracker
+    from .wire import HelloMsg
+
+    out = Path(cfg.out)
+    (out / "servo").mkdir(parents=True, exist_ok=True)
+    mesh = object_mesh_path(cfg.object)
+    robot_shm, world_shm = RobotShm(None), WorldShm(None)
+    clock = SimClock(t0_ns=1_000_000_000)  # t0 = 0 would read as "not started"
+    plant = Plant(robot_shm.name, world_shm.name, mesh, Conveyor(speed=cfg.speed, y0=cfg.y0, stop_time=cfg.stop_time),
+                  cfg.duration)
+    plant.start(clock.now_ns())
+    rig = load_rig(CAMERAS_DIR / f"{CAMERA_SETS[cfg.cameras]}.yaml")
+    cell_cfg = CellConfig(mesh, rig, effects=ImageEffects(noise_px=cfg.noise_px))
+    source = WorldSource(world_shm.name, cell_cfg, clock)
+    model = load_model(mesh, name=cfg.object)
+    tracker = Tracker(rig, model)
+    try:
+        from .init import make_initializer
+
+        initializer = make_initializer(rig, model)
+    except ImportError:
+        initializer = None
+    pub = PosePublisher.tcp(HelloMsg(cell_cfg.rate_hz, (model.name,)), port=0, clock_ns=clock.now_ns,
+                            heartbeat_period_s=0)
+    delayed = _DelayedPublisher(pub, LOCKSTEP_LATENCY_NS)
+    writer = AsyncRecordingWriter(out / "vision" / "recording", rig, mesh, cell_cfg.rate_hz, model.name, overwrite=True)
+    outputs = []
+
+    def on_output(fs, o):
+        writer.write(fs)
+        outputs.append(o)
+
+    server = PoseServer(source, tracker, delayed, clock, initializer, background_init=False, log=None,
+                        on_output=on_output)
+    host, port = pub.address
+    rx = PoseReceiver(f"socket://{host}:{port}", clock_ns=clock.now_ns)
+    t_wait = time.monotonic() + 10
+    while rx.stats().state.name != "CONNECTED" and time.monotonic() < t_wait:
+        rx.poll()
+        time.sleep(0.01)
+    link = LinkSource(rx)
+    loop_cfg = LoopConfig(task=follow_task(STANDOFF), max_dt_ticks=50)
+    state = LoopState(loop_cfg)
+    arm = ShmArm(robot_shm.name)
+    arm.plant_step = plant.step  # lockstep: the servo's tick steps the plant
+    recorder = Recorder(int((cfg.duration + 1) * 500))
+    period = 1e9 / cell_cfg.rate_hz
+    t0 = clock.now_ns()
+    nxt = {"k": 0}
+
+    def on_tick(t_ns, out_cmd):
+        while t_ns >= t0 + nxt["k"] * period:
+            fs = source.render_now()
+            if fs is not None:
+                server.step(fs)
+            nxt["k"] += 1
+        for msg in delayed.pump(t_ns):
+            until = time.monotonic() + 5
+            while time.monotonic() < until:
+                m, _ = rx.latest(t_ns)
+                if m is not None and m.seq == msg.seq:
+                    break
+                rx.poll(t_ns)
+
+    sched = Scheduler(clock, arm, state, link, recorder=recorder, realtime=False, on_tick=on_tick)
+    log(f"demo (lockstep): {cfg.duration:.0f} s of cell time on a simulated clock, one process")
+    try:
+        stats = sched.run(int(round(cfg.duration * 500)))
+    finally:
+        rx.close()
+        link_stats = pub.stats()
+        pub.close()
+        plant.finish(out / "plant.npz")
+        _save_run(out / "vision", writer, outputs, server.stats, link_stats, source)
+        source.close()
+        arm.close()
+        robot_shm.close()
+        world_shm.close()
+    recorder.save(out / "servo" / "servo")
+    write_stats_json(out / "servo" / "stats.json", stats, rx, link.samples, loop_cfg.period_ns, False)
+    log("demo: scoring against the plant's ground truth")
+    summary = summarize(out, cfg, [])
     (out / "summary.json").write_text(json.dumps(summary, indent=2, default=str))
     return summary
 

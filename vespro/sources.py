@@ -207,12 +207,16 @@ class WorldSource:
         self.clock.sleep_until(t_cap)
         if self.world.finished:
             return None
+        return self.render_now()
+
+    def render_now(self) -> FrameSet | None:
+        """Render the world as it is now, as capture index ``k`` (lockstep drivers call this)."""
         state = self.world.read()
         if state is None:
             return None
         t_ns, q, pq, _ = state
         self.cell.set_world(q, self._pq(pq))
-        fs = self.cell.render_frameset(self._k, t_ns, (t_ns - t0) * 1e-9)
+        fs = self.cell.render_frameset(self._k, t_ns, (t_ns - self.world.t0_ns) * 1e-9)
         self._k += 1
         return fs
 

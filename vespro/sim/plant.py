@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["WorldShm", "run_plant"]
+__all__ = ["WorldShm", "Plant", "run_plant"]
 
 
 def _untrack(shm) -> None:
@@ -113,9 +113,8 @@ class WorldShm:
                 pass
 
 
-def run_plant(robot_shm: str, world_shm: str, object_mesh: Path, motion, duration_s: float, log_path: Path,
-              realtime: bool = True, log_every: int = 1) -> dict:
-    """Step the cell until ``duration_s`` (or SIGTERM/SIGINT); returns timing statistics.
+class Plant:
+    """The cell's physics, one 2 ms step at a time (real-time and lockstep alike).
 
     Parameters
     ----------
@@ -125,36 +124,99 @@ def run_plant(robot_shm: str, world_shm: str, object_mesh: Path, motion, duratio
     motion : vespro.sim.motion.Motion
         The part's trajectory (typically a Conveyor with a stop time).
     duration_s : float
-    log_path : Path
-        Ground-truth log (NPZ): t_ns, q, object pq, TCP pq per logged step.
-    realtime : bool
-        Pace steps on the wall clock (else as fast as possible).
+        Sizes the preallocated ground-truth log.
     """
-    import mujoco
 
-    from servo.robot import MujocoArm
-    from servo.shm_robot import RobotShm
+    def __init__(self, robot_shm: str, world_shm: str, object_mesh: Path, motion, duration_s: float):
+        from servo.robot import MujocoArm
+        from servo.shm_robot import RobotShm
 
+        from ..rig import Rig
+        from .scene import SceneSpec, build_cell
+
+        model, _ = build_cell(SceneSpec(Path(object_mesh), Rig(())))
+        self.model = model
+        self.arm = MujocoArm(model, q0=np.array(model.key("home").qpos[:6]))
+        self.data = self.arm.data
+        self.motion = motion
+        self._obj = model.body("object").mocapid[0]
+        self._tool = model.site("tool").id
+        self.robot = RobotShm(robot_shm)
+        self.world = WorldShm(world_shm)
+        self.dt_ns = int(round(model.opt.timestep * 1e9))
+        n_log = int(round(duration_s / model.opt.timestep)) + 2
+        self.log = {"t_ns": np.zeros(n_log, np.int64), "q": np.zeros((n_log, 6)), "object": np.zeros((n_log, 7)),
+                    "tcp": np.zeros((n_log, 7)), "drives_on": np.zeros(n_log, np.int8)}
+        self.k = 0
+        self.t0_ns = None
+        self._cmd = np.zeros(2 + 12)
+        self._q = np.zeros(6)
+        self._have_cmd = False
+        self._drives = True
+
+    def start(self, t0_ns: int) -> None:
+        self.t0_ns = int(t0_ns)
+        self.world.a[15] = float(t0_ns)
+        self.world.a[16] = 1.0
+        self.robot.set_alive(True)
+
+    def step(self) -> int:
+        """Apply the latest command, step physics, publish state; returns the new time, ns."""
+        from ..se3 import pq_from_transform, quat_from_matrix
+
+        arm, d, cmd = self.arm, self.data, self._cmd
+        if self.robot.read_command(cmd):
+            self._have_cmd = True
+            if cmd[-1] > 0.5:
+                if not arm.drives_on:
+                    arm.enable()
+                arm.command(cmd[1:7], cmd[7:13])
+                self._drives = True
+            elif self._drives:
+                arm.stop()
+                self._drives = False
+        elif not self._have_cmd:
+            arm.stop()  # hold until the servo speaks
+        T_obj = self.motion.pose(self.k * self.dt_ns * 1e-9)
+        d.mocap_pos[self._obj] = T_obj[:3, 3]
+        d.mocap_quat[self._obj] = quat_from_matrix(T_obj[:3, :3])
+        arm.plant_step()
+        arm.read(self._q)
+        t_now = self.t0_ns + (self.k + 1) * self.dt_ns
+        self.robot.write_state(t_now, self._q, d.qvel[:6])
+        pq = pq_from_transform(T_obj)
+        self.world.write(t_now, self._q, pq, self.k + 1)
+        i = self.k
+        if i < len(self.log["t_ns"]):
+            lg = self.log
+            lg["t_ns"][i] = t_now
+            lg["q"][i] = self._q
+            lg["object"][i] = pq
+            lg["tcp"][i, :3] = d.site_xpos[self._tool]
+            lg["tcp"][i, 3:] = quat_from_matrix(d.site_xmat[self._tool].reshape(3, 3))
+            lg["drives_on"][i] = self._drives
+        self.k += 1
+        return t_now
+
+    def finish(self, log_path: Path) -> None:
+        """Mark the world stopped, save the ground-truth log, detach."""
+        self.world.a[16] = 0.0
+        self.robot.set_alive(False)
+        log_path = Path(log_path)
+        log_path.parent.mkdir(parents=True, exist_ok=True)
+        n = min(self.k, len(self.log["t_ns"]))
+        np.savez(log_path, **{k: v[:n] for k, v in self.log.items()})
+        self.robot.close()
+        self.world.close()
+
+
+def run_plant(robot_shm: str, world_shm: str, object_mesh: Path, motion, duration_s: float, log_path: Path,
+              realtime: bool = True) -> dict:
+    """Step the cell in real time until ``duration_s`` (or SIGTERM/SIGINT); returns timing statistics."""
     from ..clock import WallClock
-    from ..rig import Rig
-    from ..se3 import pq_from_transform, quat_from_matrix
-    from .scene import SceneSpec, build_cell
 
-    model, _ = build_cell(SceneSpec(object_mesh, Rig(())))
-    home = model.key("home")
-    arm = MujocoArm(model, q0=np.array(home.qpos[:6]))
-    d = arm.data
-    obj = model.body("object").mocapid[0]
-    tool = model.site("tool").id
-    robot = RobotShm(robot_shm)
-    world = WorldShm(world_shm)
-    n_steps = int(round(duration_s / model.opt.timestep))
-    dt_ns = int(round(model.opt.timestep * 1e9))
-    n_log = n_steps // log_every + 1
-    log = {"t_ns": np.zeros(n_log, np.int64), "q": np.zeros((n_log, 6)), "object": np.zeros((n_log, 7)),
-           "tcp": np.zeros((n_log, 7)), "drives_on": np.zeros(n_log, np.int8)}
-    cmd = np.zeros(2 + 12)
-    q = np.zeros(6)
+    plant = Plant(robot_shm, world_shm, object_mesh, motion, duration_s)
+    n_steps = int(round(duration_s * 1e9 / plant.dt_ns))
     stop = {"now": False}
 
     def _stop(signum, frame):
@@ -164,62 +226,20 @@ def run_plant(robot_shm: str, world_shm: str, object_mesh: Path, motion, duratio
         signal.signal(s, _stop)
     clock = WallClock()
     t0 = clock.now_ns()
-    world.a[15] = float(t0)
-    world.a[16] = 1.0
-    robot.set_alive(True)
+    plant.start(t0)
     late = []
-    have_cmd = False
-    k_logged = 0
-    drives = True
     try:
         for k in range(n_steps):
             if stop["now"]:
                 break
-            t_k = t0 + k * dt_ns
+            t_k = t0 + k * plant.dt_ns
             if realtime:
-                woke = clock.sleep_until(t_k)
-                late.append(woke - t_k)
-            if robot.read_command(cmd):
-                have_cmd = True
-                if cmd[-1] > 0.5:
-                    if not arm.drives_on:
-                        arm.enable()
-                    arm.command(cmd[1:7], cmd[7:13])
-                    drives = True
-                elif drives:
-                    arm.stop()
-                    drives = False
-            elif not have_cmd:
-                arm.stop()  # hold until the servo speaks
-            T_obj = motion.pose(k * dt_ns * 1e-9)
-            d.mocap_pos[obj] = T_obj[:3, 3]
-            d.mocap_quat[obj] = quat_from_matrix(T_obj[:3, :3])
-            arm.plant_step()
-            arm.read(q)
-            t_now = t_k + dt_ns
-            robot.write_state(t_now, q, d.qvel[:6])
-            pq = pq_from_transform(T_obj)
-            world.write(t_now, q, pq, k + 1)
-            if k % log_every == 0:
-                i = k_logged
-                log["t_ns"][i] = t_now
-                log["q"][i] = q
-                log["object"][i] = pq
-                log["tcp"][i, :3] = d.site_xpos[tool]
-                log["tcp"][i, 3:] = quat_from_matrix(d.site_xmat[tool].reshape(3, 3))
-                log["drives_on"][i] = drives
-                k_logged += 1
+                late.append(clock.sleep_until(t_k) - t_k)
+            plant.step()
     finally:
-        world.a[16] = 0.0
-        robot.set_alive(False)
-        log_path = Path(log_path)
-        log_path.parent.mkdir(parents=True, exist_ok=True)
-        np.savez(log_path, **{k: v[:k_logged] for k, v in log.items()})
-        robot.close()
-        world.close()
+        plant.finish(log_path)
     late = np.array(late, dtype=float) if late else np.zeros(1)
-    _ = mujoco  # the plant owns a MuJoCo model through MujocoArm
-    return {"steps": k_logged, "late_us_median": float(np.median(late) * 1e-3),
+    return {"steps": plant.k, "late_us_median": float(np.median(late) * 1e-3),
             "late_us_p99": float(np.percentile(late, 99) * 1e-3)}
 
 
