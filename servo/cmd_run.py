@@ -41,12 +41,18 @@ def add_parser(sub) -> None:
 
 
 def follow_task(standoff: float):
-    """TCP ``standoff`` above the object origin, pointing down (z against the object's z)."""
+    """TCP ``standoff`` above the object origin, pointing down (z against the object's z).
+
+    The approach ends (and following starts) once the reference is within 5 mm,
+    3 degrees and 0.02 m/s of the stand-off target: tolerances above the noise of
+    a vision estimate (about 1 mm and 1 degree), or the switch would wait for luck.
+    """
     from .planner import FollowTask
 
     T = np.diag([1.0, -1.0, -1.0, 1.0])
     T[2, 3] = standoff
-    return FollowTask(T_object_tcp=T, standoff_m=0.10)
+    return FollowTask(T_object_tcp=T, standoff_m=0.10, approach_tol_m=0.005, approach_tol_rad=np.deg2rad(3.0),
+                      approach_tol_mps=0.02)
 
 
 def write_stats_json(path: Path, stats, receiver, poses_used: int, period_ns: int, sigint: bool) -> dict:

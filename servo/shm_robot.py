@@ -32,9 +32,14 @@ import numpy as np
 __all__ = ["RobotShm", "ShmArm"]
 
 
+_CREATED: set = set()
+
+
 def _untrack(shm) -> None:
     """Only the creator may unlink a block: before Python 3.13 merely attaching
     registers it with this process's resource tracker, which unlinks it at exit."""
+    if shm._name in _CREATED:  # attached in the creating process: keep its registration
+        return
     try:
         from multiprocessing import resource_tracker
 
@@ -60,6 +65,7 @@ class RobotShm:
         if name is None:
             self._shm = shared_memory.SharedMemory(create=True, size=size)
             self.owner = True
+            _CREATED.add(self._shm._name)
         else:
             self._shm = shared_memory.SharedMemory(name=name)
             self.owner = False
@@ -84,6 +90,8 @@ class RobotShm:
         a = self.a
         for _ in range(tries):
             s1 = a[seq_index]
+            if s1 == 0.0:
+                return False  # never written: no data yet (not all zeros)
             if int(s1) % 2:
                 continue
             out[:] = a[seq_index + 1: seq_index + 1 + size]
@@ -142,6 +150,7 @@ class ShmArm:
     def read(self, q_out: np.ndarray) -> None:
         if self.shm.read_state(self._state):
             q_out[:] = self._state[1:1 + self.n]
+        # else: the plant has not published yet; q_out keeps its last value
 
     def command(self, q: np.ndarray, qd: np.ndarray) -> None:
         self._t += 1

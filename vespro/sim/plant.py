@@ -30,9 +30,14 @@ import numpy as np
 __all__ = ["WorldShm", "Plant", "run_plant"]
 
 
+_CREATED: set = set()
+
+
 def _untrack(shm) -> None:
     """Only the creator may unlink a block: before Python 3.13 merely attaching
     registers it with this process's resource tracker, which unlinks it at exit."""
+    if shm._name in _CREATED:  # attached in the creating process: keep its registration
+        return
     try:
         from multiprocessing import resource_tracker
 
@@ -55,6 +60,7 @@ class WorldShm:
         if name is None:
             self._shm = shared_memory.SharedMemory(create=True, size=8 * self.SIZE)
             self.owner = True
+            _CREATED.add(self._shm._name)
         else:
             self._shm = shared_memory.SharedMemory(name=name)
             self.owner = False
@@ -155,7 +161,13 @@ class Plant:
         self._drives = True
 
     def start(self, t0_ns: int) -> None:
+        """Publish the initial state, then declare the plant alive (readers never see zeros)."""
+        from ..se3 import pq_from_transform
+
         self.t0_ns = int(t0_ns)
+        self.arm.read(self._q)
+        self.robot.write_state(self.t0_ns, self._q, self.data.qvel[:6])
+        self.world.write(self.t0_ns, self._q, pq_from_transform(self.motion.pose(0.0)), 0)
         self.world.a[15] = float(t0_ns)
         self.world.a[16] = 1.0
         self.robot.set_alive(True)
