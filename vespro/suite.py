@@ -376,6 +376,9 @@ def score_scenario(rec, outs, T_true: np.ndarray, model, tracker_config, scene=N
         "crlb_rot_deg": _nan_none(np.rad2deg(crlb_rot_rms)),
         "rmse_over_crlb_pos": _nan_none(pos_rmse_b / crlb_pos_rms) if both.any() else None,
         "rmse_over_crlb_rot": _nan_none(rot_rmse_b / crlb_rot_rms) if both.any() else None,
+        # The bound scales linearly with sigma: the same bound at the scenario's nominal noise.
+        "crlb_pos_mm_at_nominal": (_nan_none(crlb_pos_rms * 1e3 * sigma_nominal_px / sigma)
+                                   if sigma_nominal_px > 0 else None),
         "crlb_visible_pos_mm": _nan_none(_rms([x[0] for x in crlb_vis]) * 1e3) if crlb_vis else None,
         "crlb_visible_rot_deg": _nan_none(np.rad2deg(_rms([x[1] for x in crlb_vis]))) if crlb_vis else None,
         "pcrlb_pos_mm": _nan_none(pc_pos_rms * 1e3),
