@@ -459,6 +459,12 @@ def run_scenario(sc: dict, cache_dir: str | Path, out_dir: str | Path, log=print
     from .tracker import TrackerConfig
 
     t_start = time.perf_counter()
+    make_initializer = None
+    if sc["init"] == "auto":  # checked before simulating anything
+        try:
+            from .init import make_initializer
+        except ImportError:
+            raise RuntimeError("init: auto needs vespro.init (automatic initialisation), not on this branch") from None
     rec_path = ensure_recording(sc, cache_dir, log=log)
     rec = Recording(rec_path)
     _, _, T_true = read_groundtruth(rec_path)
@@ -469,10 +475,6 @@ def run_scenario(sc: dict, cache_dir: str | Path, out_dir: str | Path, log=print
     if sc["init"] == "gt":
         init_pose = T_true[0]  # evaluator-only: scores tracking, not initialisation
     else:
-        try:
-            from .init import make_initializer
-        except ImportError:
-            raise RuntimeError("init: auto needs vespro.init (automatic initialisation), not on this branch") from None
         tracker.initializer = make_initializer(rec.rig, tracker.model)
     outs = track_recording(rec, tracker, init_pose)
     out_dir = Path(out_dir)

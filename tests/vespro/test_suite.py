@@ -125,3 +125,20 @@ def test_small_suite_end_to_end(tmp_path):
     assert box["mssd_recall"] > 0.85
     # The second run reuses the cached recordings.
     assert len(list((tmp_path / "cache").iterdir())) == 2
+
+
+def test_a_failing_scenario_is_reported_and_the_run_fails(tmp_path):
+    import importlib.util
+
+    from vespro.cli import main
+
+    if importlib.util.find_spec("vespro.init") is not None:
+        pytest.skip("vespro.init exists: init: auto would run")
+    suite = tmp_path / "s.yaml"
+    suite.write_text("name: s\nscenarios:\n  - {name: auto, init: auto, frames: 3}\n")
+    rc = main(["eval", "--suite", str(suite), "-o", str(tmp_path / "o"), "--cache", str(tmp_path / "c")])
+    assert rc == 1
+    res = json.loads((tmp_path / "o" / "results.json").read_text())
+    assert res["failed"] == 1 and "vespro.init" in res["results"][0]["error"]
+    assert "| auto |" in (tmp_path / "o" / "results.md").read_text()
+    assert not (tmp_path / "c").exists()  # nothing was simulated for it
