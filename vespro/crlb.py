@@ -33,7 +33,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from .camera import CameraIntrinsics
 from .projection import project_with_jacobian
 
 __all__ = ["fisher_information", "frame_information", "crlb_from_information", "crlb_std",

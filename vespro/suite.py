@@ -152,7 +152,7 @@ def scenario_key(sc: dict) -> str:
 
 
 def _record_args(sc: dict, rig) -> argparse.Namespace:
-    from .cmd_record import _dropout, _resolution
+    from .cmd_record import _resolution
     from .sim.cell import CameraDropout
 
     kind, speed = MOTIONS[sc["motion"]]

@@ -1,7 +1,6 @@
 """BOP interchange: a recording with tracker output survives export and import unchanged."""
 
 import json
-import shutil
 
 import cv2
 import numpy as np
