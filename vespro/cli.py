@@ -19,6 +19,7 @@ _COMMANDS = [
     ("vespro.cmd_serve", "serve"),
     ("vespro.cmd_demo", "demo"),
     ("vespro.cmd_calibrate", "calibrate"),
+    ("vespro.cmd_bop", "bop"),
 ]
 
 

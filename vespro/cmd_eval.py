@@ -19,8 +19,14 @@ def add_parser(sub) -> None:
                     "detections. Writes poses.csv, summary.json, errors.png and overlay.mp4.",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
-    p.add_argument("recording", type=Path)
-    p.add_argument("-o", "--out", type=Path, help="output folder (default: <recording>/eval)")
+    p.add_argument("recording", type=Path, nargs="?", help="recording folder (not with --suite)")
+    p.add_argument("-o", "--out", type=Path,
+                   help="output folder (default: <recording>/eval; with --suite: out/suite/<suite name>)")
+    p.add_argument("--suite", type=Path, metavar="SUITE.yaml",
+                   help="run a scenario suite (bench/suites/*.yaml): simulate the recordings it needs (cached), "
+                        "track and score them, write results.md, results.json and plots")
+    p.add_argument("--cache", type=Path, default=Path("out/suite_cache"), help="with --suite: recording cache folder")
+    p.add_argument("--only", metavar="TEXT", help="with --suite: run only scenarios whose name contains TEXT")
     p.add_argument("--json", type=Path, help="also write the figures to this JSON file")
     p.add_argument("--no-video", action="store_true", help="skip the overlay video")
     p.add_argument("--gt-init", action="store_true",
@@ -34,7 +40,28 @@ def _fmt(v, unit=""):
     return "-" if v is None else f"{v:.3f}{unit}"
 
 
+def run_suite(args) -> int:
+    from .suite import run_suite as run
+
+    try:
+        summary = run(args.suite, args.out, args.cache, only=args.only)
+    except (OSError, ValueError) as e:
+        print(f"vespro eval: {e}", file=sys.stderr)
+        return 2
+    if args.json:
+        args.json.write_text(json.dumps(summary, indent=2, default=str))
+    out = args.out or Path("out") / "suite" / summary["suite"]
+    print(f"wrote {out}/results.md, results.json, summary.png ({len(summary['results'])} scenarios, "
+          f"{summary['failed']} failed, {summary['wall_s']:.0f} s)")
+    return 1 if summary["failed"] else 0
+
+
 def run(args) -> int:
+    if args.suite is not None:
+        return run_suite(args)
+    if args.recording is None:
+        print("vespro eval: give a recording folder or --suite SUITE.yaml", file=sys.stderr)
+        return 2
     from .cmd_track import initializer_for, tracker_config
     from .evaluate import overlay_video, plot_errors, pnp_baseline, score
     from .groundtruth import read_groundtruth

@@ -19,7 +19,8 @@ from .se3 import invert_transform, log_so3, rotation_angle, transform_points
 
 __all__ = [
     "pose_error_vector", "position_errors", "rotation_errors", "add", "add_s", "mssd", "mspd",
-    "nees", "nees_band", "rmse", "recall",
+    "nees", "nees_band", "rmse", "recall", "axis_rotations", "discrete_symmetries", "mssd_thresholds",
+    "mspd_thresholds", "reacquisition_times",
 ]
 
 
@@ -99,3 +100,98 @@ def recall(errors: np.ndarray, thresholds) -> float:
 def camera_pose(T_world_camera: np.ndarray, T_world_object: np.ndarray) -> np.ndarray:
     """``T_camera_object``."""
     return invert_transform(T_world_camera) @ T_world_object
+
+
+def axis_rotations() -> np.ndarray:
+    """The 24 proper rotations that map the coordinate axes onto themselves (signed permutations, det +1).
+
+    Returns
+    -------
+    ndarray, shape (24, 3, 3)
+    """
+    import itertools
+
+    out = []
+    for perm in itertools.permutations(range(3)):
+        for signs in itertools.product((1.0, -1.0), repeat=3):
+            R = np.zeros((3, 3))
+            R[np.arange(3), perm] = signs
+            if np.linalg.det(R) > 0:
+                out.append(R)
+    return np.array(out)
+
+
+def discrete_symmetries(P_object: np.ndarray, atol: float = 1e-6) -> list[np.ndarray]:
+    """Discrete symmetries of a point set among the 24 axis-aligned rotations about its bounding-box centre.
+
+    A rotation ``R`` about the centre ``c`` is a symmetry when it maps every
+    vertex onto some vertex (within ``atol``, m). For a polyhedral CAD model the
+    vertex set is the shape's corner set, so this finds the symmetries BOP lists
+    as ``symmetries_discrete`` for axis-aligned parts (a box with three distinct
+    edge lengths: the identity and the three half turns). Symmetries about other
+    axes are not searched.
+
+    Parameters
+    ----------
+    P_object : ndarray, shape (N, 3)
+        Model vertices, object frame, m.
+    atol : float
+        Matching tolerance, m.
+
+    Returns
+    -------
+    list of ndarray (4, 4)
+        Object-frame transforms ``S = [R, c - R c]`` with the identity first;
+        the object looks the same at ``T @ S`` as at ``T``.
+    """
+    P = np.asarray(P_object, dtype=float)
+    if P.ndim != 2 or P.shape[1] != 3:
+        raise ValueError(f"P_object must have shape (N, 3), got {P.shape}")
+    c = 0.5 * (P.min(axis=0) + P.max(axis=0))
+    tree = cKDTree(P)
+    out = []
+    for R in axis_rotations():
+        S = np.eye(4)
+        S[:3, :3] = R
+        S[:3, 3] = c - R @ c
+        d, _ = tree.query(transform_points(S, P))
+        if np.all(d <= atol):
+            out.append(S)
+    out.sort(key=lambda S: 0 if np.allclose(S, np.eye(4)) else 1)
+    return out
+
+
+def mssd_thresholds(diameter: float) -> np.ndarray:
+    """BOP MSSD correctness thresholds: 0.05 .. 0.5 of the object diameter, step 0.05 (m)."""
+    return np.arange(1, 11) * 0.05 * diameter
+
+
+def mspd_thresholds(image_width: int) -> np.ndarray:
+    """BOP MSPD correctness thresholds: 5 .. 50 px step 5, times ``r = width / 640`` (px)."""
+    return np.arange(1, 11) * 5.0 * image_width / 640.0
+
+
+def reacquisition_times(tracking: np.ndarray, t: np.ndarray) -> list[float | None]:
+    """Time from each loss of track to the next tracked frame (s).
+
+    Parameters
+    ----------
+    tracking : ndarray, shape (N,), bool
+        Tracked per frame.
+    t : ndarray, shape (N,)
+        Capture times, s.
+
+    Returns
+    -------
+    list
+        One entry per loss (a tracked frame followed by an untracked one): the
+        time from the first untracked frame's capture to the next tracked
+        frame's capture, or None when the track never came back.
+    """
+    tr = np.asarray(tracking, dtype=bool)
+    out = []
+    for i in range(1, len(tr)):
+        if tr[i - 1] and not tr[i]:
+            nxt = np.flatnonzero(tr[i:])
+            out.append(float(t[i + nxt[0]] - t[i]) if nxt.size else None)
+    return out
