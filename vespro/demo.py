@@ -349,8 +349,15 @@ def run_demo_lockstep(cfg: DemoConfig, log=print) -> dict:
     period = 1e9 / cell_cfg.rate_hz
     t0 = clock.now_ns()
     nxt = {"k": 0}
+    events = []
+    kill_ns = None if cfg.kill_server_at is None else t0 + int(cfg.kill_server_at * 1e9)
 
     def on_tick(t_ns, out_cmd):
+        if kill_ns is not None and t_ns >= kill_ns:
+            if not events:  # the pose server dies: no more poses, its link closes
+                pub.close()
+                events.append({"event": "pose server killed", "t_s": (t_ns - t0) * 1e-9})
+            return
         while t_ns >= t0 + nxt["k"] * period:
             fs = source.render_now()
             if fs is not None:
@@ -381,7 +388,7 @@ def run_demo_lockstep(cfg: DemoConfig, log=print) -> dict:
     recorder.save(out / "servo" / "servo")
     write_stats_json(out / "servo" / "stats.json", stats, rx, link.samples, loop_cfg.period_ns, False)
     log("demo: scoring against the plant's ground truth")
-    summary = summarize(out, cfg, [])
+    summary = summarize(out, cfg, events)
     (out / "summary.json").write_text(json.dumps(summary, indent=2, default=str))
     return summary
 
@@ -456,6 +463,13 @@ def summarize(out: Path, cfg: DemoConfig, events: list) -> dict:
     }
     if (out / "servo" / "stats.json").exists():
         summary["servo"] = json.loads((out / "servo" / "stats.json").read_text())
+    if (out / "servo" / "servo.npz").exists():
+        from servo.safety import Status
+
+        rec = np.load(out / "servo" / "servo.npz")
+        st, ts = rec["status"], (rec["t_ns"] - t0) * 1e-9
+        stop = np.flatnonzero((st == int(Status.STOPPING)) | (st == int(Status.STOPPED)))
+        summary.setdefault("servo", {})["first_stop_s"] = float(ts[stop[0]]) if stop.size else None
 
     # Ground truth for the recording, so `vespro eval` can replay it.
     rec_path = vision / "recording"
