@@ -1,0 +1,144 @@
+"""What the initialiser needs from the CAD model, computed once per model.
+
+- edge samples: points along every sharp edge at a fixed 3D spacing, with the
+  edge's direction, its two faces and whether it is convex, for chamfer scores;
+- corner paths ``(A, B, C)``: two long sharp edges meeting at a vertex ``B``,
+  the model side of the P3P correspondences (image corners ``a, b, c`` with
+  ``a-b`` and ``b-c`` joined by image edges);
+- whether the model is convex (then back-face culling alone decides what is
+  visible and the BSP occlusion query can be skipped).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import ConvexHull
+
+from ..model import Model
+
+__all__ = ["ModelFeatures", "model_features"]
+
+
+@dataclass(frozen=True)
+class ModelFeatures:
+    """Edge samples and corner paths of a model (object frame, m).
+
+    Attributes
+    ----------
+    edge_a, edge_b : ndarray, shape (E, 3)
+        Edge end points.
+    edge_len : ndarray, shape (E,)
+    edge_faces : ndarray, shape (E, 2), int64
+    edge_convex : ndarray, shape (E,), bool
+    sample_p : ndarray, shape (S, 3)
+        Points along the edges (dense set).
+    sample_edge : ndarray, shape (S,), int64
+        Edge of each sample.
+    coarse : ndarray, shape (Sc,), int64
+        Indices into the dense samples: a sparser subset for ranking.
+    sparse : ndarray, shape (Ss,), int64
+        Three samples on each long edge (the path edges): the first, cheapest
+        ranking pass.
+    paths : ndarray, shape (Np, 3), int64
+        Vertex indices ``(A, B, C)``; edges A-B and B-C are sharp model edges.
+    face_normals : ndarray, shape (F, 3)
+    face_offsets : ndarray, shape (F,)
+    convex : bool
+    diameter : float
+    """
+
+    edge_a: np.ndarray
+    edge_b: np.ndarray
+    edge_len: np.ndarray
+    edge_faces: np.ndarray
+    edge_convex: np.ndarray
+    sample_p: np.ndarray
+    sample_edge: np.ndarray
+    coarse: np.ndarray
+    sparse: np.ndarray
+    paths: np.ndarray
+    face_normals: np.ndarray
+    face_offsets: np.ndarray
+    convex: bool
+    diameter: float
+
+
+def model_features(model: Model, dense_spacing_frac: float = 1 / 60, coarse_spacing_frac: float = 1 / 15,
+                   min_path_edge_frac: float = 0.15, min_path_angle_deg: float = 20.0,
+                   min_score_edge_frac: float = 0.0) -> ModelFeatures:
+    """Derive edge samples and corner paths.
+
+    Parameters
+    ----------
+    model : Model
+    dense_spacing_frac, coarse_spacing_frac : float
+        Sample spacing along edges as a fraction of the model diameter.
+    min_path_edge_frac : float
+        Edges shorter than this fraction of the diameter are not used in
+        corner paths (short edges give ill-conditioned P3P and unreliable image
+        corners); they still count in the scores.
+    min_path_angle_deg : float
+        Least angle between the two edges of a path.
+    min_score_edge_frac : float
+        Edges shorter than this fraction of the diameter are not sampled.
+    """
+    V = model.vertices
+    ev = model.edge_vertices
+    A, B = V[ev[:, 0]], V[ev[:, 1]]
+    L = np.linalg.norm(B - A, axis=1)
+    diam = model.diameter
+
+    def samples(spacing):
+        pts, eid = [], []
+        for e in np.flatnonzero(L >= min_score_edge_frac * diam):
+            n = max(2, int(np.ceil(L[e] / spacing)))
+            t = (np.arange(n) + 0.5) / n
+            pts.append(A[e] + t[:, None] * (B[e] - A[e]))
+            eid.append(np.full(n, e))
+        return np.concatenate(pts), np.concatenate(eid)
+
+    sp, se = samples(dense_spacing_frac * diam)
+    # Coarse subset: every k-th dense sample of each edge, at least one per edge.
+    k = max(1, int(round(coarse_spacing_frac / dense_spacing_frac)))
+    coarse = []
+    for e in np.unique(se):
+        idx = np.flatnonzero(se == e)
+        coarse.extend(idx[k // 2::k] if len(idx) > k else idx[len(idx) // 2: len(idx) // 2 + 1])
+    coarse = np.asarray(sorted(coarse), np.int64)
+
+    long_e = np.flatnonzero(L >= min_path_edge_frac * diam)
+    sparse = []
+    for e in long_e:
+        idx = np.flatnonzero(se == e)
+        sparse.extend(idx[np.unique(np.rint(np.array([0.2, 0.5, 0.8]) * (len(idx) - 1)).astype(int))])
+    sparse = np.asarray(sorted(sparse), np.int64)
+    nbr: dict[int, list[int]] = {}
+    for e in long_e:
+        a, b = int(ev[e, 0]), int(ev[e, 1])
+        nbr.setdefault(a, []).append(b)
+        nbr.setdefault(b, []).append(a)
+    paths = []
+    cos_max = np.cos(np.deg2rad(min_path_angle_deg))
+    for b, ns in nbr.items():
+        for a in ns:
+            for c in ns:
+                if a == c:
+                    continue
+                u, w = V[a] - V[b], V[c] - V[b]
+                cosang = u @ w / (np.linalg.norm(u) * np.linalg.norm(w))
+                if abs(cosang) < cos_max:
+                    paths.append((a, b, c))
+    paths = np.asarray(paths, np.int64).reshape(-1, 3)
+
+    try:
+        hull_vol = ConvexHull(V).volume
+        convex = bool(model.volume >= hull_vol * (1 - 1e-6))
+    except Exception:
+        convex = False
+    out = ModelFeatures(A, B, L, model.edge_faces, model.edge_convex, sp, se, coarse, sparse, paths,
+                        model.face_normals, model.face_offsets, convex, float(diam))
+    for f in ("edge_a", "edge_b", "edge_len", "sample_p", "sample_edge", "coarse", "sparse", "paths"):
+        getattr(out, f).setflags(write=False)
+    return out

@@ -1,0 +1,361 @@
+"""Pose hypotheses, their chamfer scores, refinement and verification.
+
+All scores use the oriented distance maps of :mod:`vespro.init.features`: a
+model edge point projected at pixel (u, v) with edge normal in bin k is
+supported when ``dt[k][v, u]`` is small. Visibility of model edges comes from
+back-face culling (a convex edge is seen when one of its faces faces the
+camera, a concave edge when both do) and, for non-convex models, from the BSP
+line-of-sight query (edge samples hidden by the part itself are dropped).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from ..se3 import exp_so3, invert_transform, transform_from_rt
+from .features import CameraFeatures, lookup_dt, normal_bins
+from .modelfeat import ModelFeatures
+from .p3p import p3p_grunert
+
+__all__ = ["image_paths", "p3p_hypotheses", "rank_in_camera", "CameraView", "visible_samples",
+           "refine_pose", "PoseCheck", "check_pose"]
+
+
+# -- hypothesis generation ---------------------------------------------------
+
+def image_paths(feat: CameraFeatures, min_angle_deg: float = 15.0, max_paths: int = 20000) -> np.ndarray:
+    """Image corner paths ``(a, b, c)``: corners a and c both linked to b.
+
+    Each unordered pair {a, c} appears once (the model paths hold both orders).
+    Paths with nearly straight or folded angles at b are dropped; when there
+    are more than ``max_paths`` the ones with the shortest links are kept
+    (short links are the likelier ones to lie on a single part).
+
+    Returns
+    -------
+    ndarray, shape (N, 3), int64
+    """
+    links = feat.links
+    if len(links) == 0:
+        return np.zeros((0, 3), np.int64)
+    c = feat.corners
+    both = np.concatenate([links, links[:, ::-1]])  # (b, other)
+    order = np.argsort(both[:, 0], kind="stable")
+    both = both[order]
+    starts = np.searchsorted(both[:, 0], np.arange(len(c) + 1))
+    out, cost = [], []
+    cmax = np.cos(np.deg2rad(min_angle_deg))
+    for b in range(len(c)):
+        nb = both[starts[b]:starts[b + 1], 1]
+        if len(nb) < 2:
+            continue
+        i, j = np.triu_indices(len(nb), 1)
+        da = c[nb[i]] - c[b]
+        dc = c[nb[j]] - c[b]
+        la, lc = np.linalg.norm(da, axis=1), np.linalg.norm(dc, axis=1)
+        cosang = np.einsum("ij,ij->i", da, dc) / (la * lc)
+        ok = np.abs(cosang) < cmax
+        out.append(np.stack([nb[i][ok], np.full(ok.sum(), b), nb[j][ok]], 1))
+        cost.append(np.maximum(la, lc)[ok])
+    if not out:
+        return np.zeros((0, 3), np.int64)
+    out = np.concatenate(out)
+    cost = np.concatenate(cost)
+    if len(out) > max_paths:
+        out = out[np.argsort(cost, kind="stable")[:max_paths]]
+    return out.astype(np.int64)
+
+
+def p3p_hypotheses(feat: CameraFeatures, mf: ModelFeatures, vertices: np.ndarray, ipaths: np.ndarray,
+                   max_depth: float = 10.0) -> tuple[np.ndarray, np.ndarray]:
+    """All P3P poses pairing image corner paths with model corner paths.
+
+    Returns
+    -------
+    R_camera_object : ndarray, shape (M, 3, 3)
+    t_camera_object : ndarray, shape (M, 3)
+    """
+    if len(ipaths) == 0 or len(mf.paths) == 0:
+        return np.zeros((0, 3, 3)), np.zeros((0, 3))
+    Kinv = np.linalg.inv(feat.K)
+    uv1 = np.c_[feat.corners, np.ones(len(feat.corners))] @ Kinv.T
+    bear = uv1 / np.linalg.norm(uv1, axis=1, keepdims=True)
+    ii = np.repeat(np.arange(len(ipaths)), len(mf.paths))
+    mm = np.tile(np.arange(len(mf.paths)), len(ipaths))
+    R, t, prob = p3p_grunert(vertices[mf.paths[mm]], bear[ipaths[ii]])
+    centre = 0.5 * (mf.edge_a.min(0) + mf.edge_a.max(0))
+    zc = np.einsum("nij,j->ni", R, centre)[:, 2] + t[:, 2]
+    ok = (zc > 0.5 * mf.diameter) & (zc < max_depth)
+    return R[ok], t[ok]
+
+
+def _edge_bins(uv_a, uv_b, n_bins):
+    d = uv_b - uv_a
+    return normal_bins(np.arctan2(d[..., 0], -d[..., 1]), n_bins)
+
+
+def _front(R, t, mf):
+    """Face front-facing flags, shape (H, F): the camera is on the outer side."""
+    n_c = np.matmul(mf.face_normals.astype(R.dtype)[None], R.transpose(0, 2, 1))  # (H, F, 3)
+    return mf.face_offsets[None, :] + np.matmul(n_c, t[:, :, None])[..., 0] < 0
+
+
+def _edge_visible(front, mf):
+    f0 = front[:, mf.edge_faces[:, 0]]
+    f1 = front[:, mf.edge_faces[:, 1]]
+    return np.where(mf.edge_convex[None, :], f0 | f1, f0 & f1)
+
+
+def rank_in_camera(R: np.ndarray, t: np.ndarray, feat: CameraFeatures, mf: ModelFeatures, tol_px: float = 3.0,
+                   chunk: int = 8192, min_inside: float = 0.3, samples: np.ndarray | None = None
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Fast chamfer agreement of many camera-frame poses with one image.
+
+    Edge samples (``samples``, indices into ``mf.sample_p``; the coarse set by
+    default), back-face culling only (no self-occlusion). The agreement of a
+    sample is ``max(0, 1 - d / tol_px)`` with ``d`` its oriented edge distance;
+    the score is the mean over visible samples.
+
+    Returns
+    -------
+    score : ndarray, shape (H,)
+        In [0, 1]; NaN where the camera cannot judge (fewer than
+        ``min_inside`` of the visible samples inside the image, or the part
+        behind the camera).
+    inside : ndarray, shape (H,)
+        Fraction of visible samples inside the image.
+    """
+    H = len(R)
+    score = np.full(H, np.nan)
+    inside_frac = np.zeros(H)
+    samples = mf.coarse if samples is None else samples
+    P = mf.sample_p[samples].astype(np.float32)
+    se = mf.sample_edge[samples]
+    used_e = np.unique(se)
+    remap = np.zeros(len(mf.edge_a), np.int64)
+    remap[used_e] = np.arange(len(used_e))
+    se_l = remap[se]
+    ends = np.concatenate([mf.edge_a[used_e], mf.edge_b[used_e]]).astype(np.float32)
+    E = len(used_e)
+    f = np.array([feat.K[0, 0], feat.K[1, 1]], np.float32)
+    c = feat.K[:2, 2].astype(np.float32)
+    nb = feat.dt.shape[0]
+    for s in range(0, H, chunk):
+        Rc = R[s:s + chunk].astype(np.float32)
+        tc = t[s:s + chunk].astype(np.float32)
+        RT = Rc.transpose(0, 2, 1)
+        vis_e = _edge_visible(_front(Rc, tc, mf), mf)[:, used_e]
+        Xe = np.matmul(ends[None], RT) + tc[:, None]
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            ue = Xe[..., :2] / Xe[..., 2:3] * f + c
+        bins = _edge_bins(ue[:, :E], ue[:, E:], nb)
+        X = np.matmul(P[None], RT) + tc[:, None]
+        z = X[..., 2]
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            uv = X[..., :2] / z[..., None] * f + c
+        vis = vis_e[:, se_l]
+        d = lookup_dt(feat.dt, bins[:, se_l], uv, np.inf)
+        ins = np.isfinite(d) & vis
+        nvis = vis.sum(1)
+        agree = np.where(ins, np.maximum(0.0, 1.0 - d / tol_px), 0.0).sum(1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            fr = ins.sum(1) / nvis
+            sc = agree / nvis
+        behind = np.any(z <= 0, axis=1)
+        ok = (nvis > 0) & ~behind & (fr >= min_inside)
+        score[s:s + chunk] = np.where(ok, sc, np.nan)
+        inside_frac[s:s + chunk] = np.where(nvis > 0, fr, 0.0)
+    return score, inside_frac
+
+
+# -- full visibility, refinement, verification -------------------------------
+
+@dataclass(frozen=True)
+class CameraView:
+    """One camera's image features and its pose at the frame set's instant."""
+
+    feat: CameraFeatures
+    T_world_camera: np.ndarray
+    fixed: bool = True
+
+
+def visible_samples(T_camera_object: np.ndarray, mf: ModelFeatures, tree=None, K=None) -> tuple[np.ndarray, np.ndarray]:
+    """Dense edge samples a camera sees at a pose (culling plus self-occlusion).
+
+    Returns
+    -------
+    idx : ndarray, shape (S,), int64
+        Indices into ``mf.sample_p``.
+    bins_edge_uv : ndarray, shape (E, 2, 2)
+        Projected edge end points (for the orientation bins), px.
+    """
+    R, t = T_camera_object[None, :3, :3], T_camera_object[None, :3, 3]
+    vis_e = _edge_visible(_front(R, t, mf), mf)[0]
+    idx = np.flatnonzero(vis_e[mf.sample_edge])
+    if tree is not None and not mf.convex and idx.size:
+        cam_o = invert_transform(T_camera_object)[:3, 3]
+        A = mf.sample_p[idx]
+        seg = np.linalg.norm(cam_o - A, axis=1)
+        blocked = tree.segments_blocked(A, np.broadcast_to(cam_o, A.shape), t_lo=np.minimum(2e-4 / seg, 0.1),
+                                        t_hi=1.0, min_length=1e-9)
+        idx = idx[~blocked]
+    return idx
+
+
+def _project(K, T_camera_object, P):
+    X = P @ T_camera_object[:3, :3].T + T_camera_object[:3, 3]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return X[:, :2] / X[:, 2:3] * K[[0, 1], [0, 1]] + K[:2, 2], X[:, 2]
+
+
+def _bilinear(img2d_stack, bins, uv, outside):
+    _, H, W = img2d_stack.shape
+    u, v = uv[:, 0], uv[:, 1]
+    ok = np.isfinite(u) & np.isfinite(v) & (u >= 0) & (v >= 0) & (u <= W - 1.001) & (v <= H - 1.001)
+    u0 = np.where(ok, np.floor(u), 0).astype(np.int64)
+    v0 = np.where(ok, np.floor(v), 0).astype(np.int64)
+    fu = np.where(ok, u - u0, 0.0)
+    fv = np.where(ok, v - v0, 0.0)
+    a = img2d_stack[bins, v0, u0]
+    b = img2d_stack[bins, v0, u0 + 1]
+    c = img2d_stack[bins, v0 + 1, u0]
+    d = img2d_stack[bins, v0 + 1, u0 + 1]
+    val = (a * (1 - fu) + b * fu) * (1 - fv) + (c * (1 - fu) + d * fu) * fv
+    return np.where(ok, val, outside)
+
+
+def _camera_setup(T_world_object, view: CameraView, mf, tree):
+    T_co = invert_transform(view.T_world_camera) @ T_world_object
+    idx = visible_samples(T_co, mf, tree)
+    K = view.feat.K
+    ua, _ = _project(K, T_co, mf.edge_a)
+    ub, _ = _project(K, T_co, mf.edge_b)
+    bins = _edge_bins(ua, ub, view.feat.dt.shape[0])[mf.sample_edge[idx]]
+    return idx, bins
+
+
+def _perturbed(T0, x):
+    return transform_from_rt(T0[:3, :3] @ exp_so3(x[:3]), T0[:3, 3] + x[3:])
+
+
+def refine_pose(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFeatures, tree=None,
+                rounds: int = 3, f_scale: float = 1.5, max_nfev: int = 40) -> np.ndarray:
+    """Multi-camera least squares on the oriented edge distances.
+
+    Residual of a visible edge sample: the (bilinear) oriented distance at its
+    projection, clipped at the distance maps' range; a soft-L1 loss keeps
+    clutter and missing edges from dragging the pose. Visibility and
+    orientation bins are recomputed between rounds.
+
+    Returns
+    -------
+    ndarray, shape (4, 4)
+        Refined ``T_world_object``.
+    """
+    T = np.array(T_world_object, float)
+    for _ in range(rounds):
+        setups = []
+        for v in views:
+            idx, bins = _camera_setup(T, v, mf, tree)
+            if idx.size:
+                setups.append((v, invert_transform(v.T_world_camera), mf.sample_p[idx], bins))
+        if not setups:
+            return T
+        T0 = T
+
+        def resid(x):
+            Tx = _perturbed(T0, x)
+            out = []
+            for v, T_cw, P, bins in setups:
+                uv, z = _project(v.feat.K, T_cw @ Tx, P)
+                dmax = float(v.feat.dt.max()) if False else 20.0
+                out.append(_bilinear(v.feat.dt, bins, uv, dmax))
+            return np.concatenate(out)
+
+        sol = least_squares(resid, np.zeros(6), loss="soft_l1", f_scale=f_scale, max_nfev=max_nfev,
+                            x_scale=np.array([0.02, 0.02, 0.02, 0.005, 0.005, 0.005]), diff_step=1e-4)
+        T = _perturbed(T0, sol.x)
+        if np.linalg.norm(sol.x[:3]) < 1e-4 and np.linalg.norm(sol.x[3:]) < 1e-4:
+            break
+    return T
+
+
+@dataclass(frozen=True)
+class PoseCheck:
+    """How well a world pose explains every camera's image.
+
+    Attributes
+    ----------
+    inlier_frac : float
+        Fraction of the visible edge samples (in cameras that can judge)
+        within ``tol_px`` of an edge of matching orientation.
+    per_camera : dict[str, float]
+        Same per camera (NaN where the part is mostly outside the image).
+    n_samples : int
+        Visible samples counted.
+    supported_edges : int
+        Visible edges (projected longer than ``min_edge_px``) with at least
+        half their samples inliers.
+    visible_edges : int
+    n_cameras : int
+        Cameras that judged.
+    mean_dist : float
+        Mean clipped oriented distance of the visible samples, px.
+    unseen_fixed : int
+        Fixed cameras that cannot see the part at this pose (counted only
+        with ``require_fixed``).
+    """
+
+    inlier_frac: float
+    per_camera: dict
+    n_samples: int
+    supported_edges: int
+    visible_edges: int
+    n_cameras: int
+    mean_dist: float
+    unseen_fixed: int = 0
+
+
+def check_pose(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFeatures, tree=None,
+               tol_px: float = 2.0, min_inside: float = 0.5, min_edge_px: float = 10.0,
+               require_fixed: bool = False) -> PoseCheck:
+    """Verification statistics of a pose against all cameras (full visibility)."""
+    per, n_in, n_all, sup_e, vis_e, ncam, dsum, unseen = {}, 0, 0, 0, 0, 0, 0.0, 0
+    for v in views:
+        idx, bins = _camera_setup(T_world_object, v, mf, tree)
+        T_co = invert_transform(v.T_world_camera) @ T_world_object
+        if idx.size == 0:
+            per[v.feat.name] = float("nan")
+            unseen += int(require_fixed and v.fixed)
+            continue
+        uv, z = _project(v.feat.K, T_co, mf.sample_p[idx])
+        d = lookup_dt(v.feat.dt, bins, uv, np.inf)
+        inside = np.isfinite(d) & (z > 0)
+        if inside.mean() < min_inside:
+            per[v.feat.name] = float("nan")
+            unseen += int(require_fixed and v.fixed)
+            continue
+        dd = np.where(inside, d, v.feat.dt.max())
+        inl = dd <= tol_px
+        per[v.feat.name] = float(inl.mean())
+        n_in += int(inl.sum())
+        n_all += int(len(inl))
+        dsum += float(dd.sum())
+        ncam += 1
+        e = mf.sample_edge[idx]
+        ue, _ = _project(v.feat.K, T_co, mf.edge_a)
+        ub, _ = _project(v.feat.K, T_co, mf.edge_b)
+        elen = np.linalg.norm(ub - ue, axis=1)
+        for k in np.unique(e):
+            if elen[k] < min_edge_px:
+                continue
+            m = e == k
+            if m.sum() < 3:
+                continue
+            vis_e += 1
+            sup_e += int(inl[m].mean() >= 0.5)
+    return PoseCheck(n_in / n_all if n_all else 0.0, per, n_all, sup_e, vis_e, ncam,
+                     dsum / n_all if n_all else float("inf"), unseen)
