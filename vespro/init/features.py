@@ -57,6 +57,9 @@ class EdgeOptions:
         Fraction of the samples along a corner pair's segment that must lie
         within ``link_tol_px`` of an edge of that orientation.
     link_tol_px : float
+    drop_transitive : bool
+        Drop links bridging a corner linked to both ends (fewer paths, but a
+        stray corner on a part edge then breaks that edge's link).
     """
 
     n_bins: int = 12
@@ -71,6 +74,7 @@ class EdgeOptions:
     link_max_frac: float = 0.5
     link_support: float = 0.85
     link_tol_px: float = 1.5
+    drop_transitive: bool = False
 
 
 @dataclass(frozen=True)
@@ -91,6 +95,10 @@ class CameraFeatures:
         Corner pixels (undistorted), float64.
     links : ndarray, shape (L, 2), int64
         Corner index pairs ``i < j`` joined by an image edge.
+    link_ends : ndarray, shape (L, 2), bool
+        Whether the edge of each link ends at its first / second corner (it
+        does not run on past the corner): an object corner ends the edges
+        that meet there, a crossing of two background lines does not.
     """
 
     name: str
@@ -101,6 +109,7 @@ class CameraFeatures:
     edges: np.ndarray
     corners: np.ndarray
     links: np.ndarray
+    link_ends: np.ndarray
 
 
 class Undistorter:
@@ -204,9 +213,38 @@ def extract_features(name: str, img: np.ndarray, K: np.ndarray, opt: EdgeOptions
                                (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 20, 0.01))
         corners = pts.reshape(-1, 2).astype(np.float64)
     links = link_corners(corners, dt, opt, np.hypot(W, H))
-    for a in (dt, edges, corners, links):
+    ends = link_ends(corners, links, dt, opt)
+    for a in (dt, edges, corners, links, ends):
         a.setflags(write=False)
-    return CameraFeatures(name, np.asarray(K, float), W, H, dt, edges, corners, links)
+    return CameraFeatures(name, np.asarray(K, float), W, H, dt, edges, corners, links, ends)
+
+
+def link_ends(corners: np.ndarray, links: np.ndarray, dt: np.ndarray, opt: EdgeOptions) -> np.ndarray:
+    """Whether each link's edge stops at its corners (see ``CameraFeatures.link_ends``).
+
+    Samples the straight continuation past each end, from 2.5 px to 2.5 px +
+    a quarter of the link length (4 to 10 px); the edge runs on when most of
+    them lie on edges of the link's orientation.
+
+    Returns
+    -------
+    ndarray, shape (L, 2), bool
+    """
+    if len(links) == 0:
+        return np.zeros((0, 2), bool)
+    a, b = corners[links[:, 0]], corners[links[:, 1]]
+    d = b - a
+    L = np.hypot(d[:, 0], d[:, 1])
+    u = d / L[:, None]
+    ext = np.clip(0.25 * L, 4.0, 10.0)
+    s = 2.5 + np.linspace(0.0, 1.0, 6)[None, :] * ext[:, None]  # (L, 6)
+    bins = normal_bins(np.arctan2(d[:, 0], -d[:, 1]), dt.shape[0])
+    bb = np.broadcast_to(bins[:, None], s.shape)
+    past_a = a[:, None, :] - s[..., None] * u[:, None, :]
+    past_b = b[:, None, :] + s[..., None] * u[:, None, :]
+    on_a = np.mean(lookup_dt(dt, bb, past_a, np.inf) <= opt.link_tol_px, axis=1)
+    on_b = np.mean(lookup_dt(dt, bb, past_b, np.inf) <= opt.link_tol_px, axis=1)
+    return np.stack([on_a < 0.6, on_b < 0.6], 1)
 
 
 def link_corners(corners: np.ndarray, dt: np.ndarray, opt: EdgeOptions, diag: float) -> np.ndarray:
@@ -230,4 +268,31 @@ def link_corners(corners: np.ndarray, dt: np.ndarray, opt: EdgeOptions, diag: fl
     bins = normal_bins(np.arctan2(d[:, 0], -d[:, 1]), dt.shape[0])  # normal of (dx, dy) is (-dy, dx)
     dist = lookup_dt(dt, np.broadcast_to(bins[:, None], pts.shape[:2]), pts, np.inf)
     keep = np.mean(dist <= opt.link_tol_px, axis=1) >= opt.link_support
-    return np.stack([i[keep], j[keep]], 1).astype(np.int64)
+    links = np.stack([i[keep], j[keep]], 1).astype(np.int64)
+    return drop_transitive_links(corners, links) if opt.drop_transitive else links
+
+
+def drop_transitive_links(corners: np.ndarray, links: np.ndarray, tol_px: float = 2.0) -> np.ndarray:
+    """Drop a link i-j when a corner k between them is linked to both.
+
+    Corners strung along one long straight edge would otherwise be linked all
+    to all (quadratically many links, cubically many paths); only the links
+    between neighbours along the edge are kept.
+    """
+    n = len(corners)
+    if len(links) == 0:
+        return links
+    adj = np.zeros((n, n), bool)
+    adj[links[:, 0], links[:, 1]] = adj[links[:, 1], links[:, 0]] = True
+    keep = np.ones(len(links), bool)
+    for m, (i, j) in enumerate(links):
+        ks = np.flatnonzero(adj[i] & adj[j])
+        if ks.size == 0:
+            continue
+        d = corners[j] - corners[i]
+        L2 = d @ d
+        r = corners[ks] - corners[i]
+        t = r @ d / L2
+        perp = np.abs(r[:, 0] * d[1] - r[:, 1] * d[0]) / np.sqrt(L2)
+        keep[m] = not np.any((t > 0.02) & (t < 0.98) & (perp < tol_px))
+    return links[keep]

@@ -89,7 +89,15 @@ class InitOptions:
     min_camera_inlier_frac : float
         Least inlier fraction in every camera that sees the part.
     min_supported_edges : int
-        Least number of supported model edges (all cameras).
+        Least number of supported model edges (all cameras) when several
+        cameras judge the pose ...
+    min_supported_edges_single : int
+        ... and when only one does (one view is far easier to fit by chance:
+        a single face matches any similar quadrilateral in the background).
+    min_size_px : float
+        Least projected size of the part (bounding-box diagonal, px) in every
+        judging camera: tiny far-away fits of background texture are rejected,
+        and a part that small could not be tracked anyway.
     min_supported_edge_frac : float
         Least fraction of the visible edges that are supported.
     ambiguity_margin : float
@@ -108,15 +116,17 @@ class InitOptions:
     """
 
     edges: EdgeOptions = field(default_factory=EdgeOptions)
-    max_image_paths: int = 6000
+    max_image_paths: int = 1500
     keep_after_sparse: int = 3000
     keep_per_camera: int = 60
     n_refine: int = 6
     rank_tol_px: float = 3.0
     verify_tol_px: float = 2.0
-    min_inlier_frac: float = 0.8
-    min_camera_inlier_frac: float = 0.65
-    min_supported_edges: int = 5
+    min_inlier_frac: float = 0.7
+    min_camera_inlier_frac: float = 0.55
+    min_supported_edges: int = 6
+    min_supported_edges_single: int = 8
+    min_size_px: float = 40.0
     min_supported_edge_frac: float = 0.6
     ambiguity_margin: float = 0.05
     distinct_frac: float = 0.1
@@ -144,8 +154,11 @@ class InitReport:
 
     Attributes
     ----------
-    compute_s : float
-        Processing time of the call (CPU wall time of this thread), s.
+    wall_s : float
+        Wall time of the call, s.
+    cpu_s : float
+        CPU time of the calling thread, s (what the work costs on an idle
+        core; the wall time includes waiting for a busy machine).
     mode : str
         ``"seed"`` (accepted near the seed), ``"search"``, or ``"none"``.
     n_hypotheses : int
@@ -162,7 +175,8 @@ class InitReport:
         (diagnostics).
     """
 
-    compute_s: float
+    wall_s: float
+    cpu_s: float
     mode: str
     n_hypotheses: int
     accepted: bool
@@ -212,8 +226,11 @@ def _accept(chk, opt: InitOptions) -> tuple[bool, str]:
     worst = min((v for v in chk.per_camera.values() if np.isfinite(v)), default=0.0)
     if worst < opt.min_camera_inlier_frac:
         return False, f"a camera disagrees (inlier fraction {worst:.2f})"
-    if chk.supported_edges < opt.min_supported_edges:
-        return False, f"{chk.supported_edges} supported edges < {opt.min_supported_edges}"
+    need = opt.min_supported_edges if chk.n_cameras > 1 else opt.min_supported_edges_single
+    if chk.supported_edges < need:
+        return False, f"{chk.supported_edges} supported edges < {need}"
+    if chk.min_size_px < opt.min_size_px:
+        return False, f"projected size {chk.min_size_px:.0f} px < {opt.min_size_px}"
     if chk.supported_edges < opt.min_supported_edge_frac * chk.visible_edges:
         return False, f"{chk.supported_edges}/{chk.visible_edges} edges supported"
     return True, ""
@@ -250,16 +267,17 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
     report : InitReport
     """
     t0 = time.perf_counter()
+    c0 = time.thread_time()
     opt = setup.options
     mf = setup.mf
     rng = rng if rng is not None else np.random.default_rng(0)
     views = _views(setup, frameset)
     if not views:
-        return None, InitReport(time.perf_counter() - t0, "none", 0, False, reason="no images")
+        return None, InitReport(time.perf_counter() - t0, time.thread_time() - c0, "none", 0, False, reason="no images")
 
     def finish(T, chk, mode, nh):
         return InitResult(T_world_object=T), InitReport(
-            time.perf_counter() - t0, mode, nh, True, chk.inlier_frac, chk.per_camera, chk.supported_edges,
+            time.perf_counter() - t0, time.thread_time() - c0, mode, nh, True, chk.inlier_frac, chk.per_camera, chk.supported_edges,
             chk.visible_edges)
 
     # Seeded: refine from the prediction and a few perturbations of it.
@@ -278,7 +296,7 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
             if _accept(chk, opt)[0]:
                 return finish(Tr, chk, "seed", len(starts))
         if opt.seed_only:
-            return None, InitReport(time.perf_counter() - t0, "none", len(starts), False, best[1].inlier_frac,
+            return None, InitReport(time.perf_counter() - t0, time.thread_time() - c0, "none", len(starts), False, best[1].inlier_frac,
                                     best[1].per_camera, reason="seed: " + _accept(best[1], opt)[1])
 
     # Full search: P3P hypotheses per camera, ranked in that camera.
@@ -301,7 +319,7 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
         for k in top:
             cand.append(v.T_world_camera @ transform_from_rt(R[k], t[k]))
     if not cand:
-        return None, InitReport(time.perf_counter() - t0, "none", nh, False, reason="no hypotheses")
+        return None, InitReport(time.perf_counter() - t0, time.thread_time() - c0, "none", nh, False, reason="no hypotheses")
     cand = np.asarray(cand)
 
     # Re-rank in every camera: mean agreement over the cameras that can judge.
@@ -332,17 +350,18 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
             continue
         chk = check_pose(Tr, views, mf, setup.tree, opt.verify_tol_px, require_fixed=opt.require_fixed_view)
         refined.append((Tr, chk))
-    refined.sort(key=lambda r: -r[1].inlier_frac)
+    # Candidates that pass every check first, then by agreement.
+    refined.sort(key=lambda r: (not _accept(r[1], opt)[0], -r[1].inlier_frac))
     T_best, chk = refined[0]
     ok, why = _accept(chk, opt)
     if ok:
         for T2, c2 in refined[1:]:
-            if c2.inlier_frac >= chk.inlier_frac - opt.ambiguity_margin and \
+            if _accept(c2, opt)[0] and c2.inlier_frac >= chk.inlier_frac - opt.ambiguity_margin and \
                     _adds(mf, T_best, T2) > opt.distinct_frac * mf.diameter:
                 ok, why = False, f"ambiguous: another pose scores {c2.inlier_frac:.2f} vs {chk.inlier_frac:.2f}"
                 break
     if not ok:
-        return None, InitReport(time.perf_counter() - t0, "none", nh, False, chk.inlier_frac, chk.per_camera,
+        return None, InitReport(time.perf_counter() - t0, time.thread_time() - c0, "none", nh, False, chk.inlier_frac, chk.per_camera,
                                 chk.supported_edges, chk.visible_edges, why, tuple(refined))
     res, rep = finish(T_best, chk, "search", nh)
     return res, replace(rep, candidates=tuple(refined))

@@ -13,7 +13,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import least_squares
 
 from ..se3 import exp_so3, invert_transform, transform_from_rt
 from .features import CameraFeatures, lookup_dt, normal_bins
@@ -27,7 +26,7 @@ __all__ = ["image_paths", "p3p_hypotheses", "rank_in_camera", "CameraView", "vis
 # -- hypothesis generation ---------------------------------------------------
 
 def image_paths(feat: CameraFeatures, min_angle_deg: float = 15.0, max_paths: int = 20000) -> np.ndarray:
-    """Image corner paths ``(a, b, c)``: corners a and c both linked to b.
+    """Image corner paths ``(a, b, c)``: corners a and c linked to b by edges ending at b.
 
     Each unordered pair {a, c} appears once (the model paths hold both orders).
     Paths with nearly straight or folded angles at b are dropped; when there
@@ -42,7 +41,8 @@ def image_paths(feat: CameraFeatures, min_angle_deg: float = 15.0, max_paths: in
     if len(links) == 0:
         return np.zeros((0, 3), np.int64)
     c = feat.corners
-    both = np.concatenate([links, links[:, ::-1]])  # (b, other)
+    # (b, other) for every link whose edge ends at b.
+    both = np.concatenate([links[feat.link_ends[:, 0]], links[feat.link_ends[:, 1]][:, ::-1]])
     order = np.argsort(both[:, 0], kind="stable")
     both = both[order]
     starts = np.searchsorted(both[:, 0], np.arange(len(c) + 1))
@@ -211,7 +211,8 @@ def _project(K, T_camera_object, P):
         return X[:, :2] / X[:, 2:3] * K[[0, 1], [0, 1]] + K[:2, 2], X[:, 2]
 
 
-def _bilinear(img2d_stack, bins, uv, outside):
+def _bilinear(img2d_stack, bins, uv, outside, grad=False):
+    """Bilinear lookup in ``img2d_stack[bins]`` at ``uv``; optionally its (d/du, d/dv)."""
     _, H, W = img2d_stack.shape
     u, v = uv[:, 0], uv[:, 1]
     ok = np.isfinite(u) & np.isfinite(v) & (u >= 0) & (v >= 0) & (u <= W - 1.001) & (v <= H - 1.001)
@@ -223,8 +224,12 @@ def _bilinear(img2d_stack, bins, uv, outside):
     b = img2d_stack[bins, v0, u0 + 1]
     c = img2d_stack[bins, v0 + 1, u0]
     d = img2d_stack[bins, v0 + 1, u0 + 1]
-    val = (a * (1 - fu) + b * fu) * (1 - fv) + (c * (1 - fu) + d * fu) * fv
-    return np.where(ok, val, outside)
+    val = np.where(ok, (a * (1 - fu) + b * fu) * (1 - fv) + (c * (1 - fu) + d * fu) * fv, outside)
+    if not grad:
+        return val
+    gu = np.where(ok, (b - a) * (1 - fv) + (d - c) * fv, 0.0)
+    gv = np.where(ok, (c - a) * (1 - fu) + (d - b) * fu, 0.0)
+    return val, gu, gv
 
 
 def _camera_setup(T_world_object, view: CameraView, mf, tree):
@@ -242,13 +247,15 @@ def _perturbed(T0, x):
 
 
 def refine_pose(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFeatures, tree=None,
-                rounds: int = 3, f_scale: float = 1.5, max_nfev: int = 40) -> np.ndarray:
+                rounds: int = 3, f_scale: float = 1.5, max_nfev: int = 20, dmax: float = 20.0) -> np.ndarray:
     """Multi-camera least squares on the oriented edge distances.
 
     Residual of a visible edge sample: the (bilinear) oriented distance at its
     projection, clipped at the distance maps' range; a soft-L1 loss keeps
-    clutter and missing edges from dragging the pose. Visibility and
-    orientation bins are recomputed between rounds.
+    clutter and missing edges from dragging the pose. The pose is perturbed as
+    ``R = R0 Exp(w)``, ``p = p0 + dp`` (``x = [w, dp]``); the Jacobian is
+    analytic (the distance map's bilinear slope through the pinhole).
+    Visibility and orientation bins are recomputed between rounds.
 
     Returns
     -------
@@ -266,19 +273,68 @@ def refine_pose(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFe
             return T
         T0 = T
 
-        def resid(x):
+        def resid_jac(x, want_jac):
             Tx = _perturbed(T0, x)
-            out = []
+            rs, js = [], []
+            Rwo = Tx[:3, :3]
             for v, T_cw, P, bins in setups:
-                uv, z = _project(v.feat.K, T_cw @ Tx, P)
-                dmax = float(v.feat.dt.max()) if False else 20.0
-                out.append(_bilinear(v.feat.dt, bins, uv, dmax))
-            return np.concatenate(out)
+                K = v.feat.K
+                T_co = T_cw @ Tx
+                X = P @ T_co[:3, :3].T + T_co[:3, 3]
+                z = X[:, 2]
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    uv = X[:, :2] / z[:, None] * K[[0, 1], [0, 1]] + K[:2, 2]
+                uv[z <= 1e-6] = np.nan
+                if not want_jac:
+                    rs.append(_bilinear(v.feat.dt, bins, uv, dmax))
+                    continue
+                r, gu, gv = _bilinear(v.feat.dt, bins, uv, dmax, grad=True)
+                rs.append(r)
+                zz = np.where(z > 1e-6, z, 1.0)
+                # d(u,v)/dX_c
+                du = np.stack([K[0, 0] / zz, np.zeros_like(zz), -K[0, 0] * X[:, 0] / zz ** 2], 1)
+                dv = np.stack([np.zeros_like(zz), K[1, 1] / zz, -K[1, 1] * X[:, 1] / zz ** 2], 1)
+                g_c = gu[:, None] * du + gv[:, None] * dv  # dr/dX_c, (S, 3)
+                g_w = g_c @ T_cw[:3, :3]  # dr/dX_w
+                # X_w = R0 Exp(w) p + p0 + dp: dX_w/dw = -R [p]x, dX_w/ddp = I
+                Rp = P @ Rwo.T  # R p (rotation only)
+                j_w = np.cross(Rp, g_w)  # g^T (-[Rp]x) = (Rp x g)^T ... in world-rotation form
+                js.append(np.concatenate([j_w @ Rwo, g_w], 1))
+            if want_jac:
+                return np.concatenate(js)
+            return np.concatenate(rs)
 
-        sol = least_squares(resid, np.zeros(6), loss="soft_l1", f_scale=f_scale, max_nfev=max_nfev,
-                            x_scale=np.array([0.02, 0.02, 0.02, 0.005, 0.005, 0.005]), diff_step=1e-4)
-        T = _perturbed(T0, sol.x)
-        if np.linalg.norm(sol.x[:3]) < 1e-4 and np.linalg.norm(sol.x[3:]) < 1e-4:
+        # Gauss-Newton with Huber weights (IRLS), Levenberg damping.
+        x = np.zeros(6)
+        lam = 1e-3
+        r = resid_jac(x, False)
+
+        def cost(r):
+            a = np.abs(r)
+            return float(np.sum(np.where(a <= f_scale, 0.5 * a * a, f_scale * (a - 0.5 * f_scale))))
+
+        c = cost(r)
+        for _ in range(max_nfev):
+            J = resid_jac(x, True)
+            w = np.where(np.abs(r) <= f_scale, 1.0, f_scale / np.maximum(np.abs(r), 1e-12))
+            JW = J * w[:, None]
+            A = JW.T @ J
+            g = JW.T @ r
+            step = np.linalg.solve(A + lam * np.diag(np.diag(A) + 1e-9), -g)
+            xn = x + step
+            rn = resid_jac(xn, False)
+            cn = cost(rn)
+            if cn < c:
+                x, r, c = xn, rn, cn
+                lam = max(lam * 0.3, 1e-6)
+                if np.linalg.norm(step[:3]) < 1e-5 and np.linalg.norm(step[3:]) < 1e-6:
+                    break
+            else:
+                lam *= 10.0
+                if lam > 1e4:
+                    break
+        T = _perturbed(T0, x)
+        if np.linalg.norm(x[:3]) < 1e-4 and np.linalg.norm(x[3:]) < 1e-4:
             break
     return T
 
@@ -307,6 +363,9 @@ class PoseCheck:
     unseen_fixed : int
         Fixed cameras that cannot see the part at this pose (counted only
         with ``require_fixed``).
+    min_size_px : float
+        Smallest projected size (bounding-box diagonal of the edge samples)
+        over the judging cameras, px.
     """
 
     inlier_frac: float
@@ -317,6 +376,7 @@ class PoseCheck:
     n_cameras: int
     mean_dist: float
     unseen_fixed: int = 0
+    min_size_px: float = 0.0
 
 
 def check_pose(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFeatures, tree=None,
@@ -324,6 +384,7 @@ def check_pose(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFea
                require_fixed: bool = False) -> PoseCheck:
     """Verification statistics of a pose against all cameras (full visibility)."""
     per, n_in, n_all, sup_e, vis_e, ncam, dsum, unseen = {}, 0, 0, 0, 0, 0, 0.0, 0
+    size = np.inf
     for v in views:
         idx, bins = _camera_setup(T_world_object, v, mf, tree)
         T_co = invert_transform(v.T_world_camera) @ T_world_object
@@ -339,6 +400,7 @@ def check_pose(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFea
             unseen += int(require_fixed and v.fixed)
             continue
         dd = np.where(inside, d, v.feat.dt.max())
+        size = min(size, float(np.linalg.norm(np.nanmax(uv, 0) - np.nanmin(uv, 0))))
         inl = dd <= tol_px
         per[v.feat.name] = float(inl.mean())
         n_in += int(inl.sum())
@@ -358,4 +420,4 @@ def check_pose(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFea
             vis_e += 1
             sup_e += int(inl[m].mean() >= 0.5)
     return PoseCheck(n_in / n_all if n_all else 0.0, per, n_all, sup_e, vis_e, ncam,
-                     dsum / n_all if n_all else float("inf"), unseen)
+                     dsum / n_all if n_all else float("inf"), unseen, size if np.isfinite(size) else 0.0)
