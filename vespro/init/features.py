@@ -95,6 +95,9 @@ class CameraFeatures:
         Corner pixels (undistorted), float64.
     links : ndarray, shape (L, 2), int64
         Corner index pairs ``i < j`` joined by an image edge.
+    grad : ndarray, shape (2, H, W), float32
+        Image gradient (d/du, d/dv) of the strongest channel (Sobel 3x3 of
+        the smoothed image), for sub-pixel edge search.
     link_ends : ndarray, shape (L, 2), bool
         Whether the edge of each link ends at its first / second corner (it
         does not run on past the corner): an object corner ends the edges
@@ -110,6 +113,7 @@ class CameraFeatures:
     corners: np.ndarray
     links: np.ndarray
     link_ends: np.ndarray
+    grad: np.ndarray
 
 
 class Undistorter:
@@ -214,9 +218,10 @@ def extract_features(name: str, img: np.ndarray, K: np.ndarray, opt: EdgeOptions
         corners = pts.reshape(-1, 2).astype(np.float64)
     links = link_corners(corners, dt, opt, np.hypot(W, H))
     ends = link_ends(corners, links, dt, opt)
-    for a in (dt, edges, corners, links, ends):
+    grad = np.stack([dx, dy]).astype(np.float32)
+    for a in (dt, edges, corners, links, ends, grad):
         a.setflags(write=False)
-    return CameraFeatures(name, np.asarray(K, float), W, H, dt, edges, corners, links, ends)
+    return CameraFeatures(name, np.asarray(K, float), W, H, dt, edges, corners, links, ends, grad)
 
 
 def link_ends(corners: np.ndarray, links: np.ndarray, dt: np.ndarray, opt: EdgeOptions) -> np.ndarray:

@@ -41,7 +41,8 @@ from ..rig import Rig
 from ..se3 import exp_so3, invert_transform, transform_from_rt
 from .features import EdgeOptions, Undistorter, extract_features
 from .modelfeat import ModelFeatures, model_features
-from .search import (CameraView, check_pose, image_paths, p3p_hypotheses, rank_in_camera, refine_pose)
+from .search import (CameraView, check_pose, image_paths, p3p_hypotheses, rank_in_camera, refine_pose,
+                     refine_subpixel)
 
 try:  # the tracker imports modules from other branches; fall back to an equal type
     from ..tracker import InitResult
@@ -134,6 +135,7 @@ class InitOptions:
     seed_perturb_m: float = 0.01
     seed_only: bool = False
     require_fixed_view: bool = True
+    subpixel: bool = True
 
 
 @dataclass(frozen=True)
@@ -290,6 +292,8 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
         best = None
         for T in starts:
             Tr = refine_pose(T, views, mf, setup.tree)
+            if opt.subpixel:
+                Tr = refine_subpixel(Tr, views, mf, setup.tree)
             chk = check_pose(Tr, views, mf, setup.tree, opt.verify_tol_px, require_fixed=opt.require_fixed_view)
             if best is None or chk.inlier_frac > best[1].inlier_frac:
                 best = (Tr, chk)
@@ -346,6 +350,8 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
             continue
         tried.append(cand[k])
         Tr = refine_pose(cand[k], views, mf, setup.tree)
+        if opt.subpixel:
+            Tr = refine_subpixel(Tr, views, mf, setup.tree)
         if any(_adds(mf, Tr, T) < 0.02 * mf.diameter for T, _ in refined):
             continue
         chk = check_pose(Tr, views, mf, setup.tree, opt.verify_tol_px, require_fixed=opt.require_fixed_view)
