@@ -95,6 +95,9 @@ class InitOptions:
     min_supported_edges_single : int
         ... and when only one does (one view is far easier to fit by chance:
         a single face matches any similar quadrilateral in the background).
+    max_mean_dist_single : float
+        With one judging camera, the most mean oriented edge distance of the
+        visible samples (unsupported samples count at the clip value), px.
     min_size_px : float
         Least projected size of the part (bounding-box diagonal, px) in every
         judging camera: tiny far-away fits of background texture are rejected,
@@ -126,8 +129,9 @@ class InitOptions:
     min_inlier_frac: float = 0.7
     min_camera_inlier_frac: float = 0.55
     min_supported_edges: int = 6
-    min_supported_edges_single: int = 8
+    min_supported_edges_single: int = 7
     min_size_px: float = 40.0
+    max_mean_dist_single: float = 1.6
     min_supported_edge_frac: float = 0.6
     ambiguity_margin: float = 0.05
     distinct_frac: float = 0.1
@@ -228,6 +232,8 @@ def _accept(chk, opt: InitOptions) -> tuple[bool, str]:
     worst = min((v for v in chk.per_camera.values() if np.isfinite(v)), default=0.0)
     if worst < opt.min_camera_inlier_frac:
         return False, f"a camera disagrees (inlier fraction {worst:.2f})"
+    if chk.n_cameras == 1 and chk.mean_dist > opt.max_mean_dist_single:
+        return False, f"one camera, mean edge distance {chk.mean_dist:.2f} px > {opt.max_mean_dist_single}"
     need = opt.min_supported_edges if chk.n_cameras > 1 else opt.min_supported_edges_single
     if chk.supported_edges < need:
         return False, f"{chk.supported_edges} supported edges < {need}"
@@ -356,8 +362,10 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
             continue
         chk = check_pose(Tr, views, mf, setup.tree, opt.verify_tol_px, require_fixed=opt.require_fixed_view)
         refined.append((Tr, chk))
-    # Candidates that pass every check first, then by agreement.
-    refined.sort(key=lambda r: (not _accept(r[1], opt)[0], -r[1].inlier_frac))
+    # Candidates that pass every check first, then by the image edge length
+    # they explain (a smaller, farther copy fitted to part of the part
+    # explains less), then by agreement.
+    refined.sort(key=lambda r: (not _accept(r[1], opt)[0], -r[1].inlier_px, -r[1].inlier_frac))
     T_best, chk = refined[0]
     ok, why = _accept(chk, opt)
     if ok:

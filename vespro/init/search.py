@@ -389,7 +389,8 @@ def refine_subpixel(T_world_object: np.ndarray, views: list[CameraView], mf: Mod
             kk = np.clip(k, 1, O - 2)
             gm, g0, gp = g[np.arange(S), kk - 1], g[np.arange(S), kk], g[np.arange(S), kk + 1]
             den = gm - 2 * g0 + gp
-            frac = np.where(np.abs(den) > 1e-9, 0.5 * (gm - gp) / den, 0.0)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                frac = np.where(np.abs(den) > 1e-9, 0.5 * (gm - gp) / den, 0.0)
             sstar = offs[kk] + np.clip(frac, -0.5, 0.5) * 0.5
             if not ok.any():
                 continue
@@ -444,6 +445,10 @@ class PoseCheck:
     min_size_px : float
         Smallest projected size (bounding-box diagonal of the edge samples)
         over the judging cameras, px.
+    inlier_px : float
+        Projected length of model edge explained by image edges, summed over
+        cameras, px (a fit of part of the image by a smaller, farther copy
+        explains less).
     """
 
     inlier_frac: float
@@ -455,6 +460,7 @@ class PoseCheck:
     mean_dist: float
     unseen_fixed: int = 0
     min_size_px: float = 0.0
+    inlier_px: float = 0.0
 
 
 def check_pose(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFeatures, tree=None,
@@ -463,6 +469,8 @@ def check_pose(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFea
     """Verification statistics of a pose against all cameras (full visibility)."""
     per, n_in, n_all, sup_e, vis_e, ncam, dsum, unseen = {}, 0, 0, 0, 0, 0, 0.0, 0
     size = np.inf
+    inl_px = 0.0
+    per_edge = np.bincount(mf.sample_edge, minlength=len(mf.edge_a))
     for v in views:
         idx, bins = _camera_setup(T_world_object, v, mf, tree)
         T_co = invert_transform(v.T_world_camera) @ T_world_object
@@ -489,6 +497,7 @@ def check_pose(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFea
         ue, _ = _project(v.feat.K, T_co, mf.edge_a)
         ub, _ = _project(v.feat.K, T_co, mf.edge_b)
         elen = np.linalg.norm(ub - ue, axis=1)
+        inl_px += float(np.sum((elen[e] / np.maximum(per_edge[e], 1))[inl]))
         for k in np.unique(e):
             if elen[k] < min_edge_px:
                 continue
@@ -498,4 +507,5 @@ def check_pose(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFea
             vis_e += 1
             sup_e += int(inl[m].mean() >= 0.5)
     return PoseCheck(n_in / n_all if n_all else 0.0, per, n_all, sup_e, vis_e, ncam,
-                     dsum / n_all if n_all else float("inf"), unseen, size if np.isfinite(size) else 0.0)
+                     dsum / n_all if n_all else float("inf"), unseen, size if np.isfinite(size) else 0.0,
+                     inl_px)
