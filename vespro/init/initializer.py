@@ -98,6 +98,9 @@ class InitOptions:
     max_mean_dist_single : float
         With one judging camera, the most mean oriented edge distance of the
         visible samples (unsupported samples count at the clip value), px.
+    min_open_faces_single : int
+        With one judging camera, the least number of large faces seen
+        within 75 degrees of their normal (rejects accidental viewpoints).
     min_size_px : float
         Least projected size of the part (bounding-box diagonal, px) in every
         judging camera: tiny far-away fits of background texture are rejected,
@@ -121,7 +124,7 @@ class InitOptions:
 
     edges: EdgeOptions = field(default_factory=EdgeOptions)
     max_image_paths: int = 1500
-    keep_after_sparse: int = 3000
+    keep_after_sparse: int = 2000
     keep_per_camera: int = 60
     n_refine: int = 6
     rank_tol_px: float = 3.0
@@ -131,7 +134,9 @@ class InitOptions:
     min_supported_edges: int = 6
     min_supported_edges_single: int = 7
     min_size_px: float = 40.0
+    min_size_px_single: float = 60.0
     max_mean_dist_single: float = 1.6
+    min_open_faces_single: int = 2
     min_supported_edge_frac: float = 0.6
     ambiguity_margin: float = 0.05
     distinct_frac: float = 0.1
@@ -232,13 +237,16 @@ def _accept(chk, opt: InitOptions) -> tuple[bool, str]:
     worst = min((v for v in chk.per_camera.values() if np.isfinite(v)), default=0.0)
     if worst < opt.min_camera_inlier_frac:
         return False, f"a camera disagrees (inlier fraction {worst:.2f})"
+    if chk.n_cameras == 1 and chk.open_faces < opt.min_open_faces_single:
+        return False, f"one camera, accidental view ({chk.open_faces} faces seen openly)"
     if chk.n_cameras == 1 and chk.mean_dist > opt.max_mean_dist_single:
         return False, f"one camera, mean edge distance {chk.mean_dist:.2f} px > {opt.max_mean_dist_single}"
     need = opt.min_supported_edges if chk.n_cameras > 1 else opt.min_supported_edges_single
     if chk.supported_edges < need:
         return False, f"{chk.supported_edges} supported edges < {need}"
-    if chk.min_size_px < opt.min_size_px:
-        return False, f"projected size {chk.min_size_px:.0f} px < {opt.min_size_px}"
+    min_size = opt.min_size_px if chk.n_cameras > 1 else opt.min_size_px_single
+    if chk.min_size_px < min_size:
+        return False, f"projected size {chk.min_size_px:.0f} px < {min_size}"
     if chk.supported_edges < opt.min_supported_edge_frac * chk.visible_edges:
         return False, f"{chk.supported_edges}/{chk.visible_edges} edges supported"
     return True, ""

@@ -39,12 +39,14 @@ class ModelFeatures:
     coarse : ndarray, shape (Sc,), int64
         Indices into the dense samples: a sparser subset for ranking.
     sparse : ndarray, shape (Ss,), int64
-        Three samples on each long edge (the path edges): the first, cheapest
+        Two samples on each long edge (the path edges): the first, cheapest
         ranking pass.
     paths : ndarray, shape (Np, 3), int64
         Vertex indices ``(A, B, C)``; edges A-B and B-C are sharp model edges.
     face_normals : ndarray, shape (F, 3)
     face_offsets : ndarray, shape (F,)
+    face_centroids : ndarray, shape (F, 3)
+    face_areas : ndarray, shape (F,)
     convex : bool
     diameter : float
     """
@@ -61,6 +63,8 @@ class ModelFeatures:
     paths: np.ndarray
     face_normals: np.ndarray
     face_offsets: np.ndarray
+    face_centroids: np.ndarray
+    face_areas: np.ndarray
     convex: bool
     diameter: float
 
@@ -112,7 +116,7 @@ def model_features(model: Model, dense_spacing_frac: float = 1 / 60, coarse_spac
     sparse = []
     for e in long_e:
         idx = np.flatnonzero(se == e)
-        sparse.extend(idx[np.unique(np.rint(np.array([0.2, 0.5, 0.8]) * (len(idx) - 1)).astype(int))])
+        sparse.extend(idx[np.unique(np.rint(np.array([0.3, 0.7]) * (len(idx) - 1)).astype(int))])
     sparse = np.asarray(sorted(sparse), np.int64)
     nbr: dict[int, list[int]] = {}
     for e in long_e:
@@ -137,8 +141,15 @@ def model_features(model: Model, dense_spacing_frac: float = 1 / 60, coarse_spac
         convex = bool(model.volume >= hull_vol * (1 - 1e-6))
     except Exception:
         convex = False
+    tri_c = V[model.triangles].mean(1)
+    tri_a = 0.5 * np.linalg.norm(np.cross(V[model.triangles[:, 1]] - V[model.triangles[:, 0]],
+                                          V[model.triangles[:, 2]] - V[model.triangles[:, 0]]), axis=1)
+    nf = len(model.faces)
+    fa = np.bincount(model.triangle_face, weights=tri_a, minlength=nf)
+    fc = np.stack([np.bincount(model.triangle_face, weights=tri_a * tri_c[:, k], minlength=nf) for k in range(3)], 1)
+    fc /= fa[:, None]
     out = ModelFeatures(A, B, L, model.edge_faces, model.edge_convex, sp, se, coarse, sparse, paths,
-                        model.face_normals, model.face_offsets, convex, float(diam))
+                        model.face_normals, model.face_offsets, fc, fa, convex, float(diam))
     for f in ("edge_a", "edge_b", "edge_len", "sample_p", "sample_edge", "coarse", "sparse", "paths"):
         getattr(out, f).setflags(write=False)
     return out

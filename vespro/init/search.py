@@ -143,11 +143,23 @@ def rank_in_camera(R: np.ndarray, t: np.ndarray, feat: CameraFeatures, mf: Model
     f = np.array([feat.K[0, 0], feat.K[1, 1]], np.float32)
     c = feat.K[:2, 2].astype(np.float32)
     nb = feat.dt.shape[0]
+    # Faces and edges the samples need; front-facing test n.(R^T t) + d < 0.
+    ef = mf.edge_faces[used_e]
+    faces_u, ef_l = np.unique(ef, return_inverse=True)
+    ef_l = ef_l.reshape(-1, 2)
+    n_f = mf.face_normals[faces_u].astype(np.float32)
+    d_f = mf.face_offsets[faces_u].astype(np.float32)
+    convex_u = mf.edge_convex[used_e]
+    H_img, W_img = feat.dt.shape[1:]
+    dt_flat = feat.dt.reshape(-1)
     for s in range(0, H, chunk):
         Rc = R[s:s + chunk].astype(np.float32)
         tc = t[s:s + chunk].astype(np.float32)
         RT = Rc.transpose(0, 2, 1)
-        vis_e = _edge_visible(_front(Rc, tc, mf), mf)[:, used_e]
+        w = np.matmul(RT, tc[:, :, None])[..., 0]  # R^T t, (h, 3)
+        front = (w @ n_f.T + d_f) < 0
+        f0, f1 = front[:, ef_l[:, 0]], front[:, ef_l[:, 1]]
+        vis_e = np.where(convex_u, f0 | f1, f0 & f1)
         Xe = np.matmul(ends[None], RT) + tc[:, None]
         with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
             ue = Xe[..., :2] / Xe[..., 2:3] * f + c
@@ -156,9 +168,14 @@ def rank_in_camera(R: np.ndarray, t: np.ndarray, feat: CameraFeatures, mf: Model
         z = X[..., 2]
         with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
             uv = X[..., :2] / z[..., None] * f + c
+            ui = np.rint(uv[..., 0])
+            vi = np.rint(uv[..., 1])
         vis = vis_e[:, se_l]
-        d = lookup_dt(feat.dt, bins[:, se_l], uv, np.inf)
-        ins = np.isfinite(d) & vis
+        inside = (ui >= 0) & (ui <= W_img - 1) & (vi >= 0) & (vi <= H_img - 1) & (z > 0)
+        flat = (bins[:, se_l].astype(np.int32) * H_img + np.where(inside, vi, 0).astype(np.int32)) * W_img \
+            + np.where(inside, ui, 0).astype(np.int32)
+        d = dt_flat[flat]
+        ins = inside & vis
         nvis = vis.sum(1)
         agree = np.where(ins, np.maximum(0.0, 1.0 - d / tol_px), 0.0).sum(1)
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -449,6 +466,11 @@ class PoseCheck:
         Projected length of model edge explained by image edges, summed over
         cameras, px (a fit of part of the image by a smaller, farther copy
         explains less).
+    open_faces : int
+        Least number, over the judging cameras, of faces (of at least 5% of
+        the part's area) seen within ``open_face_deg`` of their normal: a view
+        along a face (an accidental viewpoint) collapses it to a line and
+        lets a part match flat clutter.
     """
 
     inlier_frac: float
@@ -461,16 +483,20 @@ class PoseCheck:
     unseen_fixed: int = 0
     min_size_px: float = 0.0
     inlier_px: float = 0.0
+    open_faces: int = 0
 
 
 def check_pose(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFeatures, tree=None,
                tol_px: float = 2.0, min_inside: float = 0.5, min_edge_px: float = 10.0,
-               require_fixed: bool = False) -> PoseCheck:
+               require_fixed: bool = False, open_face_deg: float = 75.0) -> PoseCheck:
     """Verification statistics of a pose against all cameras (full visibility)."""
     per, n_in, n_all, sup_e, vis_e, ncam, dsum, unseen = {}, 0, 0, 0, 0, 0, 0.0, 0
     size = np.inf
     inl_px = 0.0
     per_edge = np.bincount(mf.sample_edge, minlength=len(mf.edge_a))
+    open_min = 10 ** 9
+    big = mf.face_areas >= 0.05 * mf.face_areas.sum()
+    cos_open = np.cos(np.deg2rad(open_face_deg))
     for v in views:
         idx, bins = _camera_setup(T_world_object, v, mf, tree)
         T_co = invert_transform(v.T_world_camera) @ T_world_object
@@ -493,6 +519,10 @@ def check_pose(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFea
         n_all += int(len(inl))
         dsum += float(dd.sum())
         ncam += 1
+        Xf = mf.face_centroids @ T_co[:3, :3].T + T_co[:3, 3]
+        nc = mf.face_normals @ T_co[:3, :3].T
+        cosv = -np.sum(nc * Xf, 1) / np.linalg.norm(Xf, axis=1)
+        open_min = min(open_min, int(np.sum(big & (cosv >= cos_open))))
         e = mf.sample_edge[idx]
         ue, _ = _project(v.feat.K, T_co, mf.edge_a)
         ub, _ = _project(v.feat.K, T_co, mf.edge_b)
@@ -508,4 +538,4 @@ def check_pose(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFea
             sup_e += int(inl[m].mean() >= 0.5)
     return PoseCheck(n_in / n_all if n_all else 0.0, per, n_all, sup_e, vis_e, ncam,
                      dsum / n_all if n_all else float("inf"), unseen, size if np.isfinite(size) else 0.0,
-                     inl_px)
+                     inl_px, open_min if ncam else 0)
