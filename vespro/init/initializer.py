@@ -88,7 +88,9 @@ class InitOptions:
     min_inlier_frac : float
         Least pooled inlier fraction of an accepted pose.
     min_camera_inlier_frac : float
-        Least inlier fraction in every camera that sees the part.
+        Least inlier fraction in every camera that sees the part (low: a
+        dark side of the part on a dark background has no edges to find, and
+        a wrong pose fitted in one camera scores ~0.3 or less in the others).
     min_supported_edges : int
         Least number of supported model edges (all cameras) when several
         cameras judge the pose ...
@@ -130,7 +132,7 @@ class InitOptions:
     rank_tol_px: float = 3.0
     verify_tol_px: float = 2.0
     min_inlier_frac: float = 0.7
-    min_camera_inlier_frac: float = 0.55
+    min_camera_inlier_frac: float = 0.4
     min_supported_edges: int = 6
     min_supported_edges_single: int = 7
     min_size_px: float = 40.0
