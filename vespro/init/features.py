@@ -75,8 +75,8 @@ class EdgeOptions:
     dt_max: float = 20.0
     max_corners: int = 360
     corner_tile_px: float = 160.0
-    corner_blur_sigma: float = 1.0
-    corner_block: int = 5
+    corner_blur_sigma: float = 0.6
+    corner_block: int = 3
     corner_quality: float = 0.005
     corner_min_distance: float = 4.0
     link_min_px: float = 6.0

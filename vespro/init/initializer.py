@@ -100,6 +100,9 @@ class InitOptions:
     max_mean_dist_single : float
         With one judging camera, the most mean oriented edge distance of the
         visible samples (unsupported samples count at the clip value), px.
+    max_overrun_frac, max_overrun_frac_single : float
+        Most fraction of supported model edge ends past which the image edge
+        runs straight on (several cameras / one camera).
     min_open_faces_single : int
         With one judging camera, the least number of large faces seen
         within 75 degrees of their normal (rejects accidental viewpoints).
@@ -139,6 +142,8 @@ class InitOptions:
     min_size_px_single: float = 60.0
     max_mean_dist_single: float = 1.6
     min_open_faces_single: int = 2
+    max_overrun_frac: float = 0.5
+    max_overrun_frac_single: float = 0.35
     min_supported_edge_frac: float = 0.6
     ambiguity_margin: float = 0.05
     distinct_frac: float = 0.1
@@ -239,6 +244,9 @@ def _accept(chk, opt: InitOptions) -> tuple[bool, str]:
     worst = min((v for v in chk.per_camera.values() if np.isfinite(v)), default=0.0)
     if worst < opt.min_camera_inlier_frac:
         return False, f"a camera disagrees (inlier fraction {worst:.2f})"
+    max_over = opt.max_overrun_frac if chk.n_cameras > 1 else opt.max_overrun_frac_single
+    if chk.overrun_frac > max_over:
+        return False, f"image edges run on past {chk.overrun_frac:.0%} of the model edge ends"
     if chk.n_cameras == 1 and chk.open_faces < opt.min_open_faces_single:
         return False, f"one camera, accidental view ({chk.open_faces} faces seen openly)"
     if chk.n_cameras == 1 and chk.mean_dist > opt.max_mean_dist_single:

@@ -466,6 +466,10 @@ class PoseCheck:
         Projected length of model edge explained by image edges, summed over
         cameras, px (a fit of part of the image by a smaller, farther copy
         explains less).
+    overrun_frac : float
+        Fraction of the visible model edge ends past which the image edge
+        runs straight on: a true corner ends its edges, a smaller copy fitted
+        inside the part (or to a longer background line) does not.
     open_faces : int
         Least number, over the judging cameras, of faces (of at least 5% of
         the part's area) seen within ``open_face_deg`` of their normal: a view
@@ -484,6 +488,7 @@ class PoseCheck:
     min_size_px: float = 0.0
     inlier_px: float = 0.0
     open_faces: int = 0
+    overrun_frac: float = 0.0
 
 
 def check_pose(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFeatures, tree=None,
@@ -496,6 +501,7 @@ def check_pose(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFea
     per_edge = np.bincount(mf.sample_edge, minlength=len(mf.edge_a))
     open_min = 10 ** 9
     big = mf.face_areas >= 0.05 * mf.face_areas.sum()
+    n_over, n_ends = 0, 0
     cos_open = np.cos(np.deg2rad(open_face_deg))
     for v in views:
         idx, bins = _camera_setup(T_world_object, v, mf, tree)
@@ -528,6 +534,24 @@ def check_pose(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFea
         ub, _ = _project(v.feat.K, T_co, mf.edge_b)
         elen = np.linalg.norm(ub - ue, axis=1)
         inl_px += float(np.sum((elen[e] / np.maximum(per_edge[e], 1))[inl]))
+        # Edge ends: look 3 to 8 px past each visible, supported end.
+        ends_uv, dirs, ebins = [], [], []
+        for k in np.unique(e):
+            m = np.flatnonzero(e == k)
+            if elen[k] < min_edge_px or len(m) < 3 or inl[m].mean() < 0.5:
+                continue
+            allk = np.flatnonzero(mf.sample_edge == k)
+            u = (ub[k] - ue[k]) / elen[k]
+            if idx[m[0]] == allk[0] and inl[m[0]]:
+                ends_uv.append(ue[k]); dirs.append(-u); ebins.append(bins[m[0]])
+            if idx[m[-1]] == allk[-1] and inl[m[-1]]:
+                ends_uv.append(ub[k]); dirs.append(u); ebins.append(bins[m[-1]])
+        if ends_uv:
+            s_ = np.linspace(3.0, 8.0, 5)
+            q = np.asarray(ends_uv)[:, None, :] + s_[None, :, None] * np.asarray(dirs)[:, None, :]
+            dq = lookup_dt(v.feat.dt, np.broadcast_to(np.asarray(ebins)[:, None], q.shape[:2]), q, np.inf)
+            n_over += int(np.sum(np.mean(dq <= 1.5, axis=1) >= 0.8))
+            n_ends += len(ends_uv)
         for k in np.unique(e):
             if elen[k] < min_edge_px:
                 continue
@@ -538,4 +562,4 @@ def check_pose(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFea
             sup_e += int(inl[m].mean() >= 0.5)
     return PoseCheck(n_in / n_all if n_all else 0.0, per, n_all, sup_e, vis_e, ncam,
                      dsum / n_all if n_all else float("inf"), unseen, size if np.isfinite(size) else 0.0,
-                     inl_px, open_min if ncam else 0)
+                     inl_px, open_min if ncam else 0, n_over / n_ends if n_ends else 0.0)
