@@ -139,8 +139,8 @@ class InitOptions:
     min_supported_edges: int = 6
     min_supported_edges_single: int = 7
     min_size_px: float = 40.0
-    min_size_px_single: float = 60.0
-    max_mean_dist_single: float = 1.6
+    min_size_px_single: float = 90.0
+    max_mean_dist_single: float = 2.5
     min_open_faces_single: int = 2
     max_overrun_frac: float = 0.5
     max_overrun_frac_single: float = 0.35
