@@ -14,7 +14,7 @@ from vespro.camera import CameraIntrinsics
 from vespro.frames import FrameSet
 from vespro.init import InitOptions, make_initializer
 from vespro.init.features import EdgeOptions, drop_transitive_links, extract_features, normal_bins
-from vespro.init.initializer import _views, make_setup
+from vespro.init.initializer import _accept, make_setup
 from vespro.init.modelfeat import model_features
 from vespro.init.search import CameraView, check_pose, refine_pose
 from vespro.model import box_model, load_model
@@ -269,3 +269,33 @@ def test_reseed_propagates_with_velocity():
     assert np.isclose(np.arctan2(T[1, 0], T[0, 0]), 0.5)
     with pytest.raises(ValueError):
         Initializer.reseed(ini, np.full((4, 4), np.nan))
+
+
+def test_a_smaller_copy_inside_the_part_is_caught_by_the_edge_ends(lblock):
+    """The part pushed 40% farther along the line of sight projects as a
+    smaller copy inside its own outline: the image edges run on past its edge
+    ends, and fewer of its samples land on edges."""
+    mf = model_features(lblock)
+    tree = make_setup(Rig(()), lblock).tree
+    views = _views_of(lblock, (T_WO, CAMS[:1]), seed=6)
+    good = check_pose(T_WO, views, mf, tree)
+    c = CAMS[0][:3, 3]
+    centre = T_WO[:3, :3] @ np.array([0, 0, 0.04]) + T_WO[:3, 3]
+    T_far = T_WO.copy()
+    T_far[:3, 3] += 0.4 * (centre - c)
+    bad = check_pose(T_far, views, mf, tree)
+    assert good.overrun_frac <= InitOptions().max_overrun_frac_single
+    assert bad.overrun_frac > good.overrun_frac
+    assert bad.min_size_px < 0.8 * good.min_size_px
+    ok_good = _accept(good, InitOptions())
+    ok_bad = _accept(bad, InitOptions())
+    assert not ok_bad[0]
+    assert ok_good[0] or "one camera" in ok_good[1], ok_good
+
+
+def test_init_result_has_the_tracker_fields():
+    from dataclasses import fields
+
+    from vespro.init import InitResult
+
+    assert [f.name for f in fields(InitResult)] == ["T_world_object", "cov6", "velocity"]
