@@ -143,7 +143,7 @@ class InitOptions:
     max_mean_dist_single: float = 2.5
     min_open_faces_single: int = 2
     max_overrun_frac: float = 0.5
-    max_overrun_frac_single: float = 0.35
+    max_overrun_frac_single: float = 0.25
     min_supported_edge_frac: float = 0.6
     ambiguity_margin: float = 0.05
     distinct_frac: float = 0.1
