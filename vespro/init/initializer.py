@@ -116,6 +116,9 @@ class InitOptions:
         A different pose (ADD-S above ``distinct_frac`` of the diameter) whose
         inlier fraction comes within this of the best makes the result
         ambiguous (None).
+    ambiguity_px_frac : float
+        ... and whose explained edge length is within this fraction of the
+        best's (a pose explaining far less of the image is no rival).
     distinct_frac : float
     seed_perturb_rad, seed_perturb_m : float
         Spread of the extra starting points around a seeded pose.
@@ -146,6 +149,7 @@ class InitOptions:
     max_overrun_frac_single: float = 0.25
     min_supported_edge_frac: float = 0.6
     ambiguity_margin: float = 0.05
+    ambiguity_px_frac: float = 0.2
     distinct_frac: float = 0.1
     seed_perturb_rad: float = 0.1
     seed_perturb_m: float = 0.01
@@ -388,7 +392,12 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
     ok, why = _accept(chk, opt)
     if ok:
         for T2, c2 in refined[1:]:
-            if _accept(c2, opt)[0] and c2.inlier_frac >= chk.inlier_frac - opt.ambiguity_margin and \
+            # A rival need not pass every check (the true pose of an
+            # accidental view may fail one): seen by the same cameras, about
+            # as good an agreement, about as much edge length explained.
+            if c2.unseen_fixed == 0 and c2.n_cameras >= chk.n_cameras and \
+                    c2.inlier_frac >= chk.inlier_frac - opt.ambiguity_margin and \
+                    c2.inlier_px >= (1 - opt.ambiguity_px_frac) * chk.inlier_px and \
                     _adds(mf, T_best, T2) > opt.distinct_frac * mf.diameter:
                 ok, why = False, f"ambiguous: another pose scores {c2.inlier_frac:.2f} vs {chk.inlier_frac:.2f}"
                 break

@@ -47,6 +47,11 @@ class ModelFeatures:
     face_offsets : ndarray, shape (F,)
     face_centroids : ndarray, shape (F, 3)
     face_areas : ndarray, shape (F,)
+    end_free : ndarray, shape (E, 2), bool
+        Whether no other sharp edge continues the edge straight on past its
+        first / second end (in a non-convex part, e.g. an L-block, two edges
+        can lie on one line): only free ends are used by the edge-overrun
+        check.
     convex : bool
     diameter : float
     """
@@ -65,6 +70,7 @@ class ModelFeatures:
     face_offsets: np.ndarray
     face_centroids: np.ndarray
     face_areas: np.ndarray
+    end_free: np.ndarray
     convex: bool
     diameter: float
 
@@ -148,8 +154,18 @@ def model_features(model: Model, dense_spacing_frac: float = 1 / 60, coarse_spac
     fa = np.bincount(model.triangle_face, weights=tri_a, minlength=nf)
     fc = np.stack([np.bincount(model.triangle_face, weights=tri_a * tri_c[:, k], minlength=nf) for k in range(3)], 1)
     fc /= fa[:, None]
+    end_free = np.ones((len(ev), 2), bool)
+    U = (B - A) / np.maximum(L, 1e-12)[:, None]
+    for e in range(len(ev)):
+        for side, (v, d) in enumerate(((ev[e, 0], -U[e]), (ev[e, 1], U[e]))):
+            for f in np.flatnonzero((ev[:, 0] == v) | (ev[:, 1] == v)):
+                if f == e:
+                    continue
+                d2 = U[f] if ev[f, 0] == v else -U[f]  # direction leaving v along f
+                if d2 @ d > 1 - 1e-6:
+                    end_free[e, side] = False
     out = ModelFeatures(A, B, L, model.edge_faces, model.edge_convex, sp, se, coarse, sparse, paths,
-                        model.face_normals, model.face_offsets, fc, fa, convex, float(diam))
+                        model.face_normals, model.face_offsets, fc, fa, end_free, convex, float(diam))
     for f in ("edge_a", "edge_b", "edge_len", "sample_p", "sample_edge", "coarse", "sparse", "paths"):
         getattr(out, f).setflags(write=False)
     return out

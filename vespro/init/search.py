@@ -542,9 +542,9 @@ def check_pose(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFea
                 continue
             allk = np.flatnonzero(mf.sample_edge == k)
             u = (ub[k] - ue[k]) / elen[k]
-            if idx[m[0]] == allk[0] and inl[m[0]]:
+            if idx[m[0]] == allk[0] and inl[m[0]] and mf.end_free[k, 0]:
                 ends_uv.append(ue[k]); dirs.append(-u); ebins.append(bins[m[0]])
-            if idx[m[-1]] == allk[-1] and inl[m[-1]]:
+            if idx[m[-1]] == allk[-1] and inl[m[-1]] and mf.end_free[k, 1]:
                 ends_uv.append(ub[k]); dirs.append(u); ebins.append(bins[m[-1]])
         if ends_uv:
             s_ = np.linspace(3.0, 8.0, 5)
