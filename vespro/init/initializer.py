@@ -86,7 +86,10 @@ class InitOptions:
     verify_tol_px : float
         A sample within this oriented distance of an edge is an inlier.
     min_inlier_frac : float
-        Least pooled inlier fraction of an accepted pose.
+        Least pooled inlier fraction of an accepted pose seen by several
+        cameras (wrong poses score <= 0.5 there: another camera disagrees) ...
+    min_inlier_frac_single : float
+        ... and by one camera.
     min_camera_inlier_frac : float
         Least inlier fraction in every camera that sees the part (low: a
         dark side of the part on a dark background has no edges to find, and
@@ -137,7 +140,8 @@ class InitOptions:
     n_refine: int = 6
     rank_tol_px: float = 3.0
     verify_tol_px: float = 2.0
-    min_inlier_frac: float = 0.7
+    min_inlier_frac: float = 0.6
+    min_inlier_frac_single: float = 0.7
     min_camera_inlier_frac: float = 0.4
     min_supported_edges: int = 6
     min_supported_edges_single: int = 7
@@ -243,8 +247,9 @@ def _accept(chk, opt: InitOptions) -> tuple[bool, str]:
         return False, "part not in any image"
     if chk.unseen_fixed:
         return False, "outside the view of a fixed camera"
-    if chk.inlier_frac < opt.min_inlier_frac:
-        return False, f"inlier fraction {chk.inlier_frac:.2f} < {opt.min_inlier_frac}"
+    need_frac = opt.min_inlier_frac if chk.n_cameras > 1 else opt.min_inlier_frac_single
+    if chk.inlier_frac < need_frac:
+        return False, f"inlier fraction {chk.inlier_frac:.2f} < {need_frac}"
     worst = min((v for v in chk.per_camera.values() if np.isfinite(v)), default=0.0)
     if worst < opt.min_camera_inlier_frac:
         return False, f"a camera disagrees (inlier fraction {worst:.2f})"
