@@ -146,13 +146,6 @@ def test_refine_jacobian_matches_finite_differences(lblock):
     tree = make_setup(Rig(()), lblock).tree
     views = _views_of(lblock, (T_WO, CAMS))
     T0 = T_WO @ _pose([0.01, -0.02, 0.015], [0.003, -0.002, 0.001])
-    captured = {}
-    real = search._perturbed
-
-    # Capture the residual/Jacobian closure by running one round with 0 iterations.
-    def spy(T, x):
-        return real(T, x)
-
     setups = []
     for v in views:
         idx, bins = search._camera_setup(T0, v, mf, tree)

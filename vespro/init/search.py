@@ -199,15 +199,20 @@ class CameraView:
     fixed: bool = True
 
 
-def visible_samples(T_camera_object: np.ndarray, mf: ModelFeatures, tree=None, K=None) -> tuple[np.ndarray, np.ndarray]:
+def visible_samples(T_camera_object: np.ndarray, mf: ModelFeatures, tree=None) -> np.ndarray:
     """Dense edge samples a camera sees at a pose (culling plus self-occlusion).
+
+    Parameters
+    ----------
+    T_camera_object : ndarray, shape (4, 4)
+    mf : ModelFeatures
+    tree : BSPTree or None
+        Needed for non-convex models (line of sight to the camera centre).
 
     Returns
     -------
     idx : ndarray, shape (S,), int64
         Indices into ``mf.sample_p``.
-    bins_edge_uv : ndarray, shape (E, 2, 2)
-        Projected edge end points (for the orientation bins), px.
     """
     R, t = T_camera_object[None, :3, :3], T_camera_object[None, :3, 3]
     vis_e = _edge_visible(_front(R, t, mf), mf)[0]
