@@ -152,29 +152,9 @@ def test_refine_jacobian_matches_finite_differences(lblock):
         setups.append((v, invert_transform(v.T_world_camera), mf.sample_p[idx], bins))
 
     def resid(x):
-        Tx = search._perturbed(T0, x)
-        return np.concatenate([search._bilinear(v.feat.dt, b, search._project(v.feat.K, Tcw @ Tx, P)[0], 20.0)
-                               for v, Tcw, P, b in setups])
+        return search.edge_residuals(x, T0, setups, False)
 
-    # Analytic: reproduce refine_pose's formula.
-    def jac(x):
-        Tx = search._perturbed(T0, x)
-        Rwo = Tx[:3, :3]
-        js = []
-        for v, T_cw, P, bins in setups:
-            Kc = v.feat.K
-            T_co = T_cw @ Tx
-            X = P @ T_co[:3, :3].T + T_co[:3, 3]
-            z = X[:, 2]
-            uv = X[:, :2] / z[:, None] * Kc[[0, 1], [0, 1]] + Kc[:2, 2]
-            _, gu, gv = search._bilinear(v.feat.dt, bins, uv, 20.0, grad=True)
-            du = np.stack([Kc[0, 0] / z, 0 * z, -Kc[0, 0] * X[:, 0] / z ** 2], 1)
-            dv = np.stack([0 * z, Kc[1, 1] / z, -Kc[1, 1] * X[:, 1] / z ** 2], 1)
-            g_w = (gu[:, None] * du + gv[:, None] * dv) @ T_cw[:3, :3]
-            js.append(np.concatenate([np.cross(P @ Rwo.T, g_w) @ Rwo, g_w], 1))
-        return np.concatenate(js)
-
-    J = jac(np.zeros(6))
+    J = search.edge_residuals(np.zeros(6), T0, setups, True)
     h = np.array([1e-5] * 3 + [1e-6] * 3)
     Jn = np.stack([(resid(np.eye(6)[k] * h[k]) - resid(-np.eye(6)[k] * h[k])) / (2 * h[k]) for k in range(6)], 1)
     # Bilinear maps are piecewise linear: samples sitting on a cell boundary

@@ -20,7 +20,7 @@ from .modelfeat import ModelFeatures
 from .p3p import p3p_grunert
 
 __all__ = ["image_paths", "p3p_hypotheses", "rank_in_camera", "CameraView", "visible_samples",
-           "refine_pose", "refine_subpixel", "PoseCheck", "check_pose"]
+           "refine_pose", "refine_subpixel", "edge_residuals", "PoseCheck", "check_pose"]
 
 
 # -- hypothesis generation ---------------------------------------------------
@@ -268,6 +268,49 @@ def _perturbed(T0, x):
     return transform_from_rt(T0[:3, :3] @ exp_so3(x[:3]), T0[:3, 3] + x[3:])
 
 
+def edge_residuals(x: np.ndarray, T0: np.ndarray, setups: list, want_jac: bool, dmax: float = 20.0) -> np.ndarray:
+    """Oriented-distance residuals of edge samples at a perturbed pose, or their Jacobian.
+
+    Parameters
+    ----------
+    x : ndarray, shape (6,)
+        Perturbation ``[w, dp]``: ``R = R0 Exp(w)``, ``p = p0 + dp`` (rad, m).
+    T0 : ndarray, shape (4, 4)
+        ``T_world_object`` about which to perturb.
+    setups : list of (CameraView, T_camera_world (4, 4), P_object (S, 3), bins (S,))
+        Per camera: the visible samples and their orientation bins.
+    want_jac : bool
+    dmax : float
+        Residual of a sample outside the image, px.
+
+    Returns
+    -------
+    ndarray, shape (N,) or (N, 6)
+    """
+    Tx = _perturbed(T0, x)
+    rs, js = [], []
+    Rwo = Tx[:3, :3]
+    for v, T_cw, P, bins in setups:
+        K = v.feat.K
+        T_co = T_cw @ Tx
+        X = P @ T_co[:3, :3].T + T_co[:3, 3]
+        z = X[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            uv = X[:, :2] / z[:, None] * K[[0, 1], [0, 1]] + K[:2, 2]
+        uv[z <= 1e-6] = np.nan
+        if not want_jac:
+            rs.append(_bilinear(v.feat.dt, bins, uv, dmax))
+            continue
+        _, gu, gv = _bilinear(v.feat.dt, bins, uv, dmax, grad=True)
+        zz = np.where(z > 1e-6, z, 1.0)
+        du = np.stack([K[0, 0] / zz, np.zeros_like(zz), -K[0, 0] * X[:, 0] / zz ** 2], 1)
+        dv = np.stack([np.zeros_like(zz), K[1, 1] / zz, -K[1, 1] * X[:, 1] / zz ** 2], 1)
+        g_w = (gu[:, None] * du + gv[:, None] * dv) @ T_cw[:3, :3]  # dr/dX_world
+        # X_w = R0 Exp(w) p + p0 + dp: dr/dw = p x (R^T g), dr/ddp = g.
+        js.append(np.concatenate([np.cross(P @ Rwo.T, g_w) @ Rwo, g_w], 1))
+    return np.concatenate(js) if want_jac else np.concatenate(rs)
+
+
 def refine_pose(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFeatures, tree=None,
                 rounds: int = 3, f_scale: float = 1.5, max_nfev: int = 20, dmax: float = 20.0) -> np.ndarray:
     """Multi-camera least squares on the oriented edge distances.
@@ -296,35 +339,7 @@ def refine_pose(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFe
         T0 = T
 
         def resid_jac(x, want_jac):
-            Tx = _perturbed(T0, x)
-            rs, js = [], []
-            Rwo = Tx[:3, :3]
-            for v, T_cw, P, bins in setups:
-                K = v.feat.K
-                T_co = T_cw @ Tx
-                X = P @ T_co[:3, :3].T + T_co[:3, 3]
-                z = X[:, 2]
-                with np.errstate(divide="ignore", invalid="ignore"):
-                    uv = X[:, :2] / z[:, None] * K[[0, 1], [0, 1]] + K[:2, 2]
-                uv[z <= 1e-6] = np.nan
-                if not want_jac:
-                    rs.append(_bilinear(v.feat.dt, bins, uv, dmax))
-                    continue
-                r, gu, gv = _bilinear(v.feat.dt, bins, uv, dmax, grad=True)
-                rs.append(r)
-                zz = np.where(z > 1e-6, z, 1.0)
-                # d(u,v)/dX_c
-                du = np.stack([K[0, 0] / zz, np.zeros_like(zz), -K[0, 0] * X[:, 0] / zz ** 2], 1)
-                dv = np.stack([np.zeros_like(zz), K[1, 1] / zz, -K[1, 1] * X[:, 1] / zz ** 2], 1)
-                g_c = gu[:, None] * du + gv[:, None] * dv  # dr/dX_c, (S, 3)
-                g_w = g_c @ T_cw[:3, :3]  # dr/dX_w
-                # X_w = R0 Exp(w) p + p0 + dp: dX_w/dw = -R [p]x, dX_w/ddp = I
-                Rp = P @ Rwo.T  # R p (rotation only)
-                j_w = np.cross(Rp, g_w)  # g^T (-[Rp]x) = (Rp x g)^T ... in world-rotation form
-                js.append(np.concatenate([j_w @ Rwo, g_w], 1))
-            if want_jac:
-                return np.concatenate(js)
-            return np.concatenate(rs)
+            return edge_residuals(x, T0, setups, want_jac, dmax)
 
         # Gauss-Newton with Huber weights (IRLS), Levenberg damping.
         x = np.zeros(6)
