@@ -1,0 +1,160 @@
+"""Benchmark of automatic initialisation: objects x rigs x random start poses.
+
+Each trial: a simulated cell (``vespro.sim.trials``) with the object at a
+random pose in the common view (random orientation, position around
+(0.9, 0, 0.6) m), drifting slowly; the rig is a random subset of the standard
+fixed cameras with perturbed placements (1, 2 or 3 cameras) or the hybrid rig
+(2 random fixed cameras + the eye-in-hand camera on the watching arm). The
+initialiser is called on frames 0, stride, 2 stride, ... up to ``--frames``
+(26 frames = 1 s at 26 Hz) until it returns a pose.
+
+- success: a pose returned within the frame budget with symmetry-aware ADD
+  below 10% of the object's diameter;
+- wrong lock: a pose returned with ADD >= 10% of the diameter (the trial
+  stops there: the tracker would have started from it);
+- compute: wall and CPU time of each call (median, p99), and of the calls
+  up to the first pose (the time-to-first-pose a background thread would
+  need);
+- position / rotation error of the successful poses (median, max).
+
+The baseline runs in the same process on the same frames: the same corner-path
+P3P hypotheses and chamfer ranking, but from the rig's first camera alone,
+without sub-pixel refinement and with only the inlier-fraction check (no
+multi-camera verification, edge count, size or ambiguity tests).
+
+Usage: ``python3 bench/init.py [--trials 10] [--objects box,lblock,bracket]
+[--rigs 1,2,3,hybrid] [--frames 26] [--stride 5] [--seed 0] [--no-baseline]``
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+os.environ.setdefault("MUJOCO_GL", "egl")
+
+import numpy as np  # noqa: E402
+
+from bench._table import print_table, stats_ms  # noqa: E402
+from vespro.init import make_initializer  # noqa: E402
+from vespro.metrics import add  # noqa: E402
+from vespro.model import load_model  # noqa: E402
+from vespro.sim.cell import SimCell  # noqa: E402
+from vespro.sim.trials import model_symmetries, random_rig, trial_config  # noqa: E402
+from vespro.cmd_record import object_mesh_path  # noqa: E402
+
+BASELINE = dict(min_supported_edges=0, min_supported_edges_single=0, min_size_px=0.0, ambiguity_margin=-1.0,
+                require_fixed_view=False, subpixel=False, min_camera_inlier_frac=0.0)
+
+
+def sym_add(T_est, T_true, model, syms):
+    return min(add(T_est, T_true @ S, model.vertices) for S in syms)
+
+
+def run_trial(obj, model, syms, rig_kind, seed, frames, stride, baseline):
+    rng = np.random.default_rng(10_000 + seed)
+    if rig_kind == "hybrid":
+        rig = random_rig(rng, 2, hand=True)
+    else:
+        rig = random_rig(rng, int(rig_kind))
+    config, motion, _ = trial_config(obj, rig, seed)
+    methods = {"ours": make_initializer(rig, model)}
+    if baseline:
+        methods["base"] = make_initializer(rig.subset([rig.names[0]]), model, **BASELINE)
+    out = {m: dict(frame=None, add=None, calls=[], cpu=[], to_first=0.0, err_p=None, err_r=None) for m in methods}
+    done = set()
+    with SimCell(config, motion) as cell:
+        cell.settle_arm()
+        for k in range(frames):
+            fs = cell.next_frameset()
+            if k % stride or len(done) == len(methods):
+                continue
+            T_true = cell.true_object_pose()
+            for m, ini in methods.items():
+                if m in done:
+                    continue
+                if m == "base":
+                    fs_m = type(fs)(fs.index, fs.t_ns, {rig.names[0]: fs.images[rig.names[0]]}, fs.T_world_camera)
+                else:
+                    fs_m = fs
+                res = ini(fs_m)
+                r = ini.last_report
+                o = out[m]
+                o["calls"].append(r.wall_s)
+                o["cpu"].append(r.cpu_s)
+                o["to_first"] += r.wall_s
+                if res is not None:
+                    e = sym_add(res.T_world_object, T_true, model, syms)
+                    o["frame"], o["add"] = k, e / model.diameter
+                    Ts = min((T_true @ S for S in syms), key=lambda Ts: add(res.T_world_object, Ts, model.vertices))
+                    o["err_p"] = float(np.linalg.norm(res.T_world_object[:3, 3] - Ts[:3, 3]))
+                    Rd = res.T_world_object[:3, :3].T @ Ts[:3, :3]
+                    o["err_r"] = float(np.arccos(np.clip((np.trace(Rd) - 1) / 2, -1, 1)))
+                    done.add(m)
+    return out
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--trials", type=int, default=10)
+    ap.add_argument("--objects", default="box,lblock,bracket")
+    ap.add_argument("--rigs", default="1,2,3,hybrid")
+    ap.add_argument("--frames", type=int, default=26)
+    ap.add_argument("--stride", type=int, default=5)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--no-baseline", action="store_true")
+    ap.add_argument("--verbose", action="store_true")
+    a = ap.parse_args(argv)
+    rows = []
+    totals = {"ours": [0, 0, 0], "base": [0, 0, 0]}
+    t_start = time.perf_counter()
+    for obj in a.objects.split(","):
+        model = load_model(object_mesh_path(obj))
+        syms = model_symmetries(model.vertices)
+        for rk in a.rigs.split(","):
+            res = [run_trial(obj, model, syms, rk, a.seed + i, a.frames, a.stride, not a.no_baseline)
+                   for i in range(a.trials)]
+            row = [obj, rk, a.trials]
+            for m in (["ours"] if a.no_baseline else ["ours", "base"]):
+                ok = [r[m] for r in res if r[m]["add"] is not None and r[m]["add"] < 0.1]
+                wrong = [r[m] for r in res if r[m]["add"] is not None and r[m]["add"] >= 0.1]
+                calls = [c for r in res for c in r[m]["calls"]]
+                first = [r[m]["to_first"] for r in res if r[m]["add"] is not None]
+                med, p99 = stats_ms(calls) if calls else (float("nan"), float("nan"))
+                row += [len(ok) / a.trials, len(wrong), med, p99]
+                if m == "ours":
+                    ep = [r["err_p"] * 1e3 for r in ok]
+                    er = [np.rad2deg(r["err_r"]) for r in ok]
+                    row += [float(np.median(ep)) if ep else float("nan"), float(np.max(ep)) if ep else float("nan"),
+                            float(np.median(er)) if er else float("nan"), float(np.max(er)) if er else float("nan"),
+                            float(np.median(first)) * 1e3 if first else float("nan")]
+                totals[m][0] += len(ok)
+                totals[m][1] += len(wrong)
+                totals[m][2] += a.trials
+                if a.verbose:
+                    for i, r in enumerate(res):
+                        print(f"  {obj} {rk} trial {i} {m}: frame {r[m]['frame']} ADD/d {r[m]['add']} calls "
+                              f"{[round(c, 2) for c in r[m]['calls']]}", flush=True)
+            rows.append(row)
+            print(f"done {obj} {rk} ({time.perf_counter() - t_start:.0f} s)", flush=True)
+    headers = ["object", "rig", "n", "success", "wrong", "call ms med", "call ms p99", "dp mm med", "dp mm max",
+               "dR deg med", "dR deg max", "to-pose ms med"]
+    if not a.no_baseline:
+        headers += ["base succ", "base wrong", "base ms med", "base ms p99"]
+    print_table(headers, rows, title=f"Initialisation within {a.frames} frames (attempts every {a.stride}), "
+                                       f"success = ADD < 10% diameter")
+    for m, (ok, wrong, n) in totals.items():
+        if n:
+            print(f"{m}: success {ok}/{n} = {ok / n:.3f}, wrong locks {wrong}")
+    if not a.no_baseline and totals["base"][2]:
+        so, sb = totals["ours"][0] / totals["ours"][2], totals["base"][0] / totals["base"][2]
+        print(f"success ratio ours/base = {so / sb if sb else float('inf'):.2f}; wrong locks ours {totals['ours'][1]} "
+              f"vs base {totals['base'][1]}")
+
+
+if __name__ == "__main__":
+    main()

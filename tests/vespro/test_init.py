@@ -1,0 +1,165 @@
+"""The initialiser on simulated cells and on the external example recording.
+
+Trials (``vespro.sim.trials``): random start pose in the common view, random
+rig (a subset of the standard cameras with perturbed placements, 1 to 3
+cameras, or hybrid), a few frames each, cached per module. Ground truth is
+used here, for scoring only.
+"""
+
+import numpy as np
+import pytest
+
+from vespro.frames import FrameSet
+from vespro.groundtruth import read_groundtruth
+from vespro.init import make_initializer
+from vespro.metrics import add
+from vespro.model import load_model
+from vespro.recording import Recording
+from vespro.se3 import transform_from_rt
+from vespro.sim.cell import SimCell
+from vespro.sim.motion import Static
+from vespro.sim.trials import model_symmetries, random_rig, trial_config
+
+#: (object, rig kind, seed): one or more of each object, each rig size.
+TRIALS = [("box", "1", 0), ("box", "3", 1), ("lblock", "2", 2), ("lblock", "hybrid", 3),
+          ("bracket", "3", 4), ("bracket", "1", 5)]
+#: Frames each trial may use (attempts on frames 0 and ATTEMPT_STRIDE).
+N_FRAMES = 4
+ATTEMPT_STRIDE = 3
+
+
+def _rig(kind, seed):
+    rng = np.random.default_rng(10_000 + seed)
+    return random_rig(rng, 2, hand=True) if kind == "hybrid" else random_rig(rng, int(kind))
+
+
+def _sym_add_frac(T_est, T_true, model, syms):
+    return min(add(T_est, T_true @ S, model.vertices) for S in syms) / model.diameter
+
+
+@pytest.fixture(scope="module")
+def trial_results():
+    """Per trial: (ADD / diameter of the first pose returned or None, report)."""
+    out = {}
+    for obj, kind, seed in TRIALS:
+        rig = _rig(kind, seed)
+        config, motion, mesh = trial_config(obj, rig, seed)
+        model = load_model(mesh)
+        syms = model_symmetries(model.vertices)
+        ini = make_initializer(rig, model)
+        result = (None, None)
+        with SimCell(config, motion) as cell:
+            cell.settle_arm()
+            for k in range(N_FRAMES):
+                fs = cell.next_frameset()
+                if k % ATTEMPT_STRIDE:
+                    continue
+                res = ini(fs)
+                if res is not None:
+                    result = (_sym_add_frac(res.T_world_object, cell.true_object_pose(), model, syms), ini.last_report)
+                    break
+                result = (None, ini.last_report)
+        out[(obj, kind, seed)] = result
+    return out
+
+
+def test_returned_poses_are_right(trial_results):
+    """Whenever a pose is returned, ADD < 10% of the diameter (no wrong lock)."""
+    for key, (e, rep) in trial_results.items():
+        if e is not None:
+            assert e < 0.1, (key, e, rep)
+
+
+def test_most_trials_initialise(trial_results):
+    ok = sum(e is not None for e, _ in trial_results.values())
+    # The bench (bench/init.py) measures the rate over many trials; these few
+    # must mostly succeed: at most one of six may stay 'initializing'.
+    assert ok >= len(TRIALS) - 1, {k: (e, r and r.reason) for k, (e, r) in trial_results.items()}
+
+
+def test_multi_camera_poses_are_tracker_grade(trial_results):
+    """Several cameras pin the pose well inside the EKF's initial uncertainty."""
+    for (obj, kind, seed), (e, rep) in trial_results.items():
+        if e is not None and kind != "1":
+            assert e < 0.03, (obj, kind, seed, e)
+
+
+def test_reports_carry_compute_time(trial_results):
+    for e, rep in trial_results.values():
+        assert rep is not None and rep.wall_s > 0 and rep.cpu_s > 0
+        assert rep.accepted == (e is not None)
+
+
+def test_no_object_in_view_never_locks():
+    """The part parked far below the floor: nothing to find on any frame."""
+    rig = _rig("3", 7)
+    config, _, mesh = trial_config("lblock", rig, 7)
+    model = load_model(mesh)
+    ini = make_initializer(rig, model)
+    with SimCell(config, Static(transform_from_rt(np.eye(3), [0.0, 0.0, -5.0]))) as cell:
+        cell.settle_arm()
+        for _ in range(3):
+            assert ini(cell.next_frameset()) is None
+            assert not ini.last_report.accepted
+
+
+def test_single_camera_without_object_never_locks():
+    rig = _rig("1", 8)
+    config, _, mesh = trial_config("box", rig, 8)
+    ini = make_initializer(rig, load_model(mesh))
+    with SimCell(config, Static(transform_from_rt(np.eye(3), [0.0, 0.0, -5.0]))) as cell:
+        cell.settle_arm()
+        for _ in range(2):
+            assert ini(cell.next_frameset()) is None
+
+
+def test_reseed_finds_the_part_near_its_predicted_pose():
+    rig = _rig("2", 9)
+    config, motion, mesh = trial_config("bracket", rig, 9)
+    model = load_model(mesh)
+    ini = make_initializer(rig, model, seed_only=True)
+    with SimCell(config, motion) as cell:
+        cell.settle_arm()
+        fs = cell.next_frameset()
+        T = cell.true_object_pose()
+    # A prediction 1 cm and ~5 degrees off, as after a short loss.
+    Tp = T @ transform_from_rt(np.eye(3), [0.006, -0.005, 0.005])
+    c, s = np.cos(0.08), np.sin(0.08)
+    Tp[:3, :3] = Tp[:3, :3] @ np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
+    ini.reseed(Tp, velocity=np.zeros(6), t_ns=fs.t_ns)
+    res = ini(fs)
+    assert res is not None and ini.last_report.mode == "seed", ini.last_report.reason
+    assert add(res.T_world_object, T, model.vertices) < 0.03 * model.diameter
+
+
+def test_example_box2_initialises_within_one_second(example_box2):
+    rec = Recording(example_box2)
+    model = load_model(rec.model_path)
+    syms = model_symmetries(model.vertices)
+    _, _, T_true = read_groundtruth(example_box2)  # scoring only
+    ini = make_initializer(rec.rig, model)
+    for k in range(min(26, len(rec))):
+        res = ini(rec.frameset(k))
+        if res is not None:
+            assert _sym_add_frac(res.T_world_object, T_true[k], model, syms) < 0.1
+            return
+    pytest.fail(f"no pose within 26 frames: {ini.last_report.reason}")
+
+
+def test_example_box2_one_camera_missing(example_box2):
+    """A frame set with one image missing still initialises from the other."""
+    rec = Recording(example_box2)
+    model = load_model(rec.model_path)
+    syms = model_symmetries(model.vertices)
+    _, _, T_true = read_groundtruth(example_box2)
+    ini = make_initializer(rec.rig, model)
+    name = rec.rig.names[0]
+    for k in range(0, 26, 5):
+        fs = rec.frameset(k)
+        fs1 = FrameSet(fs.index, fs.t_ns, {n: (None if n == name else im) for n, im in fs.images.items()},
+                       fs.T_world_camera)
+        res = ini(fs1)
+        if res is not None:
+            assert _sym_add_frac(res.T_world_object, T_true[k], model, syms) < 0.1
+            return
+    pytest.skip("one camera alone did not initialise within 26 frames (allowed: a late lock, not a wrong one)")

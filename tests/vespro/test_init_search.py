@@ -1,0 +1,274 @@
+"""Initialiser pieces on synthetic images drawn here (no simulator).
+
+The renderer paints the model's triangles far-to-near with a Lambertian grey
+level per planar face over a cluttered background of random lines and
+rectangles, so edges, corners and self-occlusion are exact and independent of
+the code under test.
+"""
+
+import cv2
+import numpy as np
+import pytest
+
+from vespro.camera import CameraIntrinsics
+from vespro.frames import FrameSet
+from vespro.init import InitOptions, make_initializer
+from vespro.init.features import EdgeOptions, drop_transitive_links, extract_features, normal_bins
+from vespro.init.initializer import _accept, make_setup
+from vespro.init.modelfeat import model_features
+from vespro.init.search import CameraView, check_pose, refine_pose
+from vespro.model import box_model, load_model
+from vespro.rig import Rig, RigCamera
+from vespro.se3 import exp_so3, invert_transform, transform_from_rt
+from vespro.sim.scene import MODELS_DIR
+
+K = np.array([[600.0, 0, 319.5], [0, 600.0, 239.5], [0, 0, 1]])
+INTR = CameraIntrinsics(640, 480, K)
+
+
+def render(model, T_camera_object, rng, clutter=25):
+    """BGR image of the model at a pose over random clutter (painter's algorithm)."""
+    img = np.full((480, 640, 3), 50, np.uint8)
+    for _ in range(clutter):
+        p = rng.integers(0, [640, 480], size=(2, 2))
+        c = int(rng.integers(20, 200))
+        if rng.random() < 0.5:
+            cv2.line(img, tuple(map(int, p[0])), tuple(map(int, p[1])), (c, c, c), int(rng.integers(1, 4)))
+        else:
+            cv2.rectangle(img, tuple(map(int, p[0])), tuple(map(int, p[0] + rng.integers(10, 60, 2))), (c, c, c), -1)
+    V = model.vertices @ T_camera_object[:3, :3].T + T_camera_object[:3, 3]
+    uv = V[:, :2] / V[:, 2:] * [K[0, 0], K[1, 1]] + K[:2, 2]
+    light = np.array([0.3, -0.5, -0.8])
+    light /= np.linalg.norm(light)
+    tri = model.triangles
+    depth = V[tri].mean(1)[:, 2]
+    for k in np.argsort(-depth):
+        n = T_camera_object[:3, :3] @ model.face_normals[model.triangle_face[k]]
+        if n @ V[tri[k, 0]] >= 0:
+            continue  # back face
+        g = int(np.clip(100 + 150 * (0.5 - 0.5 * (n @ light)), 0, 255))  # distinct shade per normal
+        cv2.fillPoly(img, [np.round(uv[tri[k]] * 16).astype(np.int32)], (g, int(0.8 * g), int(0.5 * g)),
+                     lineType=cv2.LINE_AA, shift=4)
+    return img
+
+
+def _pose(rotvec, t):
+    return transform_from_rt(exp_so3(np.asarray(rotvec, float)), np.asarray(t, float))
+
+
+@pytest.fixture(scope="module")
+def box():
+    return box_model([0.12, 0.08, 0.06], center=[0, 0, 0.03])
+
+
+@pytest.fixture(scope="module")
+def lblock():
+    return load_model(MODELS_DIR / "objects" / "lblock.stl")
+
+
+def test_normal_bins_wrap_at_pi():
+    b = normal_bins(np.array([0.0, np.pi - 1e-9, np.pi, -0.01, np.pi / 2]), 12)
+    assert list(b) == [0, 11, 0, 11, 6]
+
+
+def test_oriented_distance_maps_see_edges_only_in_their_bin():
+    img = np.full((200, 200), 40, np.uint8)
+    cv2.rectangle(img, (50, 60), (150, 140), 200, -1)
+    f = extract_features("c", img, K, EdgeOptions())
+    # A point on the vertical edge x=50: near in the bin of horizontal normals (0),
+    # far in the bin of vertical normals (6), which only sees the horizontal edges.
+    assert f.dt[0, 100, 50] <= 1.0
+    assert f.dt[6, 100, 50] == EdgeOptions().dt_max  # 40 px away, clipped
+    assert f.dt[6, 60, 100] <= 1.0
+
+
+def test_corner_links_of_a_rectangle_are_its_sides():
+    img = np.full((200, 200), 40, np.uint8)
+    cv2.rectangle(img, (50, 60), (150, 140), 200, -1)
+    f = extract_features("c", img, K, EdgeOptions())
+    near = [int(np.argmin(np.linalg.norm(f.corners - c, axis=1))) for c in [(50, 60), (150, 60), (150, 140), (50, 140)]]
+    assert all(np.min(np.linalg.norm(f.corners - c, axis=1)) < 1.5 for c in [(50, 60), (150, 60), (150, 140), (50, 140)])
+    L = {tuple(sorted(map(int, l))) for l in f.links}
+    sides = {tuple(sorted((near[i], near[(i + 1) % 4]))) for i in range(4)}
+    diagonals = {tuple(sorted((near[0], near[2]))), tuple(sorted((near[1], near[3])))}
+    assert sides <= L
+    assert not (diagonals & L)
+
+
+def test_drop_transitive_links_keeps_neighbours_along_a_line():
+    c = np.array([[0.0, 0], [10, 0], [20, 0], [10, 10]])
+    links = np.array([[0, 1], [1, 2], [0, 2], [1, 3]])
+    out = {tuple(l) for l in drop_transitive_links(c, links)}
+    assert out == {(0, 1), (1, 2), (1, 3)}
+
+
+def test_model_paths_use_long_sharp_edges(box, lblock):
+    mf = model_features(box)
+    assert len(mf.paths) == 8 * 3 * 2  # each box corner: 3 edges, ordered pairs
+    assert mf.convex
+    mfl = model_features(lblock)
+    assert not mfl.convex
+    # Every path is two sharp edges meeting at its middle vertex.
+    E = {tuple(sorted(e)) for e in lblock.edge_vertices.tolist()}
+    for a, b, c in mfl.paths:
+        assert tuple(sorted((a, b))) in E and tuple(sorted((b, c))) in E
+
+
+def _views_of(model, poses, seed=0, opt=EdgeOptions()):
+    """CameraViews of one object pose from cameras at the given T_world_camera."""
+    rng = np.random.default_rng(seed)
+    T_wo, T_wcs = poses
+    views = []
+    for i, T_wc in enumerate(T_wcs):
+        img = render(model, invert_transform(T_wc) @ T_wo, rng)
+        views.append(CameraView(extract_features(f"c{i}", img, K, opt), T_wc))
+    return views
+
+
+def _look_at(eye, target):
+    z = np.asarray(target, float) - eye
+    z /= np.linalg.norm(z)
+    x = np.cross(z, [0, 0, 1.0])
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    return transform_from_rt(np.column_stack([x, y, z]), eye)
+
+
+T_WO = _pose([0.4, -0.3, 0.9], [0.0, 0.0, 0.0])
+CAMS = [_look_at(np.array([0.6, -0.5, 0.5]), [0, 0, 0.03]), _look_at(np.array([0.5, 0.6, 0.6]), [0, 0, 0.03])]
+
+
+def test_refine_jacobian_matches_finite_differences(lblock):
+    """Analytic IRLS Jacobian == numeric derivative of the residual."""
+    from vespro.init import search
+
+    mf = model_features(lblock)
+    tree = make_setup(Rig(()), lblock).tree
+    views = _views_of(lblock, (T_WO, CAMS))
+    T0 = T_WO @ _pose([0.01, -0.02, 0.015], [0.003, -0.002, 0.001])
+    setups = []
+    for v in views:
+        idx, bins = search._camera_setup(T0, v, mf, tree)
+        setups.append((v, invert_transform(v.T_world_camera), mf.sample_p[idx], bins))
+
+    def resid(x):
+        return search.edge_residuals(x, T0, setups, False)
+
+    J = search.edge_residuals(np.zeros(6), T0, setups, True)
+    h = np.array([1e-5] * 3 + [1e-6] * 3)
+    Jn = np.stack([(resid(np.eye(6)[k] * h[k]) - resid(-np.eye(6)[k] * h[k])) / (2 * h[k]) for k in range(6)], 1)
+    # Bilinear maps are piecewise linear: samples sitting on a cell boundary
+    # disagree; compare where the central difference is smooth.
+    smooth = np.all(np.abs(Jn) < 1e6, axis=1)
+    rel = np.linalg.norm(J[smooth] - Jn[smooth], axis=0) / (np.linalg.norm(Jn[smooth], axis=0) + 1e-9)
+    assert np.all(rel < 0.05), rel
+
+
+def test_refine_converges_from_a_perturbed_pose(lblock):
+    mf = model_features(lblock)
+    tree = make_setup(Rig(()), lblock).tree
+    views = _views_of(lblock, (T_WO, CAMS), seed=1)
+    T0 = T_WO @ _pose([0.04, -0.03, 0.05], [0.006, -0.004, 0.005])
+    T = refine_pose(T0, views, mf, tree)
+    err_p = np.linalg.norm(T[:3, 3] - T_WO[:3, 3])
+    err_r = np.linalg.norm(cv2.Rodrigues(T[:3, :3] @ T_WO[:3, :3].T)[0])
+    assert err_p < 2e-3 and err_r < np.deg2rad(1.0), (err_p, np.rad2deg(err_r))
+    good = check_pose(T, views, mf, tree)
+    bad = check_pose(T0, views, mf, tree)
+    # Faces lit alike leave a few internal edges without contrast: the true
+    # pose explains ~80% of the samples, one-camera acceptance asks 70%.
+    assert good.inlier_frac > InitOptions().min_inlier_frac_single
+    assert bad.inlier_frac < good.inlier_frac - 0.3
+
+
+def _rig(cams):
+    return Rig(tuple(RigCamera(f"c{i}", INTR, "fixed", T_world_camera=T) for i, T in enumerate(cams)))
+
+
+@pytest.mark.parametrize("n_cams", [1, 2])
+def test_initializer_finds_the_synthetic_part(lblock, n_cams):
+    rig = _rig(CAMS[:n_cams])
+    rng = np.random.default_rng(3)
+    images = {f"c{i}": render(lblock, invert_transform(T) @ T_WO, rng) for i, T in enumerate(CAMS[:n_cams])}
+    ini = make_initializer(rig, lblock)
+    res = ini(FrameSet(0, 0, images))
+    if n_cams == 1 and res is None:
+        # One view of a part among similar clutter may stay unresolved (a late
+        # lock is allowed, a wrong one is not).
+        return
+    assert res is not None, ini.last_report.reason
+    P = lblock.vertices
+    add = np.mean(np.linalg.norm((P @ res.T_world_object[:3, :3].T + res.T_world_object[:3, 3])
+                                 - (P @ T_WO[:3, :3].T + T_WO[:3, 3]), axis=1))
+    # Two views pin the pose to a few mm; one view leaves depth weakly
+    # determined (the acceptance bound of the trials, 10% of the diameter).
+    assert add < (0.02 if n_cams > 1 else 0.1) * lblock.diameter
+    assert ini.last_report.accepted and ini.last_report.cpu_s > 0
+
+
+def test_initializer_rejects_clutter_without_the_part(lblock):
+    rig = _rig(CAMS)
+    rng = np.random.default_rng(4)
+    far = _pose([0, 0, 0], [0, 0, -50.0])  # behind every camera
+    for k in range(3):
+        images = {f"c{i}": render(lblock, invert_transform(T) @ far, rng, clutter=60) for i, T in enumerate(CAMS)}
+        ini = make_initializer(rig, lblock)
+        assert ini(FrameSet(k, 0, images)) is None
+
+
+def test_reseed_accepts_near_the_prediction_without_search(lblock):
+    rig = _rig(CAMS)
+    rng = np.random.default_rng(5)
+    images = {f"c{i}": render(lblock, invert_transform(T) @ T_WO, rng) for i, T in enumerate(CAMS)}
+    ini = make_initializer(rig, lblock, seed_only=True)
+    ini.reseed(T_WO @ _pose([0.03, 0.0, -0.02], [0.004, 0.003, 0.0]))
+    res = ini(FrameSet(0, 0, images))
+    assert res is not None and ini.last_report.mode == "seed"
+    assert np.linalg.norm(res.T_world_object[:3, 3] - T_WO[:3, 3]) < 2e-3
+    # A seed far from the part, seed-only: no search, no result.
+    ini.reseed(_pose([0, 0, 0], [0.5, 0.5, 0.0]))
+    assert ini(FrameSet(1, 0, images)) is None
+    assert ini.last_report.mode == "none"
+
+
+def test_reseed_propagates_with_velocity():
+    from vespro.init.initializer import Initializer
+
+    ini = Initializer.__new__(Initializer)
+    ini._seed = None
+    Initializer.reseed(ini, np.eye(4), velocity=np.array([0.1, 0, 0, 0, 0, 1.0]), t_ns=0)
+    T = ini.predicted_seed(500_000_000)
+    assert np.allclose(T[:3, 3], [0.05, 0, 0])
+    assert np.isclose(np.arctan2(T[1, 0], T[0, 0]), 0.5)
+    with pytest.raises(ValueError):
+        Initializer.reseed(ini, np.full((4, 4), np.nan))
+
+
+def test_a_smaller_copy_inside_the_part_is_caught_by_the_edge_ends(lblock):
+    """The part pushed 40% farther along the line of sight projects as a
+    smaller copy inside its own outline: the image edges run on past its edge
+    ends, and fewer of its samples land on edges."""
+    mf = model_features(lblock)
+    tree = make_setup(Rig(()), lblock).tree
+    views = _views_of(lblock, (T_WO, CAMS[:1]), seed=6)
+    good = check_pose(T_WO, views, mf, tree)
+    c = CAMS[0][:3, 3]
+    centre = T_WO[:3, :3] @ np.array([0, 0, 0.04]) + T_WO[:3, 3]
+    T_far = T_WO.copy()
+    T_far[:3, 3] += 0.4 * (centre - c)
+    bad = check_pose(T_far, views, mf, tree)
+    assert good.overrun_frac <= InitOptions().max_overrun_frac_single
+    assert bad.overrun_frac > good.overrun_frac
+    assert bad.min_size_px < 0.8 * good.min_size_px
+    ok_good = _accept(good, InitOptions())
+    ok_bad = _accept(bad, InitOptions())
+    assert not ok_bad[0]
+    assert ok_good[0] or "one camera" in ok_good[1], ok_good
+
+
+def test_init_result_has_the_tracker_fields():
+    from dataclasses import fields
+
+    from vespro.init import InitResult
+
+    assert [f.name for f in fields(InitResult)] == ["T_world_object", "cov6", "velocity"]

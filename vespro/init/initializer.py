@@ -1,0 +1,489 @@
+"""Automatic pose initialisation from images alone.
+
+``make_initializer(rig, model)`` returns an :class:`Initializer`, a callable
+``initializer(frameset) -> InitResult | None`` for the tracker's hook. The work
+is the pure function :func:`initialize` of one frame set (plus the constant
+set-up), so a server can run it in a background thread while frames keep
+arriving; the class only holds the set-up, an optional seed pose and the last
+report.
+
+Method (per call):
+
+1. per camera with an image: undistort, oriented edge distance maps, corners
+   and corner pairs joined by straight image edges (:mod:`.features`);
+2. seeded mode first: if :meth:`Initializer.reseed` gave a predicted pose,
+   refine from it (and a few perturbations of it) and verify; done if it
+   passes;
+3. hypotheses: every image corner path ``a-b-c`` (two linked corner pairs)
+   against every model corner path ``A-B-C`` (two long sharp edges), solved by
+   batched P3P in that camera (:mod:`.p3p`);
+4. ranking: fast directional chamfer agreement of the projected visible model
+   edges in the generating camera; the best per camera are moved to the world
+   and re-ranked in every camera;
+5. the best few are refined by multi-camera least squares on the oriented
+   edge distances (with self-occlusion from the BSP) and verified: enough
+   edge samples supported in every camera that sees the part, enough
+   supported edges, a clear margin over any different pose. Otherwise None:
+   a wrong lock is worse than a late one.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from ..bsp import load_or_build_bsp
+from ..frames import FrameSet
+from ..model import Model
+from ..rig import Rig
+from ..se3 import exp_so3, invert_transform, transform_from_rt
+from .features import EdgeOptions, Undistorter, extract_features
+from .modelfeat import ModelFeatures, model_features
+from .search import (CameraView, check_pose, image_paths, p3p_hypotheses, rank_in_camera, refine_pose,
+                     refine_subpixel)
+
+try:  # the tracker imports modules from other branches; fall back to an equal type
+    from ..tracker import InitResult
+except Exception:  # pragma: no cover - depends on which branches are merged
+    @dataclass(frozen=True)
+    class InitResult:
+        """A starting pose (same fields as ``vespro.tracker.InitResult``).
+
+        Attributes
+        ----------
+        T_world_object : ndarray (4, 4)
+        cov6 : ndarray (6, 6) or None
+        velocity : ndarray (6,) or None
+        """
+
+        T_world_object: np.ndarray
+        cov6: np.ndarray | None = None
+        velocity: np.ndarray | None = None
+
+__all__ = ["InitOptions", "InitSetup", "InitReport", "InitResult", "Initializer", "make_initializer",
+           "make_setup", "initialize"]
+
+
+@dataclass(frozen=True)
+class InitOptions:
+    """Initialiser settings (thresholds in px unless stated).
+
+    Attributes
+    ----------
+    edges : EdgeOptions
+    max_image_paths : int
+        Image corner paths kept per camera (shortest links first).
+    keep_after_sparse : int
+        Hypotheses kept per camera after the first (sparse) ranking pass.
+    keep_per_camera : int
+        Hypotheses kept per camera after the second ranking pass.
+    n_refine : int
+        Hypotheses refined and verified.
+    rank_tol_px : float
+        Distance at which a sample's agreement reaches zero in the ranking.
+    verify_tol_px : float
+        A sample within this oriented distance of an edge is an inlier.
+    min_inlier_frac : float
+        Least pooled inlier fraction of an accepted pose seen by several
+        cameras (wrong poses score <= 0.5 there: another camera disagrees) ...
+    min_inlier_frac_single : float
+        ... and by one camera.
+    min_camera_inlier_frac : float
+        Least inlier fraction in every camera that sees the part (low: a
+        dark side of the part on a dark background has no edges to find, and
+        a wrong pose fitted in one camera scores ~0.3 or less in the others).
+    min_supported_edges : int
+        Least number of supported model edges (all cameras) when several
+        cameras judge the pose ...
+    min_supported_edges_single : int
+        ... and when only one does (one view is far easier to fit by chance:
+        a single face matches any similar quadrilateral in the background).
+    max_mean_dist_single : float
+        With one judging camera, the most mean oriented edge distance of the
+        visible samples (unsupported samples count at the clip value), px.
+    max_overrun_frac, max_overrun_frac_single : float
+        Most fraction of supported model edge ends past which the image edge
+        runs straight on (several cameras / one camera).
+    min_open_faces_single : int
+        With one judging camera, the least number of large faces seen
+        within 75 degrees of their normal (rejects accidental viewpoints).
+    min_size_px : float
+        Least projected size of the part (bounding-box diagonal, px) in every
+        judging camera: tiny far-away fits of background texture are rejected,
+        and a part that small could not be tracked anyway.
+    min_supported_edge_frac : float
+        Least fraction of the visible edges that are supported.
+    ambiguity_margin : float
+        A different pose (ADD-S above ``distinct_frac`` of the diameter) whose
+        inlier fraction comes within this of the best makes the result
+        ambiguous (None).
+    ambiguity_px_frac : float
+        ... and whose explained edge length is within this fraction of the
+        best's (a pose explaining far less of the image is no rival).
+    distinct_frac : float
+    seed_perturb_rad, seed_perturb_m : float
+        Spread of the extra starting points around a seeded pose.
+    seed_only : bool
+        With a seed, try only near it (no full search).
+    require_fixed_view : bool
+        The part is in the common view of the fixed cameras (the spec's
+        set-up): a pose that a fixed camera with an image cannot see is
+        rejected. Eye-in-hand cameras judge only poses they can see.
+    """
+
+    edges: EdgeOptions = field(default_factory=EdgeOptions)
+    max_image_paths: int = 1500
+    keep_after_sparse: int = 2000
+    keep_per_camera: int = 60
+    n_refine: int = 6
+    rank_tol_px: float = 3.0
+    verify_tol_px: float = 2.0
+    min_inlier_frac: float = 0.6
+    min_inlier_frac_single: float = 0.7
+    min_camera_inlier_frac: float = 0.4
+    min_supported_edges: int = 6
+    min_supported_edges_single: int = 7
+    min_size_px: float = 40.0
+    min_size_px_single: float = 90.0
+    max_mean_dist_single: float = 2.5
+    min_open_faces_single: int = 2
+    max_overrun_frac: float = 0.5
+    max_overrun_frac_single: float = 0.25
+    min_supported_edge_frac: float = 0.6
+    ambiguity_margin: float = 0.05
+    ambiguity_px_frac: float = 0.2
+    distinct_frac: float = 0.1
+    seed_perturb_rad: float = 0.1
+    seed_perturb_m: float = 0.01
+    seed_only: bool = False
+    require_fixed_view: bool = True
+    subpixel: bool = True
+
+
+@dataclass(frozen=True)
+class InitSetup:
+    """Constant set-up of an initialiser: rig, model, derived data."""
+
+    rig: Rig
+    model: Model
+    mf: ModelFeatures
+    tree: object
+    undistort: dict
+    options: InitOptions
+
+
+@dataclass(frozen=True)
+class InitReport:
+    """What one call did.
+
+    Attributes
+    ----------
+    wall_s : float
+        Wall time of the call, s.
+    cpu_s : float
+        CPU time of the calling thread, s (what the work costs on an idle
+        core; the wall time includes waiting for a busy machine).
+    mode : str
+        ``"seed"`` (accepted near the seed), ``"search"``, or ``"none"``.
+    n_hypotheses : int
+        P3P poses generated.
+    accepted : bool
+    inlier_frac : float
+        Of the best verified candidate (NaN when none).
+    per_camera : dict
+    supported_edges, visible_edges : int
+    reason : str
+        Why nothing was returned ("" when accepted).
+    candidates : tuple
+        ``(T_world_object, PoseCheck)`` of every refined candidate, best first
+        (diagnostics).
+    """
+
+    wall_s: float
+    cpu_s: float
+    mode: str
+    n_hypotheses: int
+    accepted: bool
+    inlier_frac: float = float("nan")
+    per_camera: dict = field(default_factory=dict)
+    supported_edges: int = 0
+    visible_edges: int = 0
+    reason: str = ""
+    candidates: tuple = ()
+
+
+def make_setup(rig: Rig, model: Model, options: InitOptions | None = None, tree=None) -> InitSetup:
+    """Build the constant set-up (model features, BSP tree, undistortion maps)."""
+    options = options or InitOptions()
+    mf = model_features(model)
+    if tree is None and not mf.convex:
+        tree = load_or_build_bsp(model)
+    und = {c.name: Undistorter(c.intrinsics) for c in rig}
+    return InitSetup(rig, model, mf, tree, und, options)
+
+
+def _views(setup: InitSetup, frameset: FrameSet) -> list[CameraView]:
+    views = []
+    for cam in setup.rig:
+        img = frameset.images.get(cam.name)
+        if img is None:
+            continue
+        if cam.is_fixed:
+            T_wc = cam.T_world_camera
+        else:
+            T_wc = frameset.T_world_camera.get(cam.name)
+            if T_wc is None or not np.all(np.isfinite(T_wc)):
+                continue
+        img = setup.undistort[cam.name](img)
+        feat = extract_features(cam.name, img, cam.intrinsics.K, setup.options.edges)
+        views.append(CameraView(feat, np.asarray(T_wc, float), cam.is_fixed))
+    return views
+
+
+def _accept(chk, opt: InitOptions) -> tuple[bool, str]:
+    if chk.n_cameras == 0:
+        return False, "part not in any image"
+    if chk.unseen_fixed:
+        return False, "outside the view of a fixed camera"
+    need_frac = opt.min_inlier_frac if chk.n_cameras > 1 else opt.min_inlier_frac_single
+    if chk.inlier_frac < need_frac:
+        return False, f"inlier fraction {chk.inlier_frac:.2f} < {need_frac}"
+    worst = min((v for v in chk.per_camera.values() if np.isfinite(v)), default=0.0)
+    if worst < opt.min_camera_inlier_frac:
+        return False, f"a camera disagrees (inlier fraction {worst:.2f})"
+    max_over = opt.max_overrun_frac if chk.n_cameras > 1 else opt.max_overrun_frac_single
+    if chk.overrun_frac > max_over:
+        return False, f"image edges run on past {chk.overrun_frac:.0%} of the model edge ends"
+    if chk.n_cameras == 1 and chk.open_faces < opt.min_open_faces_single:
+        return False, f"one camera, accidental view ({chk.open_faces} faces seen openly)"
+    if chk.n_cameras == 1 and chk.mean_dist > opt.max_mean_dist_single:
+        return False, f"one camera, mean edge distance {chk.mean_dist:.2f} px > {opt.max_mean_dist_single}"
+    need = opt.min_supported_edges if chk.n_cameras > 1 else opt.min_supported_edges_single
+    if chk.supported_edges < need:
+        return False, f"{chk.supported_edges} supported edges < {need}"
+    min_size = opt.min_size_px if chk.n_cameras > 1 else opt.min_size_px_single
+    if chk.min_size_px < min_size:
+        return False, f"projected size {chk.min_size_px:.0f} px < {min_size}"
+    if chk.supported_edges < opt.min_supported_edge_frac * chk.visible_edges:
+        return False, f"{chk.supported_edges}/{chk.visible_edges} edges supported"
+    return True, ""
+
+
+def _adds(mf: ModelFeatures, T1, T2) -> float:
+    """Symmetric average distance (ADD-S) between two poses over the edge samples, m."""
+    from scipy.spatial import cKDTree
+
+    P = mf.sample_p
+    A = P @ T1[:3, :3].T + T1[:3, 3]
+    B = P @ T2[:3, :3].T + T2[:3, 3]
+    return float(np.mean(cKDTree(B).query(A)[0]))
+
+
+def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.ndarray | None = None,
+               rng: np.random.Generator | None = None) -> tuple[InitResult | None, InitReport]:
+    """Find the part in one frame set: a verified pose or None.
+
+    A pure function of its inputs (the set-up is read-only; ``rng`` only
+    perturbs the seeded starting points and defaults to a fixed seed).
+
+    Parameters
+    ----------
+    setup : InitSetup
+    frameset : FrameSet
+    seed_T_world_object : ndarray, shape (4, 4), optional
+        Predicted pose to try first (after a loss).
+    rng : numpy Generator, optional
+
+    Returns
+    -------
+    result : InitResult or None
+    report : InitReport
+    """
+    t0 = time.perf_counter()
+    c0 = time.thread_time()
+    opt = setup.options
+    mf = setup.mf
+    rng = rng if rng is not None else np.random.default_rng(0)
+    views = _views(setup, frameset)
+    if not views:
+        return None, InitReport(time.perf_counter() - t0, time.thread_time() - c0, "none", 0, False, reason="no images")
+
+    def finish(T, chk, mode, nh):
+        return InitResult(T_world_object=T), InitReport(
+            time.perf_counter() - t0, time.thread_time() - c0, mode, nh, True, chk.inlier_frac, chk.per_camera, chk.supported_edges,
+            chk.visible_edges)
+
+    # Seeded: refine from the prediction and a few perturbations of it.
+    if seed_T_world_object is not None:
+        starts = [np.asarray(seed_T_world_object, float)]
+        for _ in range(4):
+            dR = exp_so3(rng.normal(size=3) * opt.seed_perturb_rad)
+            dp = rng.normal(size=3) * opt.seed_perturb_m
+            starts.append(transform_from_rt(starts[0][:3, :3] @ dR, starts[0][:3, 3] + dp))
+        best = None
+        for T in starts:
+            Tr = refine_pose(T, views, mf, setup.tree)
+            if opt.subpixel:
+                Tr = refine_subpixel(Tr, views, mf, setup.tree)
+            chk = check_pose(Tr, views, mf, setup.tree, opt.verify_tol_px, require_fixed=opt.require_fixed_view)
+            if best is None or chk.inlier_frac > best[1].inlier_frac:
+                best = (Tr, chk)
+            if _accept(chk, opt)[0]:
+                return finish(Tr, chk, "seed", len(starts))
+        if opt.seed_only:
+            return None, InitReport(time.perf_counter() - t0, time.thread_time() - c0, "none", len(starts), False, best[1].inlier_frac,
+                                    best[1].per_camera, reason="seed: " + _accept(best[1], opt)[1])
+
+    # Full search: P3P hypotheses per camera, ranked in that camera.
+    cand, nh = [], 0
+    for v in views:
+        ip = image_paths(v.feat, max_paths=opt.max_image_paths)
+        R, t = p3p_hypotheses(v.feat, mf, setup.model.vertices, ip)
+        nh += len(R)
+        if len(R) == 0:
+            continue
+        # Two passes: a few samples on the long edges for all, the coarse set for the best.
+        sc, _ = rank_in_camera(R, t, v.feat, mf, opt.rank_tol_px, samples=mf.sparse)
+        sc = np.where(np.isfinite(sc), sc, -1.0)
+        top = np.argsort(-sc)[:opt.keep_after_sparse]
+        top = top[sc[top] > 0]
+        sc2, _ = rank_in_camera(R[top], t[top], v.feat, mf, opt.rank_tol_px)
+        sc2 = np.where(np.isfinite(sc2), sc2, -1.0)
+        o2 = np.argsort(-sc2)[:opt.keep_per_camera]
+        top = top[o2[sc2[o2] > 0]]
+        for k in top:
+            cand.append(v.T_world_camera @ transform_from_rt(R[k], t[k]))
+    if not cand:
+        return None, InitReport(time.perf_counter() - t0, time.thread_time() - c0, "none", nh, False, reason="no hypotheses")
+    cand = np.asarray(cand)
+
+    # Re-rank in every camera: mean agreement over the cameras that can judge.
+    total = np.zeros(len(cand))
+    count = np.zeros(len(cand))
+    for v in views:
+        T_cw = invert_transform(v.T_world_camera)
+        Tc = np.einsum("ij,njk->nik", T_cw, cand)
+        sc, _ = rank_in_camera(Tc[:, :3, :3], Tc[:, :3, 3], v.feat, mf, opt.rank_tol_px, min_inside=0.5)
+        judged = np.isfinite(sc)
+        total += np.where(judged, sc, 0.0)
+        # The part is in the common view of the fixed cameras: one that cannot
+        # see the pose counts against it.
+        count += judged | (v.fixed and opt.require_fixed_view)
+    joint = np.where(count > 0, total / np.maximum(count, 1), -1.0)
+    order = np.argsort(-joint)
+
+    # Refine the best few distinct candidates and verify.
+    refined, tried = [], []
+    for k in order:
+        if len(tried) >= opt.n_refine:
+            break
+        if any(_adds(mf, cand[k], T) < 0.02 * mf.diameter for T in tried):
+            continue
+        tried.append(cand[k])
+        Tr = refine_pose(cand[k], views, mf, setup.tree)
+        if opt.subpixel:
+            Tr = refine_subpixel(Tr, views, mf, setup.tree)
+        if any(_adds(mf, Tr, T) < 0.02 * mf.diameter for T, _ in refined):
+            continue
+        chk = check_pose(Tr, views, mf, setup.tree, opt.verify_tol_px, require_fixed=opt.require_fixed_view)
+        refined.append((Tr, chk))
+    # Candidates that pass every check first, then by the image edge length
+    # they explain (a smaller, farther copy fitted to part of the part
+    # explains less), then by agreement.
+    refined.sort(key=lambda r: (not _accept(r[1], opt)[0], -r[1].inlier_px, -r[1].inlier_frac))
+    T_best, chk = refined[0]
+    ok, why = _accept(chk, opt)
+    if ok:
+        for T2, c2 in refined[1:]:
+            # A rival need not pass every check (the true pose of an
+            # accidental view may fail one): seen by the same cameras, about
+            # as good an agreement, about as much edge length explained.
+            if c2.unseen_fixed == 0 and c2.n_cameras >= chk.n_cameras and \
+                    c2.inlier_frac >= chk.inlier_frac - opt.ambiguity_margin and \
+                    c2.inlier_px >= (1 - opt.ambiguity_px_frac) * chk.inlier_px and \
+                    _adds(mf, T_best, T2) > opt.distinct_frac * mf.diameter:
+                ok, why = False, f"ambiguous: another pose scores {c2.inlier_frac:.2f} vs {chk.inlier_frac:.2f}"
+                break
+    if not ok:
+        return None, InitReport(time.perf_counter() - t0, time.thread_time() - c0, "none", nh, False, chk.inlier_frac, chk.per_camera,
+                                chk.supported_edges, chk.visible_edges, why, tuple(refined))
+    res, rep = finish(T_best, chk, "search", nh)
+    return res, replace(rep, candidates=tuple(refined))
+
+
+class Initializer:
+    """Callable initialiser for the tracker: ``initializer(frameset) -> InitResult | None``.
+
+    Holds only the constant set-up, an optional seed (the predicted pose after
+    a loss) and the report of the last call (``last_report``, with its compute
+    time).
+    """
+
+    def __init__(self, setup: InitSetup):
+        self.setup = setup
+        self._seed = None  # (T_world_object, velocity (6,) or None, t_ns)
+        self.last_report: InitReport | None = None
+
+    def reseed(self, T_world_object: np.ndarray, velocity: np.ndarray | None = None, t_ns: int | None = None) -> None:
+        """Try near this pose first (the tracker's last good estimate).
+
+        Parameters
+        ----------
+        T_world_object : ndarray, shape (4, 4)
+        velocity : ndarray, shape (6,), optional
+            ``[v (m/s, world), w (rad/s, world)]`` at ``t_ns``: the seed is
+            propagated (constant velocity) to each frame set's stamp.
+        t_ns : int, optional
+            Stamp of that estimate.
+        """
+        T = np.asarray(T_world_object, float)
+        if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+            raise ValueError(f"seed pose must be a finite (4, 4) array, got shape {T.shape}")
+        v = None if velocity is None else np.asarray(velocity, float).reshape(6)
+        self._seed = (T, v, t_ns)
+
+    def clear_seed(self) -> None:
+        self._seed = None
+
+    def predicted_seed(self, t_ns: int) -> np.ndarray | None:
+        """The seed pose propagated to ``t_ns`` (None without a seed)."""
+        if self._seed is None:
+            return None
+        T, v, ts = self._seed
+        if v is None or ts is None:
+            return T
+        dt = (t_ns - ts) * 1e-9
+        return transform_from_rt(exp_so3(v[3:] * dt) @ T[:3, :3], T[:3, 3] + v[:3] * dt)
+
+    def __call__(self, frameset: FrameSet) -> InitResult | None:
+        seed = self.predicted_seed(frameset.t_ns)
+        result, report = initialize(self.setup, frameset, seed, np.random.default_rng(frameset.index))
+        self.last_report = report
+        if result is not None:
+            self._seed = None
+        return result
+
+
+def make_initializer(rig: Rig, model: Model, options: InitOptions | None = None, **overrides) -> Initializer:
+    """An initialiser for a rig and a model.
+
+    Parameters
+    ----------
+    rig : Rig
+    model : Model
+    options : InitOptions, optional
+    **overrides
+        Fields of :class:`InitOptions` to change.
+
+    Returns
+    -------
+    Initializer
+        ``initializer(frameset) -> InitResult | None``; ``.reseed(T, velocity,
+        t_ns)``; ``.last_report``.
+    """
+    from dataclasses import replace
+
+    options = replace(options or InitOptions(), **overrides)
+    return Initializer(make_setup(rig, model, options))
