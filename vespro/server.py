@@ -42,7 +42,9 @@ def _worker_setup(factory) -> None:
     _WORKER_INIT = factory()
 
 
-def _worker_run(fs: FrameSet):
+def _worker_run(fs: FrameSet, seed=None):
+    if seed is not None and hasattr(_WORKER_INIT, "reseed"):
+        _WORKER_INIT.reseed(seed[0], velocity=seed[1], t_ns=seed[2])
     return _WORKER_INIT(fs)
 
 _STATUS = {"tracking": PoseStatus.TRACKING, "initializing": PoseStatus.INITIALIZING, "lost": PoseStatus.LOST}
@@ -132,10 +134,10 @@ class PoseServer:
             if initializer_factory is None:
                 raise ValueError("background_init='process' needs an initializer_factory")
             self._pool = ProcessPoolExecutor(max_workers=1, initializer=_worker_setup, initargs=(initializer_factory,))
-            self._submit = lambda fs: self._pool.submit(_worker_run, fs)
+            self._submit = lambda fs, seed: self._pool.submit(_worker_run, fs, seed)
         elif background_init:
             self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="vespro-init")
-            self._submit = lambda fs: self._pool.submit(self.initializer, fs)
+            self._submit = lambda fs, seed: self._pool.submit(self._seeded_call, fs, seed)
         else:
             self._pool = None
         self._job: Future | None = None
@@ -144,6 +146,11 @@ class PoseServer:
         self._last_T = None
         self._last_log_ns = None
         self._window: list = []
+
+    def _seeded_call(self, fs: FrameSet, seed):
+        if seed is not None and hasattr(self.initializer, "reseed"):
+            self.initializer.reseed(seed[0], velocity=seed[1], t_ns=seed[2])
+        return self.initializer(fs)
 
     def stop(self) -> None:
         """Ask the loop to finish after the current frame (signal-safe)."""
@@ -155,7 +162,8 @@ class PoseServer:
             return
         if not self.background_init:
             self.stats.init_attempts += 1
-            res = self.initializer(fs)
+            # After a loss the initialiser first tries near the last good pose.
+            res = self._seeded_call(fs, self.tracker.recovery_seed())
             if res is not None:
                 self.stats.init_successes += 1
                 self.tracker.start(res, fs.t_ns)
@@ -176,7 +184,7 @@ class PoseServer:
         if self._job is None:
             self.stats.init_attempts += 1
             self._job_t_ns = fs.t_ns
-            self._job = self._submit(fs)
+            self._job = self._submit(fs, self.tracker.recovery_seed())
 
     # -- the loop -------------------------------------------------------------------
     def step(self, fs: FrameSet) -> TrackerOutput:

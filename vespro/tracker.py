@@ -257,6 +257,8 @@ class Tracker:
         self.sigma_px = config.sigma_px
         self.frames = 0
         self.lost_events = 0
+        self.last_good = None  # (T_world_object, velocity (6,), t_ns) of the last tracking frame
+        self._reseeded = True
 
     # -- starting and stopping ----------------------------------------------
     def start(self, init: InitResult, t_ns: int) -> None:
@@ -281,6 +283,14 @@ class Tracker:
         self.ekf = None
         self.status = STATUS_LOST
         self.lost_events += 1
+        self._reseeded = False
+
+    def recovery_seed(self):
+        """After a loss, the last good pose, velocity and stamp (once), to seed re-initialisation."""
+        if self._reseeded or self.last_good is None:
+            return None
+        self._reseeded = True
+        return self.last_good
 
     # -- one frame ------------------------------------------------------------
     def process(self, fs: FrameSet) -> TrackerOutput:
@@ -288,6 +298,9 @@ class Tracker:
         t0 = time.perf_counter()
         self.frames += 1
         if self.ekf is None:
+            seed = self.recovery_seed() if self.initializer is not None else None
+            if seed is not None and hasattr(self.initializer, "reseed"):
+                self.initializer.reseed(seed[0], velocity=seed[1], t_ns=seed[2])
             init = self.initializer(fs) if self.initializer is not None else None
             if init is None:
                 status = STATUS_INITIALIZING if self.status != STATUS_LOST else STATUS_LOST
@@ -430,5 +443,6 @@ class Tracker:
                                  mean_nis=mean_nis, stage_ms=stage_ms)
         self.status = STATUS_TRACKING
         vel = np.concatenate([ekf.velocity, ekf.angular_velocity])
+        self.last_good = (T, vel, fs.t_ns)
         return TrackerOutput(fs.index, fs.t_ns, STATUS_TRACKING, T, vel, ekf.pose_covariance, tuple(obs),
                              n_acc, mean_nis, stage_ms=stage_ms)
