@@ -55,6 +55,9 @@ DEFAULT_END_EPS = 1e-5
 #: Silhouette distances below this (px) are reported as 0: a corner on the
 #: outline lands there up to floating-point rounding of the projection.
 SILHOUETTE_SNAP_PX = 1e-6
+#: Under lens distortion the outline is drawn with straight pieces at most this
+#: long (ideal px): chord sag below ~1e-3 px for the distortions of real lenses.
+OUTLINE_PIECE_PX = 4.0
 #: Outline rings smaller than this (px^2) are numerical cracks, not see-through gaps.
 MIN_RING_AREA_PX2 = 1e-6
 
@@ -432,6 +435,8 @@ class _EdgeTable:
         self.face = np.concatenate(f) if f else np.zeros(0, np.int64)
         owner = {(int(x), int(y)): int(fi) for x, y, fi in zip(self.a, self.b, self.face)}
         self.twin = np.array([owner.get((int(y), int(x)), -1) for x, y in zip(self.a, self.b)], dtype=np.int64)
+        self.onehot = np.zeros((self.face.size, len(model.faces)))  # edge -> face incidence, for counting
+        self.onehot[np.arange(self.face.size), self.face] = 1.0
 
 
 _EDGE_TABLES: "weakref.WeakKeyDictionary[Model, _EdgeTable]" = weakref.WeakKeyDictionary()
@@ -464,7 +469,8 @@ def _outline_segments(model: Model, T_camera_object: np.ndarray, intr: CameraInt
     ef = front[tab.face]
     if not ef.any():
         return None
-    a, b, face, twin = tab.a[ef], tab.b[ef], tab.face[ef], tab.twin[ef]
+    ef_rows = np.flatnonzero(ef)
+    a, b, face, twin = tab.a[ef_rows], tab.b[ef_rows], tab.face[ef_rows], tab.twin[ef_rows]
     contour = ~np.where(twin >= 0, front[np.maximum(twin, 0)], False)
     # Straight edges in ideal (undistorted) pixels; distortion is applied to the outline at the end.
     Kc = intr.K
@@ -474,16 +480,19 @@ def _outline_segments(model: Model, T_camera_object: np.ndarray, intr: CameraInt
     nS = len(A)
     if nS == 0:
         return None
-    # Crossings of every contour piece s with every front edge q of another face.
-    r = B - A  # (S, 2)
-    e = D - C  # (Q, 2)
-    den = r[:, None, 0] * e[None, :, 1] - r[:, None, 1] * e[None, :, 0]
-    w = C[None, :, :] - A[:, None, :]
+    # Crossings of every contour piece s with every front edge q of another
+    # face, by components (S, 1) x (1, Q).
+    ax, ay = A[:, :1], A[:, 1:]
+    rx, ry = B[:, :1] - ax, B[:, 1:] - ay
+    cx, cy, dx, dy = C[:, 0], C[:, 1], D[:, 0], D[:, 1]
+    ex, ey = dx - cx, dy - cy
+    den = rx * ey - ry * ex
+    wx, wy = cx - ax, cy - ay
     with np.errstate(divide="ignore", invalid="ignore"):
-        t = (w[..., 0] * e[None, :, 1] - w[..., 1] * e[None, :, 0]) / den
-        u = (w[..., 0] * r[:, None, 1] - w[..., 1] * r[:, None, 0]) / den
+        t = (wx * ey - wy * ex) / den
+        u = (wx * ry - wy * rx) / den
     tol = 1e-9
-    hit = (sface[:, None] != face[None, :]) & (np.abs(den) > 0) & (t > tol) & (t < 1 - tol) & (u >= -tol) & (u <= 1 + tol)
+    hit = (t > tol) & (t < 1 - tol) & (u >= -tol) & (u <= 1 + tol) & (sface[:, None] != face[None, :])
     si, qi = np.nonzero(hit)
     seg = np.concatenate([np.arange(nS), np.arange(nS), si])
     par = np.concatenate([np.zeros(nS), np.ones(nS), t[si, qi]])
@@ -491,47 +500,47 @@ def _outline_segments(model: Model, T_camera_object: np.ndarray, intr: CameraInt
     seg, par = seg[order], par[order]
     same = seg[1:] == seg[:-1]
     s_i, t0, t1 = seg[:-1][same], par[:-1][same], par[1:][same]
+    r = B - A
     P0 = A[s_i] + t0[:, None] * r[s_i]
     P1 = A[s_i] + t1[:, None] * r[s_i]
     # pieces of (numerically) zero length carry no boundary of their own
     keep = np.hypot(*(P1 - P0).T) > 1e-9
     s_i, P0, P1 = s_i[keep], P0[keep], P1[keep]
-    M = 0.5 * (P0 + P1)
+    mx, my = 0.5 * (P0[:, :1] + P1[:, :1]), 0.5 * (P0[:, 1:] + P1[:, 1:])
     # even-odd test of each midpoint against each other front face
-    cy, dy = C[None, :, 1], D[None, :, 1]
-    my = M[:, None, 1]
-    straddle = (cy > my) != (dy > my)
     with np.errstate(divide="ignore", invalid="ignore"):
-        x_at = C[None, :, 0] + (my - cy) * (D[None, :, 0] - C[None, :, 0]) / (dy - cy)
-    cross = straddle & (M[:, None, 0] < x_at)
-    faces_u, face_col = np.unique(face, return_inverse=True)
-    onehot = np.zeros((len(face), len(faces_u)))
-    onehot[np.arange(len(face)), face_col] = 1.0
-    counts = cross.astype(float) @ onehot  # crossings per (midpoint, face), exact small integers
+        x_at = cx + (my - cy) * (ex / ey)
+    cross = ((cy > my) != (dy > my)) & (mx < x_at)
+    counts = cross.astype(float) @ tab.onehot[ef_rows]  # crossings per (midpoint, face): small exact integers
     inside = np.fmod(counts, 2.0) == 1.0
-    inside[np.arange(len(M)), np.searchsorted(faces_u, sface[s_i])] = False
+    inside[np.arange(len(s_i)), sface[s_i]] = False
     outline = ~inside.any(axis=1)
     P0, P1 = P0[outline], P1[outline]
     if densify > 1:
-        # the image of a straight outline piece under lens distortion is a curve: densify, then distort
-        f = (np.arange(densify + 1) / densify)[None, :, None]
-        Q = P0[:, None, :] * (1 - f) + P1[:, None, :] * f  # (M, densify + 1, 2), ideal px
-        xy = (Q.reshape(-1, 2) - [Kc[0, 2], Kc[1, 2]]) / [Kc[0, 0], Kc[1, 1]]
-        Q = (distort_normalized(xy, intr.dist) * [Kc[0, 0], Kc[1, 1]] + [Kc[0, 2], Kc[1, 2]]).reshape(Q.shape)
-        P0, P1 = Q[:, :-1].reshape(-1, 2), Q[:, 1:].reshape(-1, 2)
+        # The image of a straight outline piece under lens distortion is a
+        # curve: cut it into at least ``densify`` pieces of at most
+        # OUTLINE_PIECE_PX (ideal px), then distort the piece ends.
+        n = np.maximum(densify, np.ceil(np.hypot(*(P1 - P0).T) / OUTLINE_PIECE_PX)).astype(np.int64)
+        seg = np.repeat(np.arange(len(P0)), n)
+        k = np.arange(seg.size) - np.repeat(np.cumsum(n) - n, n)
+        f0, f1 = (k / n[seg])[:, None], ((k + 1) / n[seg])[:, None]
+        Q = np.concatenate([P0[seg] * (1 - f0) + P1[seg] * f0, P0[seg] * (1 - f1) + P1[seg] * f1])
+        xy = (Q - [Kc[0, 2], Kc[1, 2]]) / [Kc[0, 0], Kc[1, 1]]
+        Q = distort_normalized(xy, intr.dist) * [Kc[0, 0], Kc[1, 1]] + [Kc[0, 2], Kc[1, 2]]
+        P0, P1 = Q[: seg.size], Q[seg.size :]
     return P0, P1
 
 
 def _point_segment_distance(uv, P0, P1):
     """Distance from each point (K, 2) to the nearest segment P0->P1 (M, 2), shape (K,)."""
-    d = P1 - P0
-    dd = np.einsum("ij,ij->i", d, d)
-    w = uv[:, None, :] - P0[None, :, :]
+    dx, dy = P1[:, 0] - P0[:, 0], P1[:, 1] - P0[:, 1]
+    dd = dx * dx + dy * dy
+    wx, wy = uv[:, :1] - P0[:, 0], uv[:, 1:] - P0[:, 1]
     with np.errstate(divide="ignore", invalid="ignore"):
-        t = np.clip(np.einsum("kmj,mj->km", w, d) / dd, 0.0, 1.0)
-    t = np.where(dd > 0, t, 0.0)
-    q = w - t[..., None] * d
-    return np.sqrt(np.min(np.einsum("kmj,kmj->km", q, q), axis=1))
+        t = np.clip((wx * dx + wy * dy) / dd, 0.0, 1.0)
+    t[:, dd <= 0] = 0.0
+    qx, qy = wx - t * dx, wy - t * dy
+    return np.sqrt(np.min(qx * qx + qy * qy, axis=1))
 
 
 def silhouette_distance(
