@@ -110,31 +110,30 @@ def _refine_lines(img, q, radius, tip_px=2.0, min_edge_angle_deg=20.0, rel_grad=
     Returns the refined point (2,) or None (fewer than two usable, non-parallel edges).
     """
     H, W = img.shape
-    R = int(np.ceil(radius))
-    u0, v0 = int(round(q[0])), int(round(q[1]))
+    R = int(math.ceil(radius))
+    u0, v0 = int(round(float(q[0]))), int(round(float(q[1])))
     if u0 - R - 1 < 0 or v0 - R - 1 < 0 or u0 + R + 1 > W - 1 or v0 + R + 1 > H - 1:
         return None
     patch = img[v0 - R - 1 : v0 + R + 2, u0 - R - 1 : u0 + R + 2].astype(np.float32)
     gx = cv2.Sobel(patch, cv2.CV_32F, 1, 0, ksize=3)[1:-1, 1:-1] / 8.0
     gy = cv2.Sobel(patch, cv2.CV_32F, 0, 1, ksize=3)[1:-1, 1:-1] / 8.0
-    xs = np.arange(u0 - R, u0 + R + 1, dtype=float)[None, :]
-    ys = np.arange(v0 - R, v0 + R + 1, dtype=float)[:, None]
-    dx, dy = np.broadcast_arrays(xs - q[0], ys - q[1])
-    dist2 = dx * dx + dy * dy
+    # pixel offsets from q along a row (x) and a column (y)
+    xr = np.arange(u0 - R, u0 + R + 1, dtype=float) - q[0]
+    yr = np.arange(v0 - R, v0 + R + 1, dtype=float) - q[1]
+    dist2 = xr[None, :] * xr[None, :] + yr[:, None] * yr[:, None]
     g2 = gx * gx + gy * gy
     m = (dist2 > tip_px * tip_px) & (dist2 <= radius * radius) & (g2 > (rel_grad**2) * g2.max())
-    if np.count_nonzero(m) < 6:
+    iy, ix = np.nonzero(m)
+    if iy.size < 6:
         return None
-    dxm, dym, gxm, gym = dx[m], dy[m], gx[m].astype(float), gy[m].astype(float)
+    dxm, dym, gxm, gym = xr[ix], yr[iy], gx[iy, ix].astype(float), gy[iy, ix].astype(float)
     w = gxm * gxm + gym * gym
     # the edges are rays from the corner: group pixels by their direction seen from q
     theta = np.arctan2(dym, dxm)
-    nb = 36
+    nb = _NB
     hist = np.bincount(((theta + np.pi) * (nb / (2 * np.pi))).astype(int) % nb, weights=w, minlength=nb)
-    prev, nxt = np.r_[hist[-1], hist[:-1]], np.r_[hist[1:], hist[0]]
-    sm = hist + 0.5 * (prev + nxt)
-    sprev, snxt = np.r_[sm[-1], sm[:-1]], np.r_[sm[1:], sm[0]]
-    peaks = np.flatnonzero((sm >= sprev) & (sm > snxt) & (sm > 0.15 * sm.max()))
+    sm = hist + 0.5 * (hist[_PREV] + hist[_NEXT])
+    peaks = np.flatnonzero((sm >= sm[_PREV]) & (sm > sm[_NEXT]) & (sm > 0.15 * sm.max()))
     if len(peaks) < 2:
         return None
     centres = (peaks + 0.5) * (2 * np.pi / nb) - np.pi
@@ -156,26 +155,32 @@ def _refine_lines(img, q, radius, tip_px=2.0, min_edge_angle_deg=20.0, rel_grad=
     with np.errstate(invalid="ignore", divide="ignore"):
         c_rel = (nx * swx + ny * swy) / sw          # line offset relative to q: n . (x - q) = c_rel
     # a single straight edge (not a corner / clutter), passing near q
-    ok = (cnt >= 3) & (ev1 > 0) & (ev0 <= 0.2 * ev1) & (np.abs(c_rel) <= 1.5)
-    lines = [(np.array([nx[k], ny[k]]), c_rel[k], sw[k]) for k in np.flatnonzero(ok)]
-    while len(lines) >= 2:
-        N = np.array([ln[0] for ln in lines])
-        C = np.array([ln[1] for ln in lines])
-        Wt = np.array([ln[2] for ln in lines])
+    ok = np.flatnonzero((cnt >= 3) & (ev1 > 0) & (ev0 <= 0.2 * ev1) & (np.abs(c_rel) <= 1.5))
+    N = np.stack([nx[ok], ny[ok]], axis=1)
+    C, Wt = c_rel[ok], sw[ok]
+    cos_min = math.cos(math.radians(min_edge_angle_deg))
+    while len(C) >= 2:
         G = np.abs(N @ N.T)
         np.fill_diagonal(G, np.inf)
-        if G.min() > math.cos(math.radians(min_edge_angle_deg)):  # all edges nearly parallel
+        if G.min() > cos_min:  # all edges nearly parallel
             return None
         p = np.linalg.solve((N.T * Wt) @ N, (N.T * Wt) @ C)
         res = np.abs(N @ p - C)
         # three or more edges must meet in one point; drop the one that does not
-        if len(lines) > 2 and res.max() > max_line_residual:
-            lines.pop(int(np.argmax(res)))
+        if len(C) > 2 and res.max() > max_line_residual:
+            keep = np.arange(len(C)) != int(np.argmax(res))
+            N, C, Wt = N[keep], C[keep], Wt[keep]
             continue
-        if not np.all(np.isfinite(p)) or np.hypot(*p) > max_shift:
+        if not (math.isfinite(p[0]) and math.isfinite(p[1])) or np.hypot(*p) > max_shift:
             return None
         return q + p
     return None
+
+
+#: Direction bins of :func:`_refine_lines` and each bin's circular neighbours.
+_NB = 36
+_PREV = np.r_[_NB - 1, np.arange(_NB - 1)]
+_NEXT = np.r_[np.arange(1, _NB), 0]
 
 
 def _as_grey(image):
