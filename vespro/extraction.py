@@ -183,7 +183,18 @@ _PREV = np.r_[_NB - 1, np.arange(_NB - 1)]
 _NEXT = np.r_[np.arange(1, _NB), 0]
 
 
-def _as_grey(image):
+#: Colour images are converted to grey only within this margin (px) around the
+#: search windows: every read of the extractor (structure tensor, cornerSubPix,
+#: edge refinement) stays well inside it.
+GREY_MARGIN_PX = 32
+
+
+def _as_grey(image, region=None):
+    """uint8 grey image of the same size, or None.
+
+    ``region`` ``(x0, y0, x1, y1)`` (inclusive pixels), optional: a colour
+    image is converted only there (zeros elsewhere).
+    """
     if image is None:
         return None
     try:
@@ -195,7 +206,16 @@ def _as_grey(image):
     if img.ndim == 3 and img.shape[2] == 1:
         img = img[:, :, 0]
     elif img.ndim == 3 and img.shape[2] == 3:
-        img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+        if region is None:
+            img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+        else:
+            H, W = img.shape[:2]
+            x0, y0 = max(int(region[0]), 0), max(int(region[1]), 0)
+            x1, y1 = min(int(region[2]), W - 1), min(int(region[3]), H - 1)
+            grey = np.zeros((H, W), np.uint8)
+            if x1 >= x0 and y1 >= y0:
+                grey[y0 : y1 + 1, x0 : x1 + 1] = cv2.cvtColor(img[y0 : y1 + 1, x0 : x1 + 1], cv2.COLOR_BGR2GRAY)
+            img = grey
     if img.ndim != 2 or min(img.shape) < 8:
         return None
     return np.ascontiguousarray(img)
@@ -280,7 +300,14 @@ def extract_corners(
     except Exception:  # noqa: BLE001
         return ExtractionResult(uv_out, np.zeros(K, bool), why, ncand)
 
-    img = _as_grey(image)
+    with np.errstate(invalid="ignore"):
+        live = np.isfinite(uv_pred).all(axis=1) & np.isfinite(r_all) & (r_all >= 1)
+    region = None
+    if live.any():
+        m = GREY_MARGIN_PX + r_all[live].max()
+        lo, hi = uv_pred[live].min(axis=0) - m, uv_pred[live].max(axis=0) + m
+        region = (math.floor(lo[0]), math.floor(lo[1]), math.ceil(hi[0]), math.ceil(hi[1]))
+    img = _as_grey(image, region)
     if img is None:
         why[:] = Why.NO_IMAGE
         return ExtractionResult(uv_out, np.zeros(K, bool), why, ncand)
@@ -289,57 +316,60 @@ def extract_corners(
     crit = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 40, 0.001)
     kernel = np.ones((2 * nms_radius + 1, 2 * nms_radius + 1), np.uint8)
 
+    uv_list, r_list = uv_pred.tolist(), r_all.tolist()
     for i in range(K):
-        u, v = uv_pred[i]
-        r = r_all[i]
-        if not (np.isfinite(u) and np.isfinite(v) and np.isfinite(r) and r >= 1):
+        u, v = uv_list[i]
+        r = r_list[i]
+        if not (math.isfinite(u) and math.isfinite(v) and math.isfinite(r) and r >= 1):
             continue
         r = int(round(r))
         try:
-            x0, x1 = int(np.floor(u - r)), int(np.ceil(u + r))
-            y0, y1 = int(np.floor(v - r)), int(np.ceil(v + r))
+            x0, x1 = math.floor(u - r), math.ceil(u + r)
+            y0, y1 = math.floor(v - r), math.ceil(v + r)
             wx0, wx1, wy0, wy1 = max(x0, 0), min(x1, W - 1), max(y0, 0), min(y1, H - 1)
             if wx1 - wx0 < 4 or wy1 - wy0 < 4:
                 why[i] = Why.OUTSIDE
                 continue
             px0, px1 = max(wx0 - pad, 0), min(wx1 + pad, W - 1)
             py0, py1 = max(wy0 - pad, 0), min(wy1 + pad, H - 1)
-            roi = img[py0 : py1 + 1, px0 : px1 + 1]
-            ev = cv2.cornerEigenValsAndVecs(roi, block_size, ksize=3)
-            lam_a, lam_b = ev[:, :, 0], ev[:, :, 1]
-            resp = np.minimum(lam_a, lam_b)  # == cv2.cornerMinEigenVal
-            lam_max = np.maximum(lam_a, lam_b)
             # only the window proper, away from the image's outer pixels (no valid gradient there)
-            inner = np.zeros_like(resp, dtype=bool)
             ix0, ix1 = max(wx0, 2) - px0, min(wx1, W - 3) - px0
             iy0, iy1 = max(wy0, 2) - py0, min(wy1, H - 3) - py0
             if ix1 < ix0 or iy1 < iy0:
                 why[i] = Why.OUTSIDE
                 continue
-            inner[iy0 : iy1 + 1, ix0 : ix1 + 1] = True
-            peak = (resp >= cv2.dilate(resp, kernel)) & inner
-            best = resp[inner].max()
-            peak &= resp >= max(min_eig, rel_quality * best)
+            ev = cv2.cornerEigenValsAndVecs(img[py0 : py1 + 1, px0 : px1 + 1], block_size, ksize=3)
+            resp = np.minimum(ev[:, :, 0], ev[:, :, 1])  # == cv2.cornerMinEigenVal
+            dil = cv2.dilate(resp, kernel)
+            inner = (slice(iy0, iy1 + 1), slice(ix0, ix1 + 1))
+            r_in = resp[inner]
+            best = r_in.max()
+            lam_max = np.maximum(ev[:, :, 0][inner], ev[:, :, 1][inner])
             # straight edges (aliased or noisy) have a small but non-zero lambda_min: ask
             # the structure tensor to be two-dimensional as well
-            peak &= resp >= min_isotropy * lam_max
+            peak = (r_in >= dil[inner]) & (r_in >= max(min_eig, rel_quality * best)) & (r_in >= min_isotropy * lam_max)
             ys, xs = np.nonzero(peak)
             ncand[i] = len(xs)
             if len(xs) == 0:
                 why[i] = Why.NO_CORNER
                 continue
-            cand = np.stack([xs + px0, ys + py0], axis=1).astype(np.float32)
-            d = np.hypot(cand[:, 0] - u, cand[:, 1] - v)
-            order = np.argsort(d, kind="stable")
-            if len(order) > 1 and d[order[0]] > ambiguity_ratio * d[order[1]]:
-                why[i] = Why.AMBIGUOUS
-                continue
-            c0 = cand[order[0]].reshape(1, 1, 2).copy()
+            cx = (xs + (ix0 + px0)).astype(np.float32)
+            cy = (ys + (iy0 + py0)).astype(np.float32)
+            d = np.hypot(cx - u, cy - v)
+            if len(d) > 1:
+                order = np.argsort(d, kind="stable")
+                j = order[0]
+                if d[j] > ambiguity_ratio * d[order[1]]:
+                    why[i] = Why.AMBIGUOUS
+                    continue
+            else:
+                j = 0
+            c0 = np.array([[[cx[j], cy[j]]]], np.float32)
             sh = int(max(2, min(subpix_half, r)))
             ref = cv2.cornerSubPix(img, c0.copy(), (sh, sh), (-1, -1), crit).reshape(2).astype(float)
             if (
-                not np.all(np.isfinite(ref))
-                or np.hypot(*(ref - c0.reshape(2))) > max_subpix_shift
+                not (math.isfinite(ref[0]) and math.isfinite(ref[1]))
+                or np.hypot(ref[0] - c0[0, 0, 0], ref[1] - c0[0, 0, 1]) > max_subpix_shift
                 or abs(ref[0] - u) > r
                 or abs(ref[1] - v) > r
             ):
