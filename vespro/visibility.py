@@ -480,19 +480,24 @@ def _outline_segments(model: Model, T_camera_object: np.ndarray, intr: CameraInt
     nS = len(A)
     if nS == 0:
         return None
-    # Crossings of every contour piece s with every front edge q of another
-    # face, by components (S, 1) x (1, Q).
+    # Coverage of a contour piece s by the other front faces can only change
+    # where s crosses the boundary of their union: a contour edge of another
+    # face, or an edge of a face bordering s's own face (where that neighbour
+    # ends). Crossings of every s with those edges q, by components (S, 1) x (1, Q').
+    cols = np.flatnonzero(contour | np.isin(twin, sface))
+    cface, ctwin = face[cols], twin[cols]
+    splits = (contour[cols][None, :] & (sface[:, None] != cface[None, :])) | (ctwin[None, :] == sface[:, None])
     ax, ay = A[:, :1], A[:, 1:]
     rx, ry = B[:, :1] - ax, B[:, 1:] - ay
-    cx, cy, dx, dy = C[:, 0], C[:, 1], D[:, 0], D[:, 1]
-    ex, ey = dx - cx, dy - cy
+    qx, qy = C[cols, 0], C[cols, 1]
+    ex, ey = D[cols, 0] - qx, D[cols, 1] - qy
     den = rx * ey - ry * ex
-    wx, wy = cx - ax, cy - ay
+    wx, wy = qx - ax, qy - ay
     with np.errstate(divide="ignore", invalid="ignore"):
         t = (wx * ey - wy * ex) / den
         u = (wx * ry - wy * rx) / den
     tol = 1e-9
-    hit = (t > tol) & (t < 1 - tol) & (u >= -tol) & (u <= 1 + tol) & (sface[:, None] != face[None, :])
+    hit = (t > tol) & (t < 1 - tol) & (u >= -tol) & (u <= 1 + tol) & splits
     si, qi = np.nonzero(hit)
     seg = np.concatenate([np.arange(nS), np.arange(nS), si])
     par = np.concatenate([np.zeros(nS), np.ones(nS), t[si, qi]])
@@ -508,8 +513,9 @@ def _outline_segments(model: Model, T_camera_object: np.ndarray, intr: CameraInt
     s_i, P0, P1 = s_i[keep], P0[keep], P1[keep]
     mx, my = 0.5 * (P0[:, :1] + P1[:, :1]), 0.5 * (P0[:, 1:] + P1[:, 1:])
     # even-odd test of each midpoint against each other front face
+    cx, cy, dy = C[:, 0], C[:, 1], D[:, 1]
     with np.errstate(divide="ignore", invalid="ignore"):
-        x_at = cx + (my - cy) * (ex / ey)
+        x_at = cx + (my - cy) * ((D[:, 0] - cx) / (dy - cy))
     cross = ((cy > my) != (dy > my)) & (mx < x_at)
     counts = cross.astype(float) @ tab.onehot[ef_rows]  # crossings per (midpoint, face): small exact integers
     inside = np.fmod(counts, 2.0) == 1.0
