@@ -284,7 +284,29 @@ def _refine_lines_batch(img, q, radius, tip_px=2.0, min_edge_angle_deg=20.0, rel
         c_rel = (nx * swx + ny * swy) / sw
     ok = (cnt >= 3) & (ev1 > 0) & (ev0 <= 0.2 * ev1) & (np.abs(c_rel) <= 1.5)
     ok[~live] = False
-    for k in np.flatnonzero(ok.sum(axis=1) >= 2):
+    n_lines = ok.sum(axis=1)
+    # Two lines (the usual L/Y corner seen with one edge too weak): all at once,
+    # the same arithmetic as _intersect_lines (stacked solve == one solve per matrix).
+    two = np.flatnonzero(n_lines == 2)
+    if two.size:
+        o = ok[two]
+        N = np.stack([nx[two][o].reshape(-1, 2), ny[two][o].reshape(-1, 2)], axis=2)  # (k, 2 lines, 2)
+        C2, W2 = c_rel[two][o].reshape(-1, 2), sw[two][o].reshape(-1, 2)
+        crossed = np.abs((N @ N.transpose(0, 2, 1))[:, 0, 1]) <= math.cos(math.radians(min_edge_angle_deg))
+        two, N, C2, W2 = two[crossed], N[crossed], C2[crossed], W2[crossed]
+        NtW = N.transpose(0, 2, 1) * W2[:, None, :]
+        try:
+            p = np.linalg.solve(NtW @ N, (NtW @ C2[:, :, None]))[:, :, 0]
+        except np.linalg.LinAlgError:  # a degenerate pair: one by one, as the scalar path
+            p = np.full((len(two), 2), np.nan)
+            for j in range(len(two)):
+                try:
+                    p[j] = np.linalg.solve(NtW[j] @ N[j], NtW[j] @ C2[j])
+                except np.linalg.LinAlgError:
+                    pass
+        good = np.isfinite(p).all(axis=1) & ~(np.hypot(p[:, 0], p[:, 1]) > max_shift)
+        out[idx[two[good]]] = q[idx[two[good]]] + p[good]
+    for k in np.flatnonzero(n_lines >= 3):
         o = ok[k]
         p = _intersect_lines(q[idx[k]], nx[k, o], ny[k, o], c_rel[k, o], sw[k, o], min_edge_angle_deg,
                              max_line_residual, max_shift)
