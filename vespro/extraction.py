@@ -483,11 +483,12 @@ def extract_corners(
             inner = (slice(iy0, iy1 + 1), slice(ix0, ix1 + 1))
             r_in = resp[inner]
             best = r_in.max()
-            lam_max = np.maximum(ev[:, :, 0][inner], ev[:, :, 1][inner])
+            ys, xs = np.nonzero((r_in >= dil[inner]) & (r_in >= max(min_eig, rel_quality * best)))
             # straight edges (aliased or noisy) have a small but non-zero lambda_min: ask
-            # the structure tensor to be two-dimensional as well
-            peak = (r_in >= dil[inner]) & (r_in >= max(min_eig, rel_quality * best)) & (r_in >= min_isotropy * lam_max)
-            ys, xs = np.nonzero(peak)
+            # the structure tensor to be two-dimensional as well (tested at the peaks only)
+            e = ev[ys + iy0, xs + ix0]
+            iso = r_in[ys, xs] >= min_isotropy * np.maximum(e[:, 0], e[:, 1])
+            ys, xs = ys[iso], xs[iso]
             ncand[i] = len(xs)
             if len(xs) == 0:
                 why[i] = Why.NO_CORNER

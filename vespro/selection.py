@@ -206,12 +206,14 @@ def select_quality(
     dist = np.linalg.norm(uv[el] - c, axis=1)
     first = el[np.lexsort((-dist, -w[el]))[0]]
     chosen = [int(first)]
-    remaining = np.array([i for i in el if i != first], dtype=np.intp)
+    remaining = el[el != first].astype(np.intp)
+    uv_r, w_r = uv[remaining], w[remaining]
     while len(chosen) < k:
-        scores = _quality_index_batch(uv[chosen], w[chosen], uv[remaining], w[remaining], image_size)
+        scores = _quality_index_batch(uv[chosen], w[chosen], uv_r, w_r, image_size)
         best = int(np.argmax(scores))
         chosen.append(int(remaining[best]))
-        remaining = np.delete(remaining, best)
+        keep = np.arange(len(remaining)) != best
+        remaining, uv_r, w_r = remaining[keep], uv_r[keep], w_r[keep]
     return np.array(chosen, dtype=np.intp)
 
 

@@ -62,6 +62,11 @@ OUTLINE_PIECE_PX = 4.0
 MIN_RING_AREA_PX2 = 1e-6
 
 
+def _freeze(a):
+    a.setflags(write=False)
+    return a
+
+
 def _ro(a, dtype=None):
     a = np.array(a, dtype=dtype)
     a.setflags(write=False)
@@ -343,22 +348,25 @@ class VisibilityScene:
         mask[vis] = True
 
         k = vis.size
-        uv = np.full((k, 2), np.nan)
-        depth = transform_points(T_camera_object, model.corners[vis])[:, 2]
+        P = model.corners[vis]
         sil = np.full(k, np.nan)
         if intr is not None:
-            uv, depth = project_points(intr, T_camera_object, model.corners[vis])
+            uv, depth = project_points(intr, T_camera_object, P)
             if k:
                 sil = silhouette_distance(model, T_camera_object, intr, uv)
+        else:
+            uv = np.full((k, 2), np.nan)
+            depth = transform_points(T_camera_object, P)[:, 2]
+        # all arrays below are fresh (no one else holds them): made read-only in place
         return Visibility(
-            mask=_ro(mask),
-            indices=_ro(vis, np.int64),
-            points=_ro(model.corners[vis].reshape(-1, 3)),
-            view_angle=_ro(np.arccos(np.clip(cos_best[vis], -1.0, 1.0))),
-            distance=_ro(dist[vis]),
-            uv=_ro(uv.reshape(-1, 2)),
-            depth=_ro(depth),
-            silhouette_distance=_ro(sil),
+            mask=_freeze(mask),
+            indices=_freeze(vis.astype(np.int64, copy=False)),
+            points=_freeze(P.reshape(-1, 3)),
+            view_angle=_freeze(np.arccos(np.clip(cos_best[vis], -1.0, 1.0))),
+            distance=_freeze(dist[vis]),
+            uv=_freeze(uv.reshape(-1, 2)),
+            depth=_freeze(depth),
+            silhouette_distance=_freeze(sil),
         )
 
 
