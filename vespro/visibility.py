@@ -463,10 +463,17 @@ def _outline_segments(model: Model, T_camera_object: np.ndarray, intr: CameraInt
     The projected region is the union of the front-facing faces. Its boundary
     lies on the projected edges of front faces whose neighbour across the edge
     is not front-facing (contour edges); a contour edge is split where it
-    crosses any other front face's edge, and each piece lies on the boundary
-    unless its midpoint is inside another front face (even-odd rule). Exact
-    up to floating point, except in degenerate views where a contour edge
-    overlaps another face's edge collinearly.
+    crosses the boundary of the other front faces' union, and each piece lies
+    on the outline unless its midpoint is inside another front face (even-odd
+    rule). Exact up to floating point (checked against the shapely union of
+    the faces), except in degenerate views where a contour edge overlaps
+    another face's edge collinearly.
+
+    The edges are straight in ideal (undistorted) pixels; with ``densify > 1``
+    the outline found there is cut into pieces (at least ``densify`` per piece,
+    at most ``OUTLINE_PIECE_PX`` long) whose ends are then distorted. This
+    assumes the distortion maps the image region one to one, as for any
+    usable calibration.
     """
     V_c = transform_points(T_camera_object, model.vertices)
     if np.any(V_c[:, 2] <= 1e-9):
