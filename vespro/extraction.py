@@ -110,31 +110,30 @@ def _refine_lines(img, q, radius, tip_px=2.0, min_edge_angle_deg=20.0, rel_grad=
     Returns the refined point (2,) or None (fewer than two usable, non-parallel edges).
     """
     H, W = img.shape
-    R = int(np.ceil(radius))
-    u0, v0 = int(round(q[0])), int(round(q[1]))
+    R = int(math.ceil(radius))
+    u0, v0 = int(round(float(q[0]))), int(round(float(q[1])))
     if u0 - R - 1 < 0 or v0 - R - 1 < 0 or u0 + R + 1 > W - 1 or v0 + R + 1 > H - 1:
         return None
     patch = img[v0 - R - 1 : v0 + R + 2, u0 - R - 1 : u0 + R + 2].astype(np.float32)
     gx = cv2.Sobel(patch, cv2.CV_32F, 1, 0, ksize=3)[1:-1, 1:-1] / 8.0
     gy = cv2.Sobel(patch, cv2.CV_32F, 0, 1, ksize=3)[1:-1, 1:-1] / 8.0
-    xs = np.arange(u0 - R, u0 + R + 1, dtype=float)[None, :]
-    ys = np.arange(v0 - R, v0 + R + 1, dtype=float)[:, None]
-    dx, dy = np.broadcast_arrays(xs - q[0], ys - q[1])
-    dist2 = dx * dx + dy * dy
+    # pixel offsets from q along a row (x) and a column (y)
+    xr = np.arange(u0 - R, u0 + R + 1, dtype=float) - q[0]
+    yr = np.arange(v0 - R, v0 + R + 1, dtype=float) - q[1]
+    dist2 = xr[None, :] * xr[None, :] + yr[:, None] * yr[:, None]
     g2 = gx * gx + gy * gy
     m = (dist2 > tip_px * tip_px) & (dist2 <= radius * radius) & (g2 > (rel_grad**2) * g2.max())
-    if np.count_nonzero(m) < 6:
+    iy, ix = np.nonzero(m)
+    if iy.size < 6:
         return None
-    dxm, dym, gxm, gym = dx[m], dy[m], gx[m].astype(float), gy[m].astype(float)
+    dxm, dym, gxm, gym = xr[ix], yr[iy], gx[iy, ix].astype(float), gy[iy, ix].astype(float)
     w = gxm * gxm + gym * gym
     # the edges are rays from the corner: group pixels by their direction seen from q
     theta = np.arctan2(dym, dxm)
-    nb = 36
+    nb = _NB
     hist = np.bincount(((theta + np.pi) * (nb / (2 * np.pi))).astype(int) % nb, weights=w, minlength=nb)
-    prev, nxt = np.r_[hist[-1], hist[:-1]], np.r_[hist[1:], hist[0]]
-    sm = hist + 0.5 * (prev + nxt)
-    sprev, snxt = np.r_[sm[-1], sm[:-1]], np.r_[sm[1:], sm[0]]
-    peaks = np.flatnonzero((sm >= sprev) & (sm > snxt) & (sm > 0.15 * sm.max()))
+    sm = hist + 0.5 * (hist[_PREV] + hist[_NEXT])
+    peaks = np.flatnonzero((sm >= sm[_PREV]) & (sm > sm[_NEXT]) & (sm > 0.15 * sm.max()))
     if len(peaks) < 2:
         return None
     centres = (peaks + 0.5) * (2 * np.pi / nb) - np.pi
@@ -156,29 +155,184 @@ def _refine_lines(img, q, radius, tip_px=2.0, min_edge_angle_deg=20.0, rel_grad=
     with np.errstate(invalid="ignore", divide="ignore"):
         c_rel = (nx * swx + ny * swy) / sw          # line offset relative to q: n . (x - q) = c_rel
     # a single straight edge (not a corner / clutter), passing near q
-    ok = (cnt >= 3) & (ev1 > 0) & (ev0 <= 0.2 * ev1) & (np.abs(c_rel) <= 1.5)
-    lines = [(np.array([nx[k], ny[k]]), c_rel[k], sw[k]) for k in np.flatnonzero(ok)]
-    while len(lines) >= 2:
-        N = np.array([ln[0] for ln in lines])
-        C = np.array([ln[1] for ln in lines])
-        Wt = np.array([ln[2] for ln in lines])
+    ok = np.flatnonzero((cnt >= 3) & (ev1 > 0) & (ev0 <= 0.2 * ev1) & (np.abs(c_rel) <= 1.5))
+    return _intersect_lines(q, nx[ok], ny[ok], c_rel[ok], sw[ok], min_edge_angle_deg, max_line_residual, max_shift)
+
+
+def _intersect_lines(q, nx, ny, c_rel, sw, min_edge_angle_deg, max_line_residual, max_shift):
+    """Weighted least-squares meeting point of lines ``n . (x - q) = c_rel`` (the end of :func:`_refine_lines`)."""
+    N = np.stack([nx, ny], axis=1)
+    C, Wt = c_rel, sw
+    cos_min = math.cos(math.radians(min_edge_angle_deg))
+    while len(C) >= 2:
         G = np.abs(N @ N.T)
         np.fill_diagonal(G, np.inf)
-        if G.min() > math.cos(math.radians(min_edge_angle_deg)):  # all edges nearly parallel
+        if G.min() > cos_min:  # all edges nearly parallel
             return None
         p = np.linalg.solve((N.T * Wt) @ N, (N.T * Wt) @ C)
         res = np.abs(N @ p - C)
         # three or more edges must meet in one point; drop the one that does not
-        if len(lines) > 2 and res.max() > max_line_residual:
-            lines.pop(int(np.argmax(res)))
+        if len(C) > 2 and res.max() > max_line_residual:
+            keep = np.arange(len(C)) != int(np.argmax(res))
+            N, C, Wt = N[keep], C[keep], Wt[keep]
             continue
-        if not np.all(np.isfinite(p)) or np.hypot(*p) > max_shift:
+        if not (math.isfinite(p[0]) and math.isfinite(p[1])) or np.hypot(*p) > max_shift:
             return None
         return q + p
     return None
 
 
-def _as_grey(image):
+def _refine_lines_batch(img, q, radius, tip_px=2.0, min_edge_angle_deg=20.0, rel_grad=0.25, max_line_residual=0.6,
+                        max_shift=1.0):
+    """:func:`_refine_lines` for many corners of one image at once (same results, bit for bit).
+
+    Parameters
+    ----------
+    img : ndarray (H, W) uint8
+    q : ndarray, shape (n, 2)
+        Corners to refine, px.
+    radius : ndarray, shape (n,)
+        px.
+
+    Returns
+    -------
+    ndarray, shape (n, 2)
+        Refined corners; NaN where :func:`_refine_lines` gives None.
+    """
+    q = np.asarray(q, dtype=float).reshape(-1, 2)
+    radius = np.asarray(radius, dtype=float).reshape(-1)
+    n = len(q)
+    out = np.full((n, 2), np.nan)
+    if n == 0:
+        return out
+    H, W = img.shape
+    Ri = np.ceil(radius).astype(np.int64)
+    u0, v0 = np.rint(q[:, 0]).astype(np.int64), np.rint(q[:, 1]).astype(np.int64)  # round half to even, as round()
+
+    def inside(Rk):
+        return (u0 - Rk - 1 >= 0) & (v0 - Rk - 1 >= 0) & (u0 + Rk + 1 <= W - 1) & (v0 + Rk + 1 <= H - 1)
+
+    own = inside(Ri)
+    if not own.any():
+        return out
+    R = int(Ri[own].max())
+    batch = own & inside(R)
+    for i in np.flatnonzero(own & ~batch):  # near the image border with a smaller radius than the others
+        p = _refine_lines(img, q[i], radius[i], tip_px, min_edge_angle_deg, rel_grad, max_line_residual, max_shift)
+        if p is not None:
+            out[i] = p
+    idx = np.flatnonzero(batch)
+    m = idx.size
+    if m == 0:
+        return out
+    S = 2 * R + 3
+    ub, vb = u0[idx], v0[idx]
+    # Patches stacked vertically: the 3x3 Sobel of the rows kept never reaches a neighbouring patch.
+    stack = np.concatenate([img[v - R - 1 : v + R + 2, u - R - 1 : u + R + 2] for u, v in zip(ub.tolist(), vb.tolist())])
+    stack = stack.astype(np.float32)
+    gx = (cv2.Sobel(stack, cv2.CV_32F, 1, 0, ksize=3).reshape(m, S, S)[:, 1:-1, 1:-1]) / 8.0
+    gy = (cv2.Sobel(stack, cv2.CV_32F, 0, 1, ksize=3).reshape(m, S, S)[:, 1:-1, 1:-1]) / 8.0
+    off = np.arange(-R, R + 1)
+    xr = (ub[:, None] + off[None, :]).astype(float) - q[idx, :1]  # (m, 2R+1)
+    yr = (vb[:, None] + off[None, :]).astype(float) - q[idx, 1:]
+    dist2 = xr[:, None, :] * xr[:, None, :] + yr[:, :, None] * yr[:, :, None]
+    g2 = gx * gx + gy * gy
+    # each corner's own (2 R_i + 1)^2 square
+    Rb = Ri[idx]
+    sq1 = np.abs(off)[None, :] <= Rb[:, None]
+    sq = sq1[:, :, None] & sq1[:, None, :]
+    g2max = np.where(sq, g2, -np.inf).max(axis=(1, 2)).astype(np.float32)
+    rb = radius[idx]
+    msk = sq & (dist2 > tip_px * tip_px) & (dist2 <= (rb * rb)[:, None, None]) & (g2 > (rel_grad**2) * g2max[:, None, None])
+    wi, iy, ix = np.nonzero(msk)
+    npx = np.bincount(wi, minlength=m)
+    dxm, dym = xr[wi, ix], yr[wi, iy]
+    gxm, gym = gx[wi, iy, ix].astype(float), gy[wi, iy, ix].astype(float)
+    w = gxm * gxm + gym * gym
+    theta = np.arctan2(dym, dxm)
+    nb = _NB
+    binx = ((theta + np.pi) * (nb / (2 * np.pi))).astype(int) % nb
+    hist = np.bincount(wi * nb + binx, weights=w, minlength=m * nb).reshape(m, nb)
+    sm = hist + 0.5 * (hist[:, _PREV] + hist[:, _NEXT])
+    pk = (sm >= sm[:, _PREV]) & (sm > sm[:, _NEXT]) & (sm > 0.15 * sm.max(axis=1, keepdims=True))
+    npk = pk.sum(axis=1)
+    live = (npx >= 6) & (npk >= 2)
+    P = int(npk.max())
+    if not live.any() or P < 2:
+        return out
+    # peak bins per corner, ascending, padded at the end
+    rank = np.cumsum(pk, axis=1) - 1
+    pw, pb = np.nonzero(pk)
+    centres = np.full((m, P), np.nan)
+    centres[pw, rank[pw, pb]] = (pb + 0.5) * (2 * np.pi / nb) - np.pi
+    diff = np.abs((theta[:, None] - centres[wi] + np.pi) % (2 * np.pi) - np.pi)
+    diff[np.isnan(diff)] = np.inf
+    lab = wi * P + np.argmin(diff, axis=1)
+    G = m * P
+    cnt = np.bincount(lab, minlength=G).reshape(m, P)
+    a_ = np.bincount(lab, gxm * gxm, G).reshape(m, P)
+    b_ = np.bincount(lab, gxm * gym, G).reshape(m, P)
+    c_ = np.bincount(lab, gym * gym, G).reshape(m, P)
+    sw = np.bincount(lab, w, G).reshape(m, P)
+    swx = np.bincount(lab, w * dxm, G).reshape(m, P)
+    swy = np.bincount(lab, w * dym, G).reshape(m, P)
+    half_tr, disc = 0.5 * (a_ + c_), np.hypot(0.5 * (a_ - c_), b_)
+    ev0, ev1 = half_tr - disc, half_tr + disc
+    phi = 0.5 * np.arctan2(2.0 * b_, a_ - c_)
+    nx, ny = np.cos(phi), np.sin(phi)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        c_rel = (nx * swx + ny * swy) / sw
+    ok = (cnt >= 3) & (ev1 > 0) & (ev0 <= 0.2 * ev1) & (np.abs(c_rel) <= 1.5)
+    ok[~live] = False
+    n_lines = ok.sum(axis=1)
+    # Two lines (the usual L/Y corner seen with one edge too weak): all at once,
+    # the same arithmetic as _intersect_lines (stacked solve == one solve per matrix).
+    two = np.flatnonzero(n_lines == 2)
+    if two.size:
+        o = ok[two]
+        N = np.stack([nx[two][o].reshape(-1, 2), ny[two][o].reshape(-1, 2)], axis=2)  # (k, 2 lines, 2)
+        C2, W2 = c_rel[two][o].reshape(-1, 2), sw[two][o].reshape(-1, 2)
+        crossed = np.abs((N @ N.transpose(0, 2, 1))[:, 0, 1]) <= math.cos(math.radians(min_edge_angle_deg))
+        two, N, C2, W2 = two[crossed], N[crossed], C2[crossed], W2[crossed]
+        NtW = N.transpose(0, 2, 1) * W2[:, None, :]
+        try:
+            p = np.linalg.solve(NtW @ N, (NtW @ C2[:, :, None]))[:, :, 0]
+        except np.linalg.LinAlgError:  # a degenerate pair: one by one, as the scalar path
+            p = np.full((len(two), 2), np.nan)
+            for j in range(len(two)):
+                try:
+                    p[j] = np.linalg.solve(NtW[j] @ N[j], NtW[j] @ C2[j])
+                except np.linalg.LinAlgError:
+                    pass
+        good = np.isfinite(p).all(axis=1) & ~(np.hypot(p[:, 0], p[:, 1]) > max_shift)
+        out[idx[two[good]]] = q[idx[two[good]]] + p[good]
+    for k in np.flatnonzero(n_lines >= 3):
+        o = ok[k]
+        p = _intersect_lines(q[idx[k]], nx[k, o], ny[k, o], c_rel[k, o], sw[k, o], min_edge_angle_deg,
+                             max_line_residual, max_shift)
+        if p is not None:
+            out[idx[k]] = p
+    return out
+
+
+#: Direction bins of :func:`_refine_lines` and each bin's circular neighbours.
+_NB = 36
+_PREV = np.r_[_NB - 1, np.arange(_NB - 1)]
+_NEXT = np.r_[np.arange(1, _NB), 0]
+
+
+#: Colour images are converted to grey only within this margin (px) around the
+#: search windows: every read of the extractor (structure tensor, cornerSubPix,
+#: edge refinement) stays well inside it.
+GREY_MARGIN_PX = 32
+
+
+def _as_grey(image, region=None):
+    """uint8 grey image of the same size, or None.
+
+    ``region`` ``(x0, y0, x1, y1)`` (inclusive pixels), optional: a colour
+    image is converted only there (zeros elsewhere).
+    """
     if image is None:
         return None
     try:
@@ -190,7 +344,16 @@ def _as_grey(image):
     if img.ndim == 3 and img.shape[2] == 1:
         img = img[:, :, 0]
     elif img.ndim == 3 and img.shape[2] == 3:
-        img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+        if region is None:
+            img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+        else:
+            H, W = img.shape[:2]
+            x0, y0 = max(int(region[0]), 0), max(int(region[1]), 0)
+            x1, y1 = min(int(region[2]), W - 1), min(int(region[3]), H - 1)
+            grey = np.zeros((H, W), np.uint8)
+            if x1 >= x0 and y1 >= y0:
+                grey[y0 : y1 + 1, x0 : x1 + 1] = cv2.cvtColor(img[y0 : y1 + 1, x0 : x1 + 1], cv2.COLOR_BGR2GRAY)
+            img = grey
     if img.ndim != 2 or min(img.shape) < 8:
         return None
     return np.ascontiguousarray(img)
@@ -275,7 +438,14 @@ def extract_corners(
     except Exception:  # noqa: BLE001
         return ExtractionResult(uv_out, np.zeros(K, bool), why, ncand)
 
-    img = _as_grey(image)
+    with np.errstate(invalid="ignore"):
+        live = np.isfinite(uv_pred).all(axis=1) & np.isfinite(r_all) & (r_all >= 1)
+    region = None
+    if live.any():
+        m = GREY_MARGIN_PX + r_all[live].max()
+        lo, hi = uv_pred[live].min(axis=0) - m, uv_pred[live].max(axis=0) + m
+        region = (math.floor(lo[0]), math.floor(lo[1]), math.ceil(hi[0]), math.ceil(hi[1]))
+    img = _as_grey(image, region)
     if img is None:
         why[:] = Why.NO_IMAGE
         return ExtractionResult(uv_out, np.zeros(K, bool), why, ncand)
@@ -284,71 +454,85 @@ def extract_corners(
     crit = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 40, 0.001)
     kernel = np.ones((2 * nms_radius + 1, 2 * nms_radius + 1), np.uint8)
 
+    uv_list, r_list = uv_pred.tolist(), r_all.tolist()
+    to_refine = []  # (feature, u, v, r) of the corners found, for the edge-line refinement
     for i in range(K):
-        u, v = uv_pred[i]
-        r = r_all[i]
-        if not (np.isfinite(u) and np.isfinite(v) and np.isfinite(r) and r >= 1):
+        u, v = uv_list[i]
+        r = r_list[i]
+        if not (math.isfinite(u) and math.isfinite(v) and math.isfinite(r) and r >= 1):
             continue
         r = int(round(r))
         try:
-            x0, x1 = int(np.floor(u - r)), int(np.ceil(u + r))
-            y0, y1 = int(np.floor(v - r)), int(np.ceil(v + r))
+            x0, x1 = math.floor(u - r), math.ceil(u + r)
+            y0, y1 = math.floor(v - r), math.ceil(v + r)
             wx0, wx1, wy0, wy1 = max(x0, 0), min(x1, W - 1), max(y0, 0), min(y1, H - 1)
             if wx1 - wx0 < 4 or wy1 - wy0 < 4:
                 why[i] = Why.OUTSIDE
                 continue
             px0, px1 = max(wx0 - pad, 0), min(wx1 + pad, W - 1)
             py0, py1 = max(wy0 - pad, 0), min(wy1 + pad, H - 1)
-            roi = img[py0 : py1 + 1, px0 : px1 + 1]
-            ev = cv2.cornerEigenValsAndVecs(roi, block_size, ksize=3)
-            lam_a, lam_b = ev[:, :, 0], ev[:, :, 1]
-            resp = np.minimum(lam_a, lam_b)  # == cv2.cornerMinEigenVal
-            lam_max = np.maximum(lam_a, lam_b)
             # only the window proper, away from the image's outer pixels (no valid gradient there)
-            inner = np.zeros_like(resp, dtype=bool)
             ix0, ix1 = max(wx0, 2) - px0, min(wx1, W - 3) - px0
             iy0, iy1 = max(wy0, 2) - py0, min(wy1, H - 3) - py0
             if ix1 < ix0 or iy1 < iy0:
                 why[i] = Why.OUTSIDE
                 continue
-            inner[iy0 : iy1 + 1, ix0 : ix1 + 1] = True
-            peak = (resp >= cv2.dilate(resp, kernel)) & inner
-            best = resp[inner].max()
-            peak &= resp >= max(min_eig, rel_quality * best)
+            ev = cv2.cornerEigenValsAndVecs(img[py0 : py1 + 1, px0 : px1 + 1], block_size, ksize=3)
+            resp = np.minimum(ev[:, :, 0], ev[:, :, 1])  # == cv2.cornerMinEigenVal
+            dil = cv2.dilate(resp, kernel)
+            inner = (slice(iy0, iy1 + 1), slice(ix0, ix1 + 1))
+            r_in = resp[inner]
+            best = r_in.max()
+            ys, xs = np.nonzero((r_in >= dil[inner]) & (r_in >= max(min_eig, rel_quality * best)))
             # straight edges (aliased or noisy) have a small but non-zero lambda_min: ask
-            # the structure tensor to be two-dimensional as well
-            peak &= resp >= min_isotropy * lam_max
-            ys, xs = np.nonzero(peak)
+            # the structure tensor to be two-dimensional as well (tested at the peaks only)
+            e = ev[ys + iy0, xs + ix0]
+            iso = r_in[ys, xs] >= min_isotropy * np.maximum(e[:, 0], e[:, 1])
+            ys, xs = ys[iso], xs[iso]
             ncand[i] = len(xs)
             if len(xs) == 0:
                 why[i] = Why.NO_CORNER
                 continue
-            cand = np.stack([xs + px0, ys + py0], axis=1).astype(np.float32)
-            d = np.hypot(cand[:, 0] - u, cand[:, 1] - v)
-            order = np.argsort(d, kind="stable")
-            if len(order) > 1 and d[order[0]] > ambiguity_ratio * d[order[1]]:
-                why[i] = Why.AMBIGUOUS
-                continue
-            c0 = cand[order[0]].reshape(1, 1, 2).copy()
+            cx = (xs + (ix0 + px0)).astype(np.float32)
+            cy = (ys + (iy0 + py0)).astype(np.float32)
+            d = np.hypot(cx - u, cy - v)
+            if len(d) > 1:
+                order = np.argsort(d, kind="stable")
+                j = order[0]
+                if d[j] > ambiguity_ratio * d[order[1]]:
+                    why[i] = Why.AMBIGUOUS
+                    continue
+            else:
+                j = 0
+            c0 = np.array([[[cx[j], cy[j]]]], np.float32)
             sh = int(max(2, min(subpix_half, r)))
             ref = cv2.cornerSubPix(img, c0.copy(), (sh, sh), (-1, -1), crit).reshape(2).astype(float)
             if (
-                not np.all(np.isfinite(ref))
-                or np.hypot(*(ref - c0.reshape(2))) > max_subpix_shift
+                not (math.isfinite(ref[0]) and math.isfinite(ref[1]))
+                or np.hypot(ref[0] - c0[0, 0, 0], ref[1] - c0[0, 0, 1]) > max_subpix_shift
                 or abs(ref[0] - u) > r
                 or abs(ref[1] - v) > r
             ):
                 why[i] = Why.NO_CORNER
                 continue
             if refine_lines:
-                p = _refine_lines(img, ref, min(line_radius, r + 2.0))
-                if p is not None and abs(p[0] - u) <= r and abs(p[1] - v) <= r:
-                    ref = p
+                to_refine.append((i, u, v, r))
             uv_out[i] = ref
             why[i] = Why.FOUND
         except (cv2.error, ValueError, IndexError, TypeError):
             why[i] = Why.INVALID
             uv_out[i] = np.nan
+
+    if to_refine:
+        # all windows at once (same results as one _refine_lines call per window)
+        ii, uu, vv, rr = (np.array(c) for c in zip(*to_refine))
+        try:
+            P = _refine_lines_batch(img, uv_out[ii], np.minimum(line_radius, rr + 2.0))
+        except (cv2.error, ValueError, IndexError, TypeError):
+            P = np.full((len(ii), 2), np.nan)
+        with np.errstate(invalid="ignore"):
+            take = np.isfinite(P).all(axis=1) & (np.abs(P[:, 0] - uu) <= rr) & (np.abs(P[:, 1] - vv) <= rr)
+        uv_out[ii[take]] = P[take]
 
     found_idx = np.flatnonzero(why == Why.FOUND)
     if len(found_idx) > 1:

@@ -64,14 +64,25 @@ def check_transform(T: np.ndarray, name: str = "T", atol: float = 1e-6) -> np.nd
     T = np.asarray(T, dtype=float)
     if T.shape != (4, 4):
         raise ValueError(f"{name}: expected shape (4, 4), got {T.shape}")
-    if not np.all(np.isfinite(T)):
+    if not np.isfinite(T).all():
         raise ValueError(f"{name}: contains non-finite values")
     R = T[:3, :3]
-    if not np.allclose(R @ R.T, np.eye(3), atol=atol) or np.linalg.det(R) < 0:
+    # np.allclose(a, b, atol) spelled out (|a - b| <= atol + 1e-5 |b|): it is on every frame's path
+    E = R @ R.T
+    E -= _EYE3
+    (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = R.tolist()
+    det = r00 * (r11 * r22 - r12 * r21) - r01 * (r10 * r22 - r12 * r20) + r02 * (r10 * r21 - r11 * r20)
+    if not (np.abs(E) <= atol + _RTOL_EYE3).all() or det < 0:
         raise ValueError(f"{name}: rotation block is not a proper rotation matrix")
-    if not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0], atol=atol):
+    if not (np.abs(T[3] - _LAST_ROW) <= atol + _RTOL_LAST_ROW).all():
         raise ValueError(f"{name}: last row must be [0, 0, 0, 1], got {T[3]}")
     return T
+
+
+_EYE3 = np.eye(3)
+_RTOL_EYE3 = 1e-5 * _EYE3
+_LAST_ROW = np.array([0.0, 0.0, 0.0, 1.0])
+_RTOL_LAST_ROW = 1e-5 * _LAST_ROW
 
 
 def quat_normalize(q: np.ndarray) -> np.ndarray:

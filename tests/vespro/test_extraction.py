@@ -165,3 +165,30 @@ def test_window_half_sizes():
     # rotated covariance: uses the largest eigenvalue, not the diagonal
     R = se3.exp_so3([0, 0, 0.7])[:2, :2]
     np.testing.assert_array_equal(window_half_sizes((R @ np.diag([9.0, 1.0]) @ R.T)[None]), [9])
+
+
+def test_batched_line_refinement_equals_the_per_corner_one():
+    """``_refine_lines_batch`` (all windows of an image at once) gives what
+    ``_refine_lines`` gives corner by corner, bit for bit, including None (NaN)
+    and corners near the image border with a smaller radius than the rest."""
+    from vespro.extraction import _refine_lines, _refine_lines_batch
+
+    n_refined = n_none = 0
+    for seed in range(6):
+        img, corners = _scene(seed)
+        rng = np.random.default_rng(200 + seed)
+        q = np.vstack([corners + rng.normal(0, 0.3, corners.shape),   # at corners
+                       rng.uniform([20, 20], [620, 460], (15, 2)),     # anywhere (mostly no corner)
+                       [[7.2, 100.4], [632.6, 240.5], [300.5, 8.0]]])  # near the border
+        radius = rng.choice([5.0, 6.0, 6.5, 7.0], len(q))
+        radius[-3:] = [6.0, 5.0, 6.5]
+        got = _refine_lines_batch(img, q, radius)
+        for i in range(len(q)):
+            want = _refine_lines(img, q[i], radius[i])
+            if want is None:
+                assert np.isnan(got[i]).all(), i
+                n_none += 1
+            else:
+                assert np.array_equal(got[i], want), (i, got[i], want)
+                n_refined += 1
+    assert n_refined > 40 and n_none > 40  # both outcomes exercised

@@ -197,3 +197,19 @@ def test_weight_by_quality_prefers_reliable_corners():
     # unchanged criterion when every corner is equally reliable
     same = sel.select_information(uv, J, np.zeros(30), np.full(30, 50.0), SIZE, P6=P6, k=8, weight_by_quality=True)
     np.testing.assert_array_equal(same, sel.select_information(uv, J, np.zeros(30), np.full(30, 50.0), SIZE, P6=P6, k=8))
+
+
+def test_quality_index_batch_matches_plain_formulation():
+    """The x/y-split batch scores equal the (M, n, 2)-stack formulation to rounding."""
+    from vespro.selection import _quality_index_batch, _quality_index_batch_plain
+
+    rng = np.random.default_rng(3)
+    for _ in range(300):
+        n, m = int(rng.integers(1, 9)), int(rng.integers(1, 40))
+        S, C = rng.uniform(0, 640, (n, 2)), rng.uniform(0, 640, (m, 2))
+        C[: min(m, 3)] = S[0]  # coincident points: zero-length offsets and angle ties
+        wS, wC = rng.random(n), rng.random(m)
+        got = _quality_index_batch(S, wS, C, wC, (640, 480))
+        want = _quality_index_batch_plain(S, wS, C, wC, (640, 480))
+        # 1e-12: rounding of sums of <= 9 terms (~1e-16 relative), well above
+        np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-15)

@@ -326,3 +326,63 @@ def test_lookup_table_and_direct_paths_agree(bodies):
     rng = np.random.default_rng(40)
     for c in random_viewpoints(body.model, 200, rng):
         np.testing.assert_array_equal(body.visible_mask(c), visible_corners(body.model, body.tree, c))
+
+
+def _random_poses(rng, n):
+    from scipy.spatial.transform import Rotation
+
+    for _ in range(n):
+        q_xyzw = Rotation.random(random_state=int(rng.integers(1 << 31))).as_quat()
+        yield se3.transform_from_pq(np.r_[rng.normal(0.0, 0.03, 2), rng.uniform(0.15, 0.5), q_xyzw[3], q_xyzw[:3]])
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_contour_silhouette_distance_matches_polygon_union(bodies, name):
+    """The contour-edge silhouette distance against the shapely union of the projected front faces."""
+    from vespro.visibility import _silhouette_distance_union, silhouette_distance
+
+    m = bodies[name].model
+    intr = CameraIntrinsics(640, 480, np.array([[600.0, 0, 319.5], [0, 600.0, 239.5], [0, 0, 1]]))
+    rng = np.random.default_rng(7)
+    n_cases = n_zero = n_inside = 0
+    for T in _random_poses(rng, 60):
+        uv, _ = project_points(intr, T, m.corners)
+        pts = np.vstack([uv, uv.mean(0) + rng.normal(0.0, 40.0, (20, 2))])  # corners and arbitrary points
+        got = silhouette_distance(m, T, intr, pts)
+        want = _silhouette_distance_union(m, T, intr, pts)
+        assert np.isnan(got).all() == np.isnan(want).all()
+        if np.isnan(want).all():
+            continue
+        # Both are exact up to floating point (the union's intersection points
+        # carry ~1e-12 px of rounding); 1e-6 px is the snap to 0 of the outline.
+        np.testing.assert_allclose(got, want, atol=1e-6)
+        n_cases += 1
+        n_zero += int((got == 0).sum())
+        n_inside += int(((got > 2) & (got < 10)).sum())
+    assert n_cases > 40 and n_zero > 0 and n_inside > 0
+
+
+def test_contour_silhouette_distance_with_distortion_matches_fine_union(bodies):
+    """With distortion both bend the outline by cutting it into straight pieces:
+    the union cuts each model edge in 64, the fast path the outline into pieces
+    of at most 4 px; near the outline they agree."""
+    from vespro.visibility import _silhouette_distance_union, silhouette_distance
+
+    m = bodies["bracket"].model
+    intr = CameraIntrinsics(640, 480, np.array([[600.0, 0, 319.5], [0, 600.0, 239.5], [0, 0, 1]]),
+                            np.array([-0.2, 0.05, 0.001, -0.001, 0.0]))
+    rng = np.random.default_rng(8)
+    n_near = 0
+    for T in _random_poses(rng, 15):
+        uv, _ = project_points(intr, T, m.corners)
+        got = silhouette_distance(m, T, intr, uv)
+        want = _silhouette_distance_union(m, T, intr, uv, densify=64)
+        if np.isnan(want).all():
+            assert np.isnan(got).all()
+            continue
+        near = want < 20.0  # the range selection uses (weights saturate at 10 px)
+        # 0.01 px: chord sag of the two piecewise-straight curves (model edges
+        # here are up to ~300 px long: 64 pieces of ~5 px sag up to ~3e-3 px)
+        np.testing.assert_allclose(got[near], want[near], atol=0.01)
+        n_near += int(near.sum())
+    assert n_near > 50
