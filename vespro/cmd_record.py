@@ -22,7 +22,7 @@ def object_mesh_path(name_or_path: str) -> Path:
         if q.is_file():
             return q
     names = sorted(x.stem for x in (MODELS_DIR / "objects").iterdir() if x.suffix in (".stl", ".obj", ".ply"))
-    raise SystemExit(f"vespro: no object {name_or_path!r}; known objects: {', '.join(names)} (or give a mesh path)")
+    raise ValueError(f"no object {name_or_path!r}; known objects: {', '.join(names)} (or give a mesh path)")
 
 
 def rig_path(name_or_path: str) -> Path:
@@ -36,7 +36,7 @@ def rig_path(name_or_path: str) -> Path:
     if q.is_file():
         return q
     names = sorted(x.stem for x in CAMERAS_DIR.glob("*.yaml"))
-    raise SystemExit(f"vespro: no rig {name_or_path!r}; standard rigs: {', '.join(names)} (or give a cameras.yaml path)")
+    raise ValueError(f"no rig {name_or_path!r}; standard rigs: {', '.join(names)} (or give a cameras.yaml path)")
 
 
 def _resolution(s: str) -> tuple[int, int]:
@@ -131,7 +131,7 @@ def build_config(args) -> tuple:
         if args.resolution:
             intr = intr.scaled(args.resolution[0] / intr.width)
             if intr.height != args.resolution[1]:
-                raise SystemExit(f"vespro: resolution {args.resolution} does not keep the aspect ratio of camera {c.name}")
+                raise ValueError(f"resolution {args.resolution} does not keep the aspect ratio of camera {c.name}")
         if args.distortion:
             intr = CameraIntrinsics(intr.width, intr.height, intr.K, args.distortion_coeffs or DEFAULT_DISTORTION)
         cams.append(RigCamera(c.name, intr, c.mount, c.T_world_camera, c.link, c.T_link_camera))
@@ -144,7 +144,7 @@ def build_config(args) -> tuple:
     if args.occluder:
         fixed = [c.name for c in rig if c.is_fixed]
         if not fixed:
-            raise SystemExit("vespro: --occluder needs a fixed camera in the rig")
+            raise ValueError("--occluder needs a fixed camera in the rig")
         occluders = (OccluderSweep(fixed[0], 0.4 * duration, min(1.5, 0.5 * duration)),)
     rot = None if args.rot_amplitude_deg is None else float(np.deg2rad(args.rot_amplitude_deg))
     motion = make_motion(args.motion, speed=args.speed, amplitude=args.amplitude, rot_amplitude=rot,
@@ -159,9 +159,16 @@ def build_config(args) -> tuple:
 
 
 def run(args) -> int:
+    import sys
+
+    from .rig import RigError
     from .sim.record import record
 
-    config, motion, name = build_config(args)
+    try:
+        config, motion, name = build_config(args)
+    except (ValueError, RigError) as e:
+        print(f"vespro record: {e}", file=sys.stderr)
+        return 2
     out = record(args.out, config, motion, args.frames, name, overwrite=args.overwrite,
                  progress=not args.no_progress)
     print(f"wrote {out} ({args.frames} frames, cameras {', '.join(config.rig.names)})")

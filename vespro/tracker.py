@@ -35,6 +35,7 @@ from .ekf import PoseEKF
 from .ekf import Status as EKFStatus
 from .extraction import extract_corners, window_half_sizes
 from .features import salient_corners
+from .metrics import discrete_symmetries
 from .frames import FrameSet
 from .model import Model
 from .projection import project_with_jacobian
@@ -248,6 +249,8 @@ class Tracker:
         self.tree = load_or_build_bsp(model, cache_dir=bsp_cache_dir)
         self.scene = VisibilityScene([SceneBody(model.name, model, self.tree)])
         self.salient = salient_corners(model)
+        # A symmetric part (a box) looks the same in several poses: pick one by a stated rule.
+        self.symmetries = discrete_symmetries(model.vertices)
         self.ekf: PoseEKF | None = None
         self.status = STATUS_INITIALIZING
         self._t_ns: int | None = None
@@ -261,9 +264,26 @@ class Tracker:
         self._reseeded = True
 
     # -- starting and stopping ----------------------------------------------
+    def canonical_pose(self, T_world_object: np.ndarray) -> np.ndarray:
+        """Among a symmetric part's equivalent poses ``T @ S``, the one to track.
+
+        No image tells them apart, so the rule is a convention: the one closest in
+        orientation to the last good track (continuity after a loss), otherwise the
+        one whose z axis points most nearly up in the world. Parts without symmetry
+        are returned unchanged.
+        """
+        if len(self.symmetries) < 2:
+            return T_world_object
+        cands = [T_world_object @ S for S in self.symmetries]
+        if self.last_good is not None:
+            R0 = self.last_good[0][:3, :3]
+            return max(cands, key=lambda T: np.trace(R0.T @ T[:3, :3]))
+        return max(cands, key=lambda T: T[2, 2])
+
     def start(self, init: InitResult, t_ns: int) -> None:
         """Start (or restart) the filter from a pose at capture time ``t_ns``."""
         c = self.config
+        init = InitResult(self.canonical_pose(init.T_world_object), init.cov6, init.velocity)
         P0 = np.diag(np.r_[np.full(3, c.init_sigma_pos**2), np.full(3, c.init_sigma_rot**2),
                            np.full(3, c.init_sigma_vel**2), np.full(3, c.init_sigma_angvel**2)])
         if init.cov6 is not None:

@@ -30,6 +30,6 @@ def test_record_command_writes_a_readable_recording(tmp_path):
     (["--object", "teapot"], "no object 'teapot'"),
     (["--rig", "nowhere"], "no rig 'nowhere'"),
 ])
-def test_record_command_clear_errors(tmp_path, argv, match):
-    with pytest.raises(SystemExit, match=match):
-        main(["record", str(tmp_path / "r"), "--frames", "1", "--no-progress", *argv])
+def test_record_command_clear_errors(tmp_path, capsys, argv, match):
+    assert main(["record", str(tmp_path / "r"), "--frames", "1", "--no-progress", *argv]) == 2
+    assert match in capsys.readouterr().err

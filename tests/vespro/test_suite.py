@@ -128,17 +128,27 @@ def test_small_suite_end_to_end(tmp_path):
 
 
 def test_a_failing_scenario_is_reported_and_the_run_fails(tmp_path):
-    import importlib.util
-
     from vespro.cli import main
 
-    if importlib.util.find_spec("vespro.init") is not None:
-        pytest.skip("vespro.init exists: init: auto would run")
     suite = tmp_path / "s.yaml"
-    suite.write_text("name: s\nscenarios:\n  - {name: auto, init: auto, frames: 3}\n")
+    suite.write_text("name: s\nscenarios:\n  - {name: nope, object: teapot, frames: 3}\n")
     rc = main(["eval", "--suite", str(suite), "-o", str(tmp_path / "o"), "--cache", str(tmp_path / "c")])
     assert rc == 1
     res = json.loads((tmp_path / "o" / "results.json").read_text())
-    assert res["failed"] == 1 and "vespro.init" in res["results"][0]["error"]
-    assert "| auto |" in (tmp_path / "o" / "results.md").read_text()
-    assert not (tmp_path / "c").exists()  # nothing was simulated for it
+    assert res["failed"] == 1 and "teapot" in res["results"][0]["error"]
+    assert "| nope |" in (tmp_path / "o" / "results.md").read_text()
+
+
+@pytest.mark.slow
+def test_auto_initialisation_in_the_suite(tmp_path):
+    from vespro.cli import main
+
+    suite = tmp_path / "s.yaml"
+    suite.write_text("name: s\nscenarios:\n  - {name: auto, object: box, rig: fixed2, motion: conveyor, init: auto, frames: 12}\n")
+    rc = main(["eval", "--suite", str(suite), "-o", str(tmp_path / "o"), "--cache", str(tmp_path / "c")])
+    assert rc == 0
+    r = json.loads((tmp_path / "o" / "results.json").read_text())["results"][0]["figures"]
+    # The box is symmetric: the tracker starts from the equivalent pose with z up, so the
+    # figures compare like with like (before that rule: 60 mm and 180 deg, a flipped box).
+    # Measured 0.14 mm / 0.14 deg, 92% tracked (frame 0 initialises, frame 1 confirms).
+    assert r["tracked_fraction"] > 0.5 and r["position_rmse_mm"] < 2.0 and r["orientation_rmse_deg"] < 2.0, r

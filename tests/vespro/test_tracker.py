@@ -156,3 +156,22 @@ def test_single_camera_does_not_drift_in_depth(tmp_path):
     assert np.sqrt(np.mean(d[half:] ** 2)) < 8e-3  # the second half no worse than a bound: no drift
     ratio = np.sqrt(np.mean(d**2)) / np.median(sd)
     assert 0.3 < ratio < 2.0, ratio  # the covariance is honest about the weak axis
+
+
+def test_symmetric_part_starts_from_the_upright_equivalent_pose():
+    from vespro.model import box_model
+    from vespro.rig import Rig
+    from vespro.se3 import exp_so3
+    from vespro.tracker import Tracker
+
+    tr = Tracker(Rig(()), box_model([0.12, 0.08, 0.06]))
+    assert len(tr.symmetries) == 4  # identity and three half turns
+    T = transform_from_rt(exp_so3([np.pi, 0, 0.2]), [0.9, 0.0, 0.6])  # upside down
+    C = tr.canonical_pose(T)
+    assert C[2, 2] > 0.99  # z up
+    # Same shape: the vertices coincide as sets.
+    from vespro.se3 import transform_points
+
+    a = np.round(transform_points(T, tr.model.vertices), 9)
+    b = np.round(transform_points(C, tr.model.vertices), 9)
+    assert sorted(map(tuple, a)) == sorted(map(tuple, b))
