@@ -24,16 +24,15 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import mujoco  # noqa: E402
-import numpy as np  # noqa: E402
 from _table import print_table, stats_ms  # noqa: E402
 
 from vespro.camera import CameraIntrinsics  # noqa: E402
 from vespro.rig import Rig, RigCamera, load_rig  # noqa: E402
 from vespro.sim.cell import CellConfig, SimCell  # noqa: E402
-from vespro.sim.imaging import ImageEffects, ImagePipeline  # noqa: E402
+from vespro.sim.imaging import ImageEffects  # noqa: E402
 from vespro.sim.motion import Conveyor  # noqa: E402
 from vespro.sim.rigs import CAMERAS_DIR  # noqa: E402
-from vespro.sim.scene import MODELS_DIR, render_intrinsics  # noqa: E402
+from vespro.sim.scene import MODELS_DIR  # noqa: E402
 
 
 def time_calls(fn, n):

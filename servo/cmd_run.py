@@ -115,7 +115,6 @@ def run(args) -> int:
 
         robot = ShmArm(args.robot[4:])
         t_end = time.monotonic() + 30
-        q = np.zeros(6)
         while not robot.plant_alive and time.monotonic() < t_end:
             time.sleep(0.01)
         if not robot.plant_alive:

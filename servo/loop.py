@@ -32,7 +32,6 @@ import numpy as np
 from .kinematics import DEFAULT_ARM_XML, ArmKinematics, Clik, ClikConfig
 from .planner import (
     CartesianLimits,
-    CartesianTrapezoid,
     FollowTask,
     Phase,
     Reference,

@@ -54,7 +54,7 @@ from .rotation import (
     rotvec_from_quat_into,
     matrix_from_quat_into,
 )
-from .target import SampleStatus, TargetSample
+from .target import TargetSample
 
 __all__ = [
     "CartesianLimits",

@@ -265,7 +265,7 @@ def score_scenario(rec, outs, T_true: np.ndarray, model, tracker_config, scene=N
 
     # BOP-style errors: a frame without an estimate counts as a miss (infinite error).
     mssd = np.array([metrics.mssd(T, T_true[i], P, syms) if T is not None else np.inf for i, T in enumerate(T_est)])
-    mspd, mspd_th = [], []
+    mspd = []
     for i in range(n):
         for cam in rec.rig:
             if rec.image_path(cam.name, i).is_file() is False:

@@ -11,7 +11,7 @@ from servo.loop import step
 from servo.safety import Check, Safety, SafetyConfig, Status, StopPolicy
 from servo.target import SampleStatus
 
-from servo_helpers import DT_NS, FRAME_NS, ScriptedStream, make_loop, obj_sample
+from servo_helpers import DT_NS, ScriptedStream, make_loop, obj_sample
 
 KIN = ArmKinematics()
 

@@ -20,7 +20,6 @@ from vespro.recording import Recording, RecordingWriter
 from vespro.rig import Rig, RigCamera, load_rig
 from vespro.se3 import invert_transform, transform_from_rt
 from vespro.sim.cell import CellConfig, SimCell
-from vespro.sim.imaging import ImageEffects
 from vespro.sim.motion import Conveyor, Static
 from vespro.sim.record import record
 from vespro.sim.rigs import CAMERAS_DIR, STANDARD_RIGS, rig_from_model

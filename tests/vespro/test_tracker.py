@@ -21,7 +21,7 @@ from vespro.sim.record import record
 from vespro.sim.rigs import CAMERAS_DIR
 from vespro.sim.scene import MODELS_DIR
 from vespro.track import make_tracker, track_recording
-from vespro.tracker import InitResult, TrackerConfig
+from vespro.tracker import TrackerConfig
 
 NOISE = ImageEffects(noise_px=0.5)
 

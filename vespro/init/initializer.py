@@ -39,28 +39,11 @@ from ..frames import FrameSet
 from ..model import Model
 from ..rig import Rig
 from ..se3 import exp_so3, invert_transform, transform_from_rt
+from ..tracker import InitResult
 from .features import EdgeOptions, Undistorter, extract_features
 from .modelfeat import ModelFeatures, model_features
 from .search import (CameraView, check_pose, image_paths, p3p_hypotheses, rank_in_camera, refine_pose,
                      refine_subpixel)
-
-try:  # the tracker imports modules from other branches; fall back to an equal type
-    from ..tracker import InitResult
-except Exception:  # pragma: no cover - depends on which branches are merged
-    @dataclass(frozen=True)
-    class InitResult:
-        """A starting pose (same fields as ``vespro.tracker.InitResult``).
-
-        Attributes
-        ----------
-        T_world_object : ndarray (4, 4)
-        cov6 : ndarray (6, 6) or None
-        velocity : ndarray (6,) or None
-        """
-
-        T_world_object: np.ndarray
-        cov6: np.ndarray | None = None
-        velocity: np.ndarray | None = None
 
 __all__ = ["InitOptions", "InitSetup", "InitReport", "InitResult", "Initializer", "make_initializer",
            "make_setup", "initialize"]

@@ -27,23 +27,9 @@ from pathlib import Path
 
 import numpy as np
 
+from servo.shm_robot import _CREATED, _untrack  # one rule for attaching to shared memory
+
 __all__ = ["WorldShm", "Plant", "run_plant"]
-
-
-_CREATED: set = set()
-
-
-def _untrack(shm) -> None:
-    """Only the creator may unlink a block: before Python 3.13 merely attaching
-    registers it with this process's resource tracker, which unlinks it at exit."""
-    if shm._name in _CREATED:  # attached in the creating process: keep its registration
-        return
-    try:
-        from multiprocessing import resource_tracker
-
-        resource_tracker.unregister(shm._name, "shared_memory")
-    except Exception:
-        pass
 
 
 class WorldShm:
