@@ -1,0 +1,42 @@
+"""Loss and recovery: every camera occluded for two seconds mid-sequence (issue 5).
+
+The tracker must report ``lost`` within a few frames of the occlusion and
+re-acquire the part (automatic initialisation, seeded by the last good pose and
+velocity) within one second after it is visible again, without ever
+publishing a wrong pose as ``tracking``.
+"""
+
+import numpy as np
+
+from vespro.groundtruth import read_groundtruth
+from vespro.init import make_initializer
+from vespro.recording import Recording
+from vespro.rig import load_rig
+from vespro.sim.cell import CameraDropout, CellConfig
+from vespro.sim.imaging import ImageEffects
+from vespro.sim.motion import Conveyor
+from vespro.sim.record import record
+from vespro.sim.rigs import CAMERAS_DIR
+from vespro.sim.scene import MODELS_DIR
+from vespro.track import make_tracker, track_recording
+
+
+def test_all_cameras_occluded_for_two_seconds_lost_then_reacquired(tmp_path):
+    drops = (CameraDropout("cam_left", 1.0, 3.0), CameraDropout("cam_right", 1.0, 3.0))
+    cfg = CellConfig(MODELS_DIR / "objects" / "lblock.stl", load_rig(CAMERAS_DIR / "fixed2.yaml"),
+                     effects=ImageEffects(noise_px=0.5), dropouts=drops)
+    path = record(tmp_path / "rec", cfg, Conveyor(speed=0.05, y0=-0.2), 110, "lblock")
+    rec = Recording(path)
+    _, _, T = read_groundtruth(path)
+    tr = make_tracker(rec)
+    tr.initializer = make_initializer(rec.rig, tr.model)
+    outs = track_recording(rec, tr)  # no starting pose: initialised from the images
+    t = rec.t
+    lost = [t[o.index] for o in outs if o.status == "lost" and t[o.index] >= 1.0]
+    back = [t[o.index] for o in outs if o.status == "tracking" and t[o.index] >= 3.0]
+    # Measured: lost at 1.116 s (3 frames), re-acquired at 3.04 s (the first frame seen again).
+    assert lost and lost[0] - 1.0 < 0.25  # "within a few frames"
+    assert back and back[0] - 3.0 < 1.0
+    assert all(o.status != "tracking" for o in outs if 1.2 <= t[o.index] < 3.0)
+    errs = [np.linalg.norm(o.T_world_object[:3, 3] - T[o.index][:3, 3]) for o in outs if o.status == "tracking"]
+    assert max(errs) < 0.1 * tr.model.diameter  # no wrong lock, before or after
