@@ -174,6 +174,9 @@ def run_demo(cfg: DemoConfig, log=print) -> dict:
         link_args = ["--serial", bridge.path_a, "--baud", str(cfg.baud)] if bridge else ["--tcp", str(port)]
         procs["vision"] = _spawn([py, "-m", "vespro", "serve", "--source", "world", "--world-shm", world.name,
                                   "--object", cfg.object, "--rig", rig, "--noise", str(cfg.noise_px),
+                                  # Real time on 2 cores: no multisampling (46 -> 21 ms for three cameras),
+                                  # a 0.6 px blur for the pixel integration it provided (0.84 -> 0.96 mm).
+                                  "--render-samples", "0", "--blur", "0.6",
                                   "--record", str(out / "vision"), *link_args], out / "vision.log")
         url = bridge.path_b if bridge else f"socket://127.0.0.1:{port}"
         procs["servo"] = _spawn([py, "-m", "servo", "run", "--connect", url, "--baud", str(cfg.baud),

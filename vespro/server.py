@@ -146,6 +146,12 @@ class PoseServer:
         self._last_T = None
         self._last_log_ns = None
         self._window: list = []
+        # Frame sets that arrived while initialising (about 3 s): once a pose comes back for
+        # an older frame, the filter is started there and caught up through these.
+        from collections import deque
+
+        self._backlog: deque = deque(maxlen=max(8, int(3 * getattr(source, "rate_hz", 26.0))))
+        self.caught_up_frames = 0
 
     def _seeded_call(self, fs: FrameSet, seed):
         if seed is not None and hasattr(self.initializer, "reseed"):
@@ -179,7 +185,15 @@ class PoseServer:
             self._job = None
             if res is not None:
                 self.stats.init_successes += 1
-                self.tracker.start(res, job_t)  # predicted forward by process()
+                self.tracker.start(res, job_t)
+                # Catch up: the part moved while the initialiser worked. Track the frames
+                # that came since (not published: they are old) so that pose and velocity
+                # are current before this frame.
+                for old in list(self._backlog):
+                    if old.t_ns > job_t and self.tracker.ekf is not None:
+                        self.tracker.process(old)
+                        self.caught_up_frames += 1
+                self._backlog.clear()
                 return
         if self._job is None:
             self.stats.init_attempts += 1
@@ -192,6 +206,8 @@ class PoseServer:
         try:
             self._maybe_start(fs)
             out = self.tracker.process(fs)
+            if self.tracker.ekf is None and self._pool is not None:
+                self._backlog.append(fs)
         except Exception as e:  # a tracker bug must not take the server down: drop the track
             self.stats.tracker_errors += 1
             if self.stats.tracker_errors <= 3 and self.log:

@@ -123,3 +123,26 @@ def test_serve_process_streams_and_stops_cleanly_on_sigterm(rec_path):
             proc.kill()
     assert proc.returncode == 0, out
     assert "stopped after" in out and "Traceback" not in out
+
+
+def test_a_slow_initialiser_is_caught_up_through_the_frames_it_missed(rec_path):
+    rec = Recording(rec_path)
+    _, _, T = read_groundtruth(rec_path)
+    clock = SimClock()
+    calls = []
+
+    def slow_init(fs):  # answers for the frame it was given, after the server has moved on
+        calls.append(fs.index)
+        time.sleep(0.3)
+        return InitResult(T[fs.index])
+
+    server = PoseServer(ReplaySource(rec, clock), Tracker(rec.rig, load_model(rec.model_path)), None, clock,
+                        slow_init, background_init="thread", log=None)
+    outs = []
+    server.on_output = lambda fs, o: (outs.append(o), time.sleep(0.03))
+    server.run()
+    assert server.caught_up_frames > 0 and calls[0] == 0
+    tracking = [o for o in outs if o.status == "tracking"]
+    assert tracking and tracking[0].index > calls[0] + 1  # the answer came late...
+    for o in tracking:  # ...but the filter was caught up: no stale pose published
+        assert np.linalg.norm(o.T_world_object[:3, 3] - T[o.index][:3, 3]) < 3e-3

@@ -89,6 +89,8 @@ class CellConfig:
     seed : int
     scene_extras : tuple of callables
         Passed to :class:`~vespro.sim.scene.SceneSpec` ``extras``.
+    render_samples : int
+        Render multisampling (see :class:`~vespro.sim.scene.SceneSpec`).
     """
 
     object_mesh: Path
@@ -102,6 +104,7 @@ class CellConfig:
     markers: int = 0
     seed: int = 0
     scene_extras: tuple = ()
+    render_samples: int = 4
 
     def __post_init__(self):
         if self.arm not in ARM_MODES:
@@ -133,7 +136,8 @@ class SimCell:
         self.motion = motion
         self.clock = clock or SimClock()
         self.model, info = build_cell(SceneSpec(Path(config.object_mesh), config.rig, markers=config.markers,
-                                                extras=tuple(config.scene_extras)))
+                                                extras=tuple(config.scene_extras),
+                                                render_samples=config.render_samples))
         self.data = mujoco.MjData(self.model)
         home = self.model.key("home").id
         mujoco.mj_resetDataKeyframe(self.model, self.data, home)
