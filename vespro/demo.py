@@ -183,7 +183,7 @@ def run_demo(cfg: DemoConfig, log=print) -> dict:
                                  "--robot", f"shm:{robot.name}", "--standoff", str(STANDOFF),
                                  "--record", str(out / "servo"), "--record-seconds", str(cfg.duration + 30),
                                  # A shared VM stalls for tens of ms at times; a real cell would fault at 10 ms.
-                                 "--max-dt-ticks", "50",
+                                 "--max-dt-ticks", "50", "--cpu", "1",
                                  "--stats-json", str(out / "servo" / "stats.json")], out / "servo.log")
         log(f"demo: plant, pose server and servo started ({cfg.link} link); {cfg.duration:.0f} s of cell time")
         killed = False

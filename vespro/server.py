@@ -150,8 +150,10 @@ class PoseServer:
         # an older frame, the filter is started there and caught up through these.
         from collections import deque
 
-        self._backlog: deque = deque(maxlen=max(8, int(3 * getattr(source, "rate_hz", 26.0))))
+        self._rate = float(getattr(source, "rate_hz", 26.0))
+        self._backlog: deque = deque(maxlen=max(8, int(6 * self._rate)))
         self.caught_up_frames = 0
+        self.stale_inits = 0
 
     def _seeded_call(self, fs: FrameSet, seed):
         if seed is not None and hasattr(self.initializer, "reseed"):
@@ -183,17 +185,28 @@ class PoseServer:
                     self.log(f"initialiser failed: {e!r}")
             job_t = self._job_t_ns
             self._job = None
+            newer = [old for old in self._backlog if old.t_ns > job_t]
+            first_after = newer[0].t_ns if newer else fs.t_ns  # this frame, when none came between
+            max_gap_ns = max(2.5e9 / self._rate, 0.25e9)  # a skipped capture or two, not seconds
+            if res is not None and first_after - job_t > max_gap_ns:
+                # The frames right after the initialised one are gone: catching up across the
+                # gap could lock onto the wrong corners. Start over on a current frame.
+                self.stale_inits += 1
+                res = None
             if res is not None:
                 self.stats.init_successes += 1
                 self.tracker.start(res, job_t)
                 # Catch up: the part moved while the initialiser worked. Track the frames
                 # that came since (not published: they are old) so that pose and velocity
                 # are current before this frame.
-                for old in list(self._backlog):
+                for old in newer:
                     if old.t_ns > job_t and self.tracker.ekf is not None:
                         self.tracker.process(old)
                         self.caught_up_frames += 1
                 self._backlog.clear()
+                if self.tracker.ekf is not None:  # confirmed again on live frames before publishing
+                    self.tracker.confirmed = False
+                    self.tracker._good = 0
                 return
         if self._job is None:
             self.stats.init_attempts += 1
@@ -207,7 +220,9 @@ class PoseServer:
             self._maybe_start(fs)
             out = self.tracker.process(fs)
             if self.tracker.ekf is None and self._pool is not None:
-                self._backlog.append(fs)
+                # Kept in grey (what the tracker uses): a third of the memory.
+                self._backlog.append(FrameSet(fs.index, fs.t_ns, {k: fs.grey(k) for k in fs.images},
+                                              fs.T_world_camera))
         except Exception as e:  # a tracker bug must not take the server down: drop the track
             self.stats.tracker_errors += 1
             if self.stats.tracker_errors <= 3 and self.log:

@@ -198,16 +198,22 @@ class WorldSource:
     def next(self) -> FrameSet | None:
         period = 1e9 / self.rate_hz
         t0 = self.world.t0_ns
-        now = self.clock.now_ns()
-        k_now = int((now - t0) // period)
-        if k_now > self._k:  # fell behind: drop the missed captures
-            self.missed += k_now - self._k
-            self._k = k_now + 1
-        t_cap = t0 + int(round(self._k * period))
-        self.clock.sleep_until(t_cap)
-        if self.world.finished:
-            return None
-        return self.render_now()
+        while True:
+            now = self.clock.now_ns()
+            k_now = int((now - t0) // period)
+            if k_now > self._k:  # fell behind: drop the missed captures
+                self.missed += k_now - self._k
+                self._k = k_now + 1
+            t_cap = t0 + int(round(self._k * period))
+            self.clock.sleep_until(t_cap)
+            if self.world.finished:
+                return None
+            fs = self.render_now()
+            if fs is not None:
+                return fs
+            # A torn read under heavy load: skip this capture, not the rest of the run.
+            self.missed += 1
+            self._k += 1
 
     def render_now(self) -> FrameSet | None:
         """Render the world as it is now, as capture index ``k`` (lockstep drivers call this)."""

@@ -85,6 +85,11 @@ class TrackerConfig:
         A started filter publishes ``initializing`` until this many consecutive
         well-supported frames confirm it: a wrong starting pose is never
         published as ``tracking``.
+    confirm_min_accepted : int
+        Accepted features a frame needs to count towards confirmation...
+    confirm_min_inlier_fraction : float
+        ...and the fraction of the corners found that the gate accepted (a wrong
+        pose finds corners that disagree with it).
     adaptive_noise : bool
         Adapt the measurement noise to the innovations (covariance matching):
         the corner error differs between objects, backgrounds and lenses, and
@@ -111,6 +116,8 @@ class TrackerConfig:
     lost_after: int = 4
     max_pos_std: float = 0.02
     confirm_frames: int = 2
+    confirm_min_accepted: int = 6
+    confirm_min_inlier_fraction: float = 0.75
     adaptive_noise: bool = True
     sigma_min_px: float = 0.3
     sigma_max_px: float = 3.0
@@ -447,7 +454,10 @@ class Tracker:
         # Status.
         bad = n_acc < c.min_accepted or (np.isfinite(mean_nis) and mean_nis > c.max_mean_nis)
         self._bad = self._bad + 1 if bad else 0
-        self._good = 0 if bad else self._good + 1
+        n_found = len(z)
+        strong = (not bad and n_acc >= c.confirm_min_accepted
+                  and n_acc >= c.confirm_min_inlier_fraction * max(n_found, 1))
+        self._good = self._good + 1 if strong else 0
         if not self.confirmed and self._good >= c.confirm_frames:
             self.confirmed = True
         pos_std = float(np.sqrt(np.max(np.linalg.eigvalsh(ekf.pose_covariance[:3, :3]))))
@@ -457,6 +467,12 @@ class Tracker:
             return TrackerOutput(fs.index, fs.t_ns, STATUS_LOST, observations=tuple(obs), n_accepted=n_acc,
                                  mean_nis=mean_nis, stage_ms={k: v * 1e3 for k, v in stage.items()})
         stage_ms = {k: v * 1e3 for k, v in stage.items()}
+        if self.confirmed and bad:
+            # Too little support this frame: the filter coasts (up to lost_after frames) but the
+            # estimate is not published as tracking.
+            self.status = STATUS_LOST
+            return TrackerOutput(fs.index, fs.t_ns, STATUS_LOST, observations=tuple(obs), n_accepted=n_acc,
+                                 mean_nis=mean_nis, stage_ms=stage_ms)
         if not self.confirmed:
             self.status = STATUS_INITIALIZING
             return TrackerOutput(fs.index, fs.t_ns, STATUS_INITIALIZING, observations=tuple(obs), n_accepted=n_acc,
