@@ -90,6 +90,9 @@ class TrackerConfig:
     confirm_min_inlier_fraction : float
         ...and the fraction of the corners found that the gate accepted (a wrong
         pose finds corners that disagree with it).
+    confirm_max_pos_std, confirm_max_rot_std : float
+        ...and the filter must be confident: position std (m) and orientation std
+        (rad) below these, so a start still converging is not published.
     adaptive_noise : bool
         Adapt the measurement noise to the innovations (covariance matching):
         the corner error differs between objects, backgrounds and lenses, and
@@ -118,6 +121,8 @@ class TrackerConfig:
     confirm_frames: int = 2
     confirm_min_accepted: int = 6
     confirm_min_inlier_fraction: float = 0.75
+    confirm_max_pos_std: float = 0.003
+    confirm_max_rot_std: float = 0.035
     adaptive_noise: bool = True
     sigma_min_px: float = 0.3
     sigma_max_px: float = 3.0
@@ -455,8 +460,12 @@ class Tracker:
         bad = n_acc < c.min_accepted or (np.isfinite(mean_nis) and mean_nis > c.max_mean_nis)
         self._bad = self._bad + 1 if bad else 0
         n_found = len(z)
+        P6_now = ekf.pose_covariance
+        rot_std = float(np.sqrt(np.max(np.linalg.eigvalsh(P6_now[3:, 3:]))))
         strong = (not bad and n_acc >= c.confirm_min_accepted
-                  and n_acc >= c.confirm_min_inlier_fraction * max(n_found, 1))
+                  and n_acc >= c.confirm_min_inlier_fraction * max(n_found, 1)
+                  and float(np.sqrt(np.max(np.linalg.eigvalsh(P6_now[:3, :3])))) < c.confirm_max_pos_std
+                  and rot_std < c.confirm_max_rot_std)
         self._good = self._good + 1 if strong else 0
         if not self.confirmed and self._good >= c.confirm_frames:
             self.confirmed = True
