@@ -29,7 +29,7 @@ from multiprocessing import shared_memory
 
 import numpy as np
 
-__all__ = ["RobotShm", "ShmArm"]
+__all__ = ["SharedBlock", "RobotShm", "ShmArm"]
 
 
 _CREATED: set = set()
@@ -48,8 +48,42 @@ def _untrack(shm) -> None:
         pass
 
 
-class RobotShm:
-    """The shared block, from either side.
+class SharedBlock:
+    """A block of float64 words in shared memory: created by one process, attached by others.
+
+    The creator zeroes it and alone unlinks it at :meth:`close`; attaching never
+    registers it for unlinking (see :func:`_untrack`). ``a`` is the word array.
+    """
+
+    def __init__(self, name: str | None, n_words: int):
+        if name is None:
+            self._shm = shared_memory.SharedMemory(create=True, size=8 * n_words)
+            self.owner = True
+            _CREATED.add(self._shm._name)
+        else:
+            self._shm = shared_memory.SharedMemory(name=name)
+            self.owner = False
+            _untrack(self._shm)
+        self.a = np.ndarray((n_words,), dtype=np.float64, buffer=self._shm.buf)
+        if self.owner:
+            self.a[:] = 0.0
+
+    @property
+    def name(self) -> str:
+        return self._shm.name
+
+    def close(self) -> None:
+        self.a = None
+        self._shm.close()
+        if self.owner:
+            try:
+                self._shm.unlink()
+            except FileNotFoundError:
+                pass
+
+
+class RobotShm(SharedBlock):
+    """The robot's shared block, from either side.
 
     Parameters
     ----------
@@ -61,23 +95,8 @@ class RobotShm:
 
     def __init__(self, name: str | None = None, n: int = 6):
         self.n = n
-        size = 8 * (6 + 4 * n)
-        if name is None:
-            self._shm = shared_memory.SharedMemory(create=True, size=size)
-            self.owner = True
-            _CREATED.add(self._shm._name)
-        else:
-            self._shm = shared_memory.SharedMemory(name=name)
-            self.owner = False
-            _untrack(self._shm)
-        self.a = np.ndarray((6 + 4 * n,), dtype=np.float64, buffer=self._shm.buf)
-        if self.owner:
-            self.a[:] = 0.0
+        super().__init__(name, 6 + 4 * n)
         self._i_cmd = 2 + 2 * n
-
-    @property
-    def name(self) -> str:
-        return self._shm.name
 
     # -- generic seqlock ------------------------------------------------------
     def _write(self, seq_index: int, values: np.ndarray) -> None:
@@ -121,15 +140,6 @@ class RobotShm:
     @property
     def plant_alive(self) -> bool:
         return bool(self.a[-1] > 0.5)
-
-    def close(self) -> None:
-        self.a = None
-        self._shm.close()
-        if self.owner:
-            try:
-                self._shm.unlink()
-            except FileNotFoundError:
-                pass
 
 
 class ShmArm:

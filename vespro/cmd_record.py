@@ -15,14 +15,12 @@ def object_mesh_path(name_or_path: str) -> Path:
     p = Path(name_or_path)
     if p.is_file():
         return p
-    from .sim.scene import MODELS_DIR
+    from .library import ModelLibrary
 
-    for ext in (".stl", ".obj", ".ply"):
-        q = MODELS_DIR / "objects" / f"{name_or_path}{ext}"
-        if q.is_file():
-            return q
-    names = sorted(x.stem for x in (MODELS_DIR / "objects").iterdir() if x.suffix in (".stl", ".obj", ".ply"))
-    raise ValueError(f"no object {name_or_path!r}; known objects: {', '.join(names)} (or give a mesh path)")
+    lib = ModelLibrary()
+    if name_or_path in lib.names:
+        return lib.path(name_or_path)
+    raise ValueError(f"no object {name_or_path!r}; known objects: {', '.join(lib.names)} (or give a mesh path)")
 
 
 def rig_path(name_or_path: str) -> Path:

@@ -461,15 +461,14 @@ class Tracker:
         self._bad = self._bad + 1 if bad else 0
         n_found = len(z)
         P6_now = ekf.pose_covariance
+        pos_std = float(np.sqrt(np.max(np.linalg.eigvalsh(P6_now[:3, :3]))))
         rot_std = float(np.sqrt(np.max(np.linalg.eigvalsh(P6_now[3:, 3:]))))
         strong = (not bad and n_acc >= c.confirm_min_accepted
                   and n_acc >= c.confirm_min_inlier_fraction * max(n_found, 1)
-                  and float(np.sqrt(np.max(np.linalg.eigvalsh(P6_now[:3, :3])))) < c.confirm_max_pos_std
-                  and rot_std < c.confirm_max_rot_std)
+                  and pos_std < c.confirm_max_pos_std and rot_std < c.confirm_max_rot_std)
         self._good = self._good + 1 if strong else 0
         if not self.confirmed and self._good >= c.confirm_frames:
             self.confirmed = True
-        pos_std = float(np.sqrt(np.max(np.linalg.eigvalsh(ekf.pose_covariance[:3, :3]))))
         T = ekf.pose
         if not np.all(np.isfinite(T)) or pos_std > c.max_pos_std or self._bad >= c.lost_after:
             self._lose()

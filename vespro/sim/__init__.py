@@ -1,9 +1,5 @@
-"""The simulated cell (MuJoCo): scene, motions, imaging and capture.
+"""The simulated cell (MuJoCo): scene, motions, imaging, capture, the plant process.
 
-Importing this package sets ``MUJOCO_GL=egl`` unless already set (offscreen CPU
-rendering through Mesa).
+Offscreen rendering uses Mesa EGL: ``vespro`` sets ``MUJOCO_GL=egl`` on import
+unless the user chose otherwise.
 """
-
-import os
-
-os.environ.setdefault("MUJOCO_GL", "egl")

@@ -14,22 +14,19 @@ recording writer's ``groundtruth.csv`` and evaluators only.
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
-os.environ.setdefault("MUJOCO_GL", "egl")
+import mujoco  # MUJOCO_GL is defaulted to egl by the vespro package, imported first
+import numpy as np
 
-import mujoco  # noqa: E402
-import numpy as np  # noqa: E402
-
-from ..clock import NS_PER_S, SimClock, ns_from_s  # noqa: E402
-from ..frames import FrameSet  # noqa: E402
-from ..rig import Rig  # noqa: E402
-from ..se3 import log_so3, matrix_from_quat, quat_from_matrix, transform_from_rt  # noqa: E402
-from .imaging import ImageEffects, ImagePipeline  # noqa: E402
-from .motion import Motion  # noqa: E402
-from .scene import PARK_POS, WORK_POINT, SceneSpec, build_cell  # noqa: E402
+from ..clock import NS_PER_S, SimClock, ns_from_s
+from ..frames import FrameSet
+from ..rig import Rig
+from ..se3 import log_so3, matrix_from_quat, quat_from_matrix, transform_from_rt
+from .imaging import ImageEffects, ImagePipeline
+from .motion import Motion
+from .scene import PARK_POS, WORK_POINT, SceneSpec, build_cell
 
 __all__ = ["CellConfig", "OccluderSweep", "CameraDropout", "SimCell", "ARM_MODES"]
 

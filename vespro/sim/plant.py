@@ -22,17 +22,16 @@ from __future__ import annotations
 import argparse
 import signal
 import sys
-from multiprocessing import shared_memory
 from pathlib import Path
 
 import numpy as np
 
-from servo.shm_robot import _CREATED, _untrack  # one rule for attaching to shared memory
+from servo.shm_robot import SharedBlock  # one lifecycle for shared-memory blocks
 
 __all__ = ["WorldShm", "Plant", "run_plant"]
 
 
-class WorldShm:
+class WorldShm(SharedBlock):
     """World state for the cameras: seqlock, t_ns, q (6), object pose (7), t0_ns, running.
 
     Layout (float64 words): ``0`` seqlock, ``1`` t_ns, ``2:8`` q, ``8:15`` object
@@ -43,21 +42,7 @@ class WorldShm:
     SIZE = 18
 
     def __init__(self, name: str | None = None):
-        if name is None:
-            self._shm = shared_memory.SharedMemory(create=True, size=8 * self.SIZE)
-            self.owner = True
-            _CREATED.add(self._shm._name)
-        else:
-            self._shm = shared_memory.SharedMemory(name=name)
-            self.owner = False
-            _untrack(self._shm)
-        self.a = np.ndarray((self.SIZE,), dtype=np.float64, buffer=self._shm.buf)
-        if self.owner:
-            self.a[:] = 0.0
-
-    @property
-    def name(self) -> str:
-        return self._shm.name
+        super().__init__(name, self.SIZE)
 
     def write(self, t_ns: int, q: np.ndarray, pq_object: np.ndarray, step: int) -> None:
         a = self.a
@@ -94,16 +79,6 @@ class WorldShm:
     def finished(self) -> bool:
         """The plant ran and has stopped."""
         return self.a[15] > 0 and not self.running
-
-    def close(self) -> None:
-        self.a = None
-        self._shm.close()
-        if self.owner:
-            try:
-                self._shm.unlink()
-            except FileNotFoundError:
-                pass
-
 
 class Plant:
     """The cell's physics, one 2 ms step at a time (real-time and lockstep alike).
