@@ -91,8 +91,13 @@ class TrackerConfig:
         ...and the fraction of the corners found that the gate accepted (a wrong
         pose finds corners that disagree with it).
     confirm_max_pos_std, confirm_max_rot_std : float
-        ...and the filter must be confident: position std (m) and orientation std
-        (rad) below these, so a start still converging is not published.
+        ...and the filter must be confident: largest position std, as a fraction
+        of the object's diameter, and orientation std (rad) below these, so a
+        start still converging is not published. Relative to the size because
+        a wrong lock is judged by ADD against the diameter, and because a single
+        camera sees depth several times worse than lateral position: 4% keeps the
+        3-sigma bound near the 10% wrong-lock line while a lone camera (depth std
+        4-5 mm on a 19 cm part) can still confirm.
     adaptive_noise : bool
         Adapt the measurement noise to the innovations (covariance matching):
         the corner error differs between objects, backgrounds and lenses, and
@@ -121,7 +126,7 @@ class TrackerConfig:
     confirm_frames: int = 2
     confirm_min_accepted: int = 6
     confirm_min_inlier_fraction: float = 0.75
-    confirm_max_pos_std: float = 0.003
+    confirm_max_pos_std: float = 0.04
     confirm_max_rot_std: float = 0.035
     adaptive_noise: bool = True
     sigma_min_px: float = 0.3
@@ -465,7 +470,7 @@ class Tracker:
         rot_std = float(np.sqrt(np.max(np.linalg.eigvalsh(P6_now[3:, 3:]))))
         strong = (not bad and n_acc >= c.confirm_min_accepted
                   and n_acc >= c.confirm_min_inlier_fraction * max(n_found, 1)
-                  and pos_std < c.confirm_max_pos_std and rot_std < c.confirm_max_rot_std)
+                  and pos_std < c.confirm_max_pos_std * self.model.diameter and rot_std < c.confirm_max_rot_std)
         self._good = self._good + 1 if strong else 0
         if not self.confirmed and self._good >= c.confirm_frames:
             self.confirmed = True

@@ -158,6 +158,17 @@ def test_single_camera_does_not_drift_in_depth(tmp_path):
     assert 0.3 < ratio < 2.0, ratio  # the covariance is honest about the weak axis
 
 
+def test_single_camera_confirms_on_the_complex_part(tmp_path):
+    # A lone camera sees depth 4-5 mm worse than lateral position on the bracket: the
+    # confirmation must still be reached (it once required 3 mm absolute and never was).
+    path = _rec(tmp_path / "single_bracket", "bracket", "fixed1", Conveyor(speed=0.1, y0=-0.2), 40)
+    rec, tr, outs, T, s = _run(path)
+    first = next(i for i, o in enumerate(outs) if o.status == "tracking")
+    assert first <= 8, first  # measured: frame 4
+    assert s["tracked_fraction"] >= 0.85, s["tracked_fraction"]
+    assert s["position_rmse_mm"] < 8.0, s  # measured 4.3 mm (depth-dominated)
+
+
 def test_symmetric_part_starts_from_the_upright_equivalent_pose():
     from vespro.model import box_model
     from vespro.rig import Rig
