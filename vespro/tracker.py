@@ -106,6 +106,17 @@ class TrackerConfig:
         Bounds of the adapted noise, px.
     noise_adapt_rate : float
         Weight of each frame in the running estimate.
+    feature_noise : bool
+        Learn a noise factor per (camera, corner): the extractor's error is not
+        the same for every corner (a chamfered or low-contrast corner is found
+        1-2 px off, the same way frame after frame), and a persistent error
+        that the filter takes for independent noise makes it over-confident.
+        Each corner's variance is ``sigma_px^2`` times a running mean of its
+        own normalised squared residual (at least 1, at most
+        ``feature_noise_max``), so a biased corner weighs less and the shared
+        ``sigma_px`` settles on the well-behaved ones.
+    feature_noise_rate, feature_noise_max : float
+        Weight of each frame in a corner's running factor; the largest factor.
     """
 
     features_per_camera: int = 8
@@ -129,9 +140,12 @@ class TrackerConfig:
     confirm_max_pos_std: float = 0.04
     confirm_max_rot_std: float = 0.035
     adaptive_noise: bool = True
-    sigma_min_px: float = 0.3
+    sigma_min_px: float = 0.15
     sigma_max_px: float = 3.0
     noise_adapt_rate: float = 0.15
+    feature_noise: bool = True
+    feature_noise_rate: float = 0.3
+    feature_noise_max: float = 9.0
 
     def __post_init__(self):
         if self.selection not in ("information", "quality"):
@@ -275,6 +289,9 @@ class Tracker:
         self._good = 0
         self.confirmed = False
         self.sigma_px = config.sigma_px
+        # Per (camera, corner) noise variance factor, learnt from the residuals (see TrackerConfig).
+        self.feature_factor = np.ones((len(rig.cameras), model.n_corners))
+        self._noise_updates = 0
         self.frames = 0
         self.lost_events = 0
         self.last_good = None  # (T_world_object, velocity (6,), t_ns) of the last tracking frame
@@ -352,6 +369,32 @@ class Tracker:
             return cam.T_world_camera
         return fs.T_world_camera.get(name)
 
+    def _unambiguous(self, k: int, uv: np.ndarray, J: np.ndarray, vis: "_Candidates", P6: np.ndarray) -> np.ndarray:
+        """Candidates whose search window holds no other predicted corner, as a pool to select from.
+
+        The extractor takes the corner nearest the prediction: when the pose is
+        uncertain (a start, a coast) the windows are large, and a window that
+        also holds a neighbouring corner of the part (a hole's rim, a chamfer)
+        may measure the neighbour. Corners whose nearest predicted neighbour lies
+        outside their window are preferred; if fewer than the number to select
+        are, the least crowded make up the pool. Once the windows are small
+        (a few px) every candidate qualifies.
+        """
+        n = len(uv)
+        if n <= self.config.features_per_camera:
+            return np.arange(n)
+        S = np.einsum("kij,jl,kml->kim", J, P6, J)
+        r2 = self.sigma_px**2 * self.feature_factor[k, vis.indices]
+        S[:, 0, 0] += r2
+        S[:, 1, 1] += r2
+        half = window_half_sizes(S, n_sigma=self.config.window_sigma)
+        d = np.sqrt(((uv[:, None, :] - uv[None, :, :]) ** 2).sum(-1))
+        np.fill_diagonal(d, np.inf)
+        margin = d.min(axis=1) - (half + 2.0)  # the neighbour must be clear of the window
+        n_clear = int((margin > 0).sum())
+        order = np.argsort(-margin, kind="stable")
+        return np.sort(order[:max(n_clear, self.config.features_per_camera)])
+
     def _track(self, fs: FrameSet) -> TrackerOutput:
         c = self.config
         ekf = self.ekf
@@ -398,16 +441,17 @@ class Tracker:
             else:
                 for k, uv, J, vis in cands:
                     intr = self.rig.cameras[k].intrinsics
-                    chosen[k] = np.asarray(select_quality(
-                        uv, vis.view_angle, vis.silhouette_distance, (intr.width, intr.height),
+                    pool = self._unambiguous(k, uv, J, vis, P6)
+                    picks = np.asarray(select_quality(
+                        uv[pool], vis.view_angle[pool], vis.silhouette_distance[pool], (intr.width, intr.height),
                         k=c.features_per_camera), dtype=int)
+                    chosen[k] = pool[picks]
         stage["selection"] = time.perf_counter() - t
 
         # Windowed extraction.
         t = time.perf_counter()
-        zs, hs, Js, owners = [], [], [], []
+        zs, hs, Js, owners, keys = [], [], [], [], []
         obs = []
-        R = self.sigma_px**2 * np.eye(2)
         for k, entry in enumerate(per_cam):
             cam = self.rig.cameras[k]
             if entry is None:
@@ -419,13 +463,16 @@ class Tracker:
                 obs.append(CameraObservation(cam.name, True, int(vis.indices.size)))
                 continue
             Jk = J[sel]
-            S = np.einsum("kij,jl,kml->kim", Jk, P6, Jk) + R
+            fid = vis.indices[sel]
+            r2 = self.sigma_px**2 * self.feature_factor[k, fid]
+            S = np.einsum("kij,jl,kml->kim", Jk, P6, Jk) + r2[:, None, None] * np.eye(2)
             half = window_half_sizes(S, n_sigma=c.window_sigma)
             ext = extract_corners(img, uv[sel], half)
             found = ext.found
             zs.append(ext.uv[found])
             hs.append(uv[sel][found])
             Js.append(Jk[found])
+            keys.append(np.stack([np.full(int(found.sum()), k), fid[found]], axis=1))
             owners.append((len(obs), np.flatnonzero(found)))
             obs.append(CameraObservation(cam.name, True, int(vis.indices.size), vis.indices[sel], uv[sel], half,
                                          ext.uv, np.zeros(sel.size, bool)))
@@ -440,7 +487,9 @@ class Tracker:
             z = h = np.zeros((0, 2))
             Jp = np.zeros((0, 2, 6))
         if len(z):
-            ekf.sigma_px = self.sigma_px
+            key = np.concatenate(keys)
+            factor = self.feature_factor[key[:, 0], key[:, 1]] if c.feature_noise else np.ones(len(z))
+            ekf.sigma_px = self.sigma_px * np.sqrt(factor)
             res = ekf.update(z, h, Jp)
             if res.status == EKFStatus.OK:
                 n_acc = res.n_accepted
@@ -448,9 +497,23 @@ class Tracker:
                 mean_nis = float(np.mean(nis)) if nis.size else float("nan")
                 if c.adaptive_noise and nis.size >= c.min_accepted and np.isfinite(mean_nis):
                     # Covariance matching: E[NIS] = 2 per point when R is right.
+                    # A plain running mean over the first frames (the start value is a guess),
+                    # then an exponential one that follows changes.
+                    self._noise_updates += 1
+                    rate = max(c.noise_adapt_rate, 1.0 / (self._noise_updates + 1))
                     ratio = min(max(mean_nis / 2.0, 0.25), 4.0)
-                    s2 = self.sigma_px**2 * (1.0 + c.noise_adapt_rate * (ratio - 1.0))
+                    s2 = self.sigma_px**2 * (1.0 + rate * (ratio - 1.0))
                     self.sigma_px = float(np.clip(np.sqrt(s2), c.sigma_min_px, c.sigma_max_px))
+                if c.feature_noise:
+                    # Each accepted corner's own squared residual in units of the shared sigma.
+                    # Gated corners do not count: they are outliers (a wrong match), not noise,
+                    # and inflating their variance would let a drifting track accept them.
+                    ok = res.accepted & np.isfinite(res.nis)
+                    raw = np.minimum(res.nis[ok] * factor[ok] / 2.0, c.feature_noise_max)
+                    kk = key[ok]
+                    a = c.feature_noise_rate
+                    f = (1 - a) * self.feature_factor[kk[:, 0], kk[:, 1]] + a * raw
+                    self.feature_factor[kk[:, 0], kk[:, 1]] = np.clip(f, 1.0, c.feature_noise_max)
                 # Mark accepted features per camera.
                 offset = 0
                 obs = list(obs)
