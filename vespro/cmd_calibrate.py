@@ -235,7 +235,9 @@ def run_intrinsics(args) -> int:
     print("distortion k1 k2 p1 p2 k3: " + " ".join(f"{v:.6f}" for v in intr.dist))
     png = args.coverage_png or args.rig.with_name(f"{args.rig.stem}_{args.camera}_coverage.png")
     cv2.imwrite(str(png), coverage_image(res.coverage, [dets[n] for n in res.used], size))
-    print(f"coverage {100 * res.coverage.fraction:.0f}% of the image, map in {png}")
+    gaps = ", ".join(f"{g:.0f}" for g in res.coverage.corner_gap_px)
+    print(f"coverage {100 * res.coverage.fraction:.0f}% of the image, nearest board corner to the image corners "
+          f"(TL, TR, BL, BR) {gaps} px, map in {png}")
     for w in res.coverage.warnings:
         print(f"warning: {w}", file=sys.stderr)
     update_rig_camera(args.rig, args.camera, intrinsics=intr)

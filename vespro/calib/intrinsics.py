@@ -21,7 +21,7 @@ from ..se3 import exp_so3, transform_from_rt
 from .board import BoardDetection, BoardSpec
 from .errors import CalibrationError
 
-__all__ = ["IntrinsicsResult", "Coverage", "calibrate_intrinsics", "coverage", "coverage_image",
+__all__ = ["IntrinsicsResult", "Coverage", "IMAGE_CORNERS", "calibrate_intrinsics", "coverage", "coverage_image",
            "undistortion_error", "reprojection_rms"]
 
 
@@ -37,11 +37,17 @@ class Coverage:
         Fraction of cells holding at least one corner.
     warnings : tuple of str
         Empty when the coverage is good.
+    corner_gap_px : ndarray, shape (4,)
+        Distance from each image corner pixel (top-left, top-right, bottom-left,
+        bottom-right) to the nearest detected corner, px: how far the distortion
+        model is extrapolated there (a grid cell holding one corner can still
+        leave tens of pixels between it and the image corner).
     """
 
     counts: np.ndarray
     fraction: float
     warnings: tuple = ()
+    corner_gap_px: np.ndarray = field(default=None)
 
     @property
     def ok(self) -> bool:
@@ -156,7 +162,12 @@ def calibrate_intrinsics(detections: dict, spec: BoardSpec, image_size: tuple, m
     return IntrinsicsResult(intr, total, view_rms, poses, tuple(dets), failed, rejected, std, cov)
 
 
-def coverage(detections: list, image_size: tuple, grid: tuple = (8, 6), min_fraction: float = 0.75) -> Coverage:
+#: Names of the image corners, in the order of :attr:`Coverage.corner_gap_px`.
+IMAGE_CORNERS = ("top-left", "top-right", "bottom-left", "bottom-right")
+
+
+def coverage(detections: list, image_size: tuple, grid: tuple = (8, 6), min_fraction: float = 0.75,
+             max_corner_gap: float = 0.04) -> Coverage:
     """How well corners cover the image.
 
     Parameters
@@ -169,6 +180,11 @@ def coverage(detections: list, image_size: tuple, grid: tuple = (8, 6), min_frac
     min_fraction : float
         Fewer covered cells than this fraction gives a warning; so does an empty
         corner cell (distortion is strongest there).
+    max_corner_gap : float
+        Fraction of the image diagonal: a nearest detected corner farther than
+        this from an image corner gives a warning (0.04: 32 px at 640x480).
+        Against the simulator's truth (cam_left, k1=-0.22), gaps of 46-67 px
+        left 0.35-1.0 px of undistortion error in the extreme corners.
     """
     w, h = image_size
     cols, rows = grid
@@ -188,7 +204,16 @@ def coverage(detections: list, image_size: tuple, grid: tuple = (8, 6), min_frac
     if empty:
         warns.append(f"no board corners in the image's {', '.join(empty)} corner(s): "
                      "the distortion there is extrapolated")
-    return Coverage(counts, frac, tuple(warns))
+    uv = np.concatenate([d.uv for d in detections]) if detections else np.full((1, 2), np.inf)
+    img_corners = np.array([[0.0, 0.0], [w - 1.0, 0.0], [0.0, h - 1.0], [w - 1.0, h - 1.0]])
+    gap = np.array([np.min(np.linalg.norm(uv - c, axis=1)) for c in img_corners])
+    limit = max_corner_gap * np.hypot(w, h)
+    far = [f"{nm} {g:.0f} px" for nm, g in zip(IMAGE_CORNERS, gap) if g > limit and nm not in empty]
+    if far:
+        warns.append(f"nearest board corner to the image corner: {', '.join(far)} (want <= {limit:.0f} px): "
+                     "the distortion is extrapolated there; add views with the board reaching into "
+                     "the image corners")
+    return Coverage(counts, frac, tuple(warns), gap)
 
 
 def coverage_image(cov: Coverage, detections: list, image_size: tuple) -> np.ndarray:
@@ -214,17 +239,26 @@ def coverage_image(cov: Coverage, detections: list, image_size: tuple) -> np.nda
         cv2.polylines(img, [hull], True, colour, 1, cv2.LINE_AA)
         for u, v in d.uv:
             cv2.circle(img, (int(round(u)), int(round(v))), 1, colour, -1)
+    if cov.corner_gap_px is not None:
+        # The gap at each image corner: an arc through the nearest detected corner.
+        for (x, y), g in zip([(0, 0), (w - 1, 0), (0, h - 1), (w - 1, h - 1)], cov.corner_gap_px):
+            if np.isfinite(g):
+                cv2.circle(img, (x, y), int(round(g)), (0, 0, 200), 1, cv2.LINE_AA)
+                cv2.putText(img, f"{g:.0f}px", (min(max(x - 40, 4), w - 48), min(max(y + (18 if y == 0 else -24), 14), h - 24)),
+                            cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 200), 1, cv2.LINE_AA)
     text = f"coverage {100 * cov.fraction:.0f}%  ({len(detections)} views)"
     cv2.putText(img, text, (8, h - 10), cv2.FONT_HERSHEY_SIMPLEX, 0.55, (0, 0, 0), 1, cv2.LINE_AA)
     return img
 
 
-def undistortion_error(intr_est: CameraIntrinsics, intr_true: CameraIntrinsics, step_px: int = 8) -> tuple[float, float]:
+def undistortion_error(intr_est: CameraIntrinsics, intr_true: CameraIntrinsics, step_px: int = 4) -> tuple[float, float]:
     """Difference of two distorted-to-ideal pixel maps over the whole image.
 
     Each calibration maps a pixel ``u`` of the raw image to its ideal pixel
     ``K n(u)`` (what ``cv2.undistort`` with the same matrix does); the maps are
-    compared on a grid of pixels covering the image, borders included.
+    compared on a grid of pixels covering the image every ``step_px``, the
+    first and last rows and columns included (so the four extreme corner
+    pixels, where an extrapolated polynomial is worst, always count).
 
     Returns
     -------
