@@ -90,6 +90,8 @@ def add_scenario_options(p: argparse.ArgumentParser) -> None:
                    help="no images from CAM between T0 and T1 seconds (repeatable)")
     p.add_argument("--render-samples", type=int, default=4,
                    help="render multisampling (anti-aliasing); 0 halves render time (use a little --blur)")
+    p.add_argument("--mono", action="store_true",
+                   help="monochrome cameras: 8-bit grey images (a third of the imaging and writing work)")
     p.add_argument("--arm", default="home", choices=["home", "watch"],
                    help="home: arm parked; watch: flange hovers over the working area (eye-in-hand view)")
     p.add_argument("--encoder-noise", type=float, default=0.0, help="joint sensor noise, rad")
@@ -153,7 +155,7 @@ def build_config(args) -> tuple:
         object_mesh=mesh, rig=rig, rate_hz=args.rate,
         effects=ImageEffects(noise_px=args.noise, intensity_noise=args.intensity_noise, blur_px=args.blur),
         arm=args.arm, encoder_noise=args.encoder_noise, occluders=occluders, dropouts=tuple(args.drop),
-        seed=args.seed, render_samples=getattr(args, "render_samples", 4),
+        seed=args.seed, render_samples=getattr(args, "render_samples", 4), mono=getattr(args, "mono", False),
     )
     return config, motion, mesh.stem
 

@@ -176,7 +176,7 @@ def run_demo(cfg: DemoConfig, log=print) -> dict:
                                   "--object", cfg.object, "--rig", rig, "--noise", str(cfg.noise_px),
                                   # Real time on 2 cores: no multisampling (46 -> 21 ms for three cameras),
                                   # a 0.6 px blur for the pixel integration it provided (0.84 -> 0.96 mm).
-                                  "--render-samples", "0", "--blur", "0.6",
+                                  "--render-samples", "0", "--blur", "0.6", "--mono",
                                   "--record", str(out / "vision"), *link_args], out / "vision.log")
         url = bridge.path_b if bridge else f"socket://127.0.0.1:{port}"
         procs["servo"] = _spawn([py, "-m", "servo", "run", "--connect", url, "--baud", str(cfg.baud),
@@ -315,7 +315,7 @@ def run_demo_lockstep(cfg: DemoConfig, log=print) -> dict:
                   cfg.duration)
     plant.start(clock.now_ns())
     rig = load_rig(CAMERAS_DIR / f"{CAMERA_SETS[cfg.cameras]}.yaml")
-    cell_cfg = CellConfig(mesh, rig, effects=ImageEffects(noise_px=cfg.noise_px))
+    cell_cfg = CellConfig(mesh, rig, effects=ImageEffects(noise_px=cfg.noise_px), mono=True)  # the cell's cameras are monochrome
     source = WorldSource(world_shm.name, cell_cfg, clock)
     model = load_model(mesh, name=cfg.object)
     tracker = Tracker(rig, model)

@@ -18,6 +18,7 @@ latency (capture to send), status and link statistics.
 
 from __future__ import annotations
 
+import os
 import threading
 from concurrent.futures import Future, ProcessPoolExecutor, ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -36,9 +37,19 @@ __all__ = ["PoseServer", "ServerStats", "pose_message"]
 _WORKER_INIT = None
 
 
+#: Niceness of the initialisation worker: the live loop (capture, tracking, publishing at the
+#: camera rate) must keep its rate while a search that takes seconds runs beside it; the
+#: worker takes the CPU time the loop leaves (on a 2-core cell, most of the servo's core).
+WORKER_NICE = 10
+
+
 def _worker_setup(factory) -> None:
-    """In the initialisation worker process: build the initialiser once."""
+    """In the initialisation worker process: lower its priority, build the initialiser once."""
     global _WORKER_INIT
+    try:
+        os.nice(WORKER_NICE)
+    except OSError:  # not permitted: run at the normal priority
+        pass
     _WORKER_INIT = factory()
 
 

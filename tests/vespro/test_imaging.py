@@ -47,3 +47,20 @@ def test_sensor_noise_and_validation():
         p.apply(np.zeros((48, 64, 3), np.uint8))
     with pytest.raises(ValueError, match="noise_px"):
         ImageEffects(noise_px=-1)
+
+
+def test_mono_camera_gives_the_grey_of_the_colour_image():
+    # Distortion (a real remap) and blur on: converting first must give the grey of the
+    # colour pipeline's output, up to rounding (one grey level).
+    intr = CameraIntrinsics.from_fovy(640, 480, 40)
+    dist = CameraIntrinsics(intr.width, intr.height, intr.K, np.array([-0.2, 0.08, 0.0005, -0.0003, -0.01]))
+    rgb = np.dstack([_checker()[..., 0], _checker(sq=30)[..., 0], _checker(sq=50)[..., 0]])
+    fx = ImageEffects(blur_px=0.8)
+    colour = ImagePipeline(dist, intr, fx).apply(rgb)
+    mono = ImagePipeline(dist, intr, fx, mono=True).apply(rgb)
+    assert colour.shape == (480, 640, 3) and mono.shape == (480, 640) and mono.dtype == np.uint8
+    diff = np.abs(mono.astype(int) - cv2.cvtColor(colour, cv2.COLOR_BGR2GRAY).astype(int))
+    assert diff.max() <= 1, diff.max()
+    # Noise works on one channel too.
+    noisy = ImagePipeline(dist, intr, ImageEffects(noise_px=0.5, intensity_noise=2.0), mono=True)
+    assert noisy.apply(rgb, np.random.default_rng(0)).shape == (480, 640)

@@ -88,6 +88,8 @@ class CellConfig:
         Passed to :class:`~vespro.sim.scene.SceneSpec` ``extras``.
     render_samples : int
         Render multisampling (see :class:`~vespro.sim.scene.SceneSpec`).
+    mono : bool
+        Monochrome cameras: 8-bit grey images instead of BGR.
     """
 
     object_mesh: Path
@@ -102,6 +104,7 @@ class CellConfig:
     seed: int = 0
     scene_extras: tuple = ()
     render_samples: int = 4
+    mono: bool = False
 
     def __post_init__(self):
         if self.arm not in ARM_MODES:
@@ -147,7 +150,7 @@ class SimCell:
         self._pipelines = {}
         for cam in config.rig:
             rintr, mj_name = self._render_info[cam.name]
-            self._pipelines[cam.name] = ImagePipeline(cam.intrinsics, rintr, config.effects)
+            self._pipelines[cam.name] = ImagePipeline(cam.intrinsics, rintr, config.effects, mono=config.mono)
             key = (rintr.height, rintr.width)
             if key not in self._renderers:
                 r = mujoco.Renderer(self.model, rintr.height, rintr.width)

@@ -70,12 +70,17 @@ class ImagePipeline:
     render : CameraIntrinsics
         The centred pinhole MuJoCo renders for it.
     effects : ImageEffects
+    mono : bool
+        A monochrome camera: 8-bit grey images (what the tracker uses; a third
+        of the pixels to remap, blur and write).
     """
 
-    def __init__(self, intr: CameraIntrinsics, render: CameraIntrinsics, effects: ImageEffects = ImageEffects()):
+    def __init__(self, intr: CameraIntrinsics, render: CameraIntrinsics, effects: ImageEffects = ImageEffects(),
+                 mono: bool = False):
         self.intr = intr
         self.render = render
         self.effects = effects
+        self.mono = bool(mono)
         self._bank = None
         self._fields = None
         self.identity = intr is render or (
@@ -145,9 +150,10 @@ class ImagePipeline:
 
         Returns
         -------
-        ndarray, shape (H, W, 3), uint8, BGR
+        ndarray, shape (H, W, 3), uint8, BGR; shape (H, W) grey for a mono camera
+            (converted first, so the remap, blur and noise work on one channel)
         """
-        bgr = cv2.cvtColor(render_rgb, cv2.COLOR_RGB2BGR)
+        bgr = cv2.cvtColor(render_rgb, cv2.COLOR_RGB2GRAY if self.mono else cv2.COLOR_RGB2BGR)
         e = self.effects
         noisy = e.noise_px > 0 or e.intensity_noise > 0
         if noisy and rng is None:
