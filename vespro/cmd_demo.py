@@ -70,6 +70,8 @@ def run(args) -> int:
               f"median {_f(vis['tracker_ms_median'])} ms")
     for ev in s.get("events", []):
         print(f"event: {ev}")
+    if "recording_error" in s:
+        print(f"note: {s['recording_error']}")
     print(f"wrote {args.out}/summary.json, estimation_error.png, tracking_error.png, loop_timing.png"
           f"{', overlay.mp4' if 'video' in s else ''}, servo/, vision/recording")
     return 0 if e["acquired"] else 1

@@ -408,7 +408,7 @@ def summarize(out: Path, cfg: DemoConfig, events: list) -> dict:
 
     from .groundtruth import GroundTruthWriter
     from .metrics import pose_error_vector, rmse
-    from .recording import Recording
+    from .recording import Recording, RecordingError
 
     plant = np.load(out / "plant.npz")
     t_log = plant["t_ns"]
@@ -476,16 +476,23 @@ def summarize(out: Path, cfg: DemoConfig, events: list) -> dict:
 
     # Ground truth for the recording, so `vespro eval` can replay it.
     rec_path = vision / "recording"
+    rec_ok = False
     if (rec_path / "frames.csv").exists():
-        rec = Recording(rec_path)
-        first_ns = outputs[0].t_ns if outputs else t0  # frames.csv times are relative to the first frame set
-        with GroundTruthWriter(rec_path) as gt:
-            for k in range(len(rec)):
-                i = int(np.clip(np.searchsorted(t_log, first_ns + int(round(rec.t[k] * 1e9))), 0, len(t_log) - 1))
-                gt.write(k, float(rec.t[k]), T_obj_log[i])
-        summary["recording"] = str(rec_path)
+        try:
+            rec = Recording(rec_path)
+        except RecordingError as e:
+            # A pose server that was killed never finished its recording: say so, keep the rest.
+            summary["recording_error"] = f"recording incomplete: {e}"
+        else:
+            rec_ok = True
+            first_ns = outputs[0].t_ns if outputs else t0  # frames.csv times are relative to the first frame set
+            with GroundTruthWriter(rec_path) as gt:
+                for k in range(len(rec)):
+                    i = int(np.clip(np.searchsorted(t_log, first_ns + int(round(rec.t[k] * 1e9))), 0, len(t_log) - 1))
+                    gt.write(k, float(rec.t[k]), T_obj_log[i])
+            summary["recording"] = str(rec_path)
     _plots(out, est_t, pe, re, t_s, err, follow)
-    if cfg.video and outputs and (rec_path / "frames.csv").exists():
+    if cfg.video and outputs and rec_ok:
         try:
             _video(out, rec_path, outputs, plant, t0)
             summary["video"] = str(out / "overlay.mp4")

@@ -43,3 +43,23 @@ def test_killed_pose_server_gives_a_controlled_stop_and_is_reported(tmp_path):
     # The stop starts within the watchdog time after the last pose (plus one tick), not later.
     kill_t = s["events"][0]["t_s"]
     assert kill_t <= sv["first_stop_s"] <= kill_t + WATCHDOG_S + 0.05, (kill_t, sv["first_stop_s"])
+
+
+@pytest.mark.slow
+def test_real_time_demo_survives_a_killed_pose_server(tmp_path):
+    # The multi-process path: plant, pose server and servo as their own processes on the
+    # wall clock, a real TCP link. SIGKILL the pose server: the demo must report it and end
+    # by itself (no hang), the servo must never fault, and if it was following when the
+    # stream stopped its stop must start within the watchdog time (generous margin: a shared
+    # CI machine delays processes, this is not a timing benchmark).
+    s = run_demo(DemoConfig(out=tmp_path, cameras="fixed", duration=9.0, video=False, kill_server_at=6.0),
+                 log=lambda m: None)
+    assert any(e.get("event") == "pose server killed" for e in s["events"])
+    assert not any(e.get("event") in ("timeout", "killed after timeout") for e in s["events"]), s["events"]
+    sv = s["servo"]
+    assert sv["status_ticks"]["FAULT"] == 0 and sv["ticks"] > 0
+    kill_t = next(e["t_s"] for e in s["events"] if e.get("event") == "pose server killed")
+    if sv["status_ticks"]["TRACKING"] > 0 and sv.get("first_stop_s") is not None and sv["first_stop_s"] > 1.0:
+        assert sv["controlled_stops"] >= 1
+        assert kill_t - 0.5 <= sv["first_stop_s"] <= kill_t + WATCHDOG_S + 0.5, (kill_t, sv["first_stop_s"])
+    assert (tmp_path / "summary.json").exists()
