@@ -1,0 +1,24 @@
+"""Compiled per-frame kernels: numba's ``njit`` with the project's settings.
+
+The tracker's per-frame work is many small array operations (tens of
+segments, a few hundred edges, eight windows per camera), where NumPy's
+per-call overhead, not the arithmetic, sets the time. The kernels that replace
+those chains are plain loops compiled by numba; each keeps the arithmetic of
+the NumPy code it replaces, operation for operation, so results agree to the
+last bit where the same libm functions are used (and to rounding elsewhere).
+
+``cache=True`` writes the machine code next to the module (``__pycache__``):
+the first process compiles (a few seconds), later ones load it. No
+``fastmath`` (it would reorder sums and contract multiply-adds).
+"""
+
+from __future__ import annotations
+
+import numba
+
+__all__ = ["njit"]
+
+
+def njit(fn):
+    """``numba.njit`` with ``cache=True`` and strict IEEE arithmetic."""
+    return numba.njit(cache=True, nogil=True)(fn)
