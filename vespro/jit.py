@@ -9,7 +9,9 @@ last bit where the same libm functions are used (and to rounding elsewhere).
 
 ``cache=True`` writes the machine code next to the module (``__pycache__``):
 the first process compiles (a few seconds), later ones load it. No
-``fastmath`` (it would reorder sums and contract multiply-adds).
+``fastmath`` (it would reorder sums and contract multiply-adds), and NumPy's
+error model (a float division by zero gives inf or NaN, as in NumPy, instead
+of raising).
 """
 
 from __future__ import annotations
@@ -20,5 +22,5 @@ __all__ = ["njit"]
 
 
 def njit(fn):
-    """``numba.njit`` with ``cache=True`` and strict IEEE arithmetic."""
-    return numba.njit(cache=True, nogil=True)(fn)
+    """``numba.njit`` with ``cache=True``, strict IEEE arithmetic and NumPy's error model."""
+    return numba.njit(cache=True, nogil=True, error_model="numpy")(fn)
