@@ -22,7 +22,11 @@ candidates: all of them are returned.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
+
+from .jit import njit
 
 __all__ = [
     "eligible_mask",
@@ -126,8 +130,9 @@ def feature_weights(uv, view_angle, silhouette_px, image_size, border_px=DEFAULT
         d_border = np.minimum.reduce([uv[:, 0], uv[:, 1], w - 1 - uv[:, 0], h - 1 - uv[:, 1]])
         t_border = 0.5 + 0.5 * np.clip((d_border - border_px) / (2.0 * border_px), 0.0, 1.0)
     wts = t_view * t_sil * t_border
-    wts[~el] = 0.0
-    return np.nan_to_num(wts)
+    # each factor is clipped into [0, 1] or NaN, so NaN is the only non-finite value
+    wts[~el | np.isnan(wts)] = 0.0
+    return wts
 
 
 def quality_index(uv_sel, w_sel, image_size) -> float:
@@ -205,16 +210,111 @@ def select_quality(
     c = uv[el].mean(axis=0)
     dist = np.linalg.norm(uv[el] - c, axis=1)
     first = el[np.lexsort((-dist, -w[el]))[0]]
-    chosen = [int(first)]
-    remaining = el[el != first].astype(np.intp)
-    uv_r, w_r = uv[remaining], w[remaining]
-    while len(chosen) < k:
-        scores = _quality_index_batch(uv[chosen], w[chosen], uv_r, w_r, image_size)
-        best = int(np.argmax(scores))
-        chosen.append(int(remaining[best]))
-        keep = np.arange(len(remaining)) != best
-        remaining, uv_r, w_r = remaining[keep], uv_r[keep], w_r[keep]
-    return np.array(chosen, dtype=np.intp)
+    remaining = el[el != first].astype(np.int64)
+    wdt, hgt = image_size
+    return _greedy_quality_kernel(np.ascontiguousarray(uv), np.ascontiguousarray(w), int(first), remaining, int(k),
+                                  float(0.5 * np.hypot(wdt, hgt))).astype(np.intp)
+
+
+@njit
+def _np_sum(a, n):
+    """Sum of ``a[:n]`` in NumPy's order (pairwise summation, as ``np.sum`` of a contiguous row)."""
+    if n < 8:
+        res = -0.0
+        for i in range(n):
+            res += a[i]
+        return res
+    if n <= 128:
+        r0, r1, r2, r3 = a[0], a[1], a[2], a[3]
+        r4, r5, r6, r7 = a[4], a[5], a[6], a[7]
+        i = 8
+        while i < n - (n % 8):
+            r0 += a[i]
+            r1 += a[i + 1]
+            r2 += a[i + 2]
+            r3 += a[i + 3]
+            r4 += a[i + 4]
+            r5 += a[i + 5]
+            r6 += a[i + 6]
+            r7 += a[i + 7]
+            i += 8
+        res = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
+        while i < n:
+            res += a[i]
+            i += 1
+        return res
+    n2 = n // 2
+    n2 -= n2 % 8
+    return _np_sum(a, n2) + _np_sum(a[n2:], n - n2)
+
+
+@njit
+def _greedy_quality_kernel(uv, w, first, remaining, k, half_diag):
+    """Compiled greedy loop of :func:`select_quality`: each step adds the candidate that
+    maximises :func:`quality_index` of the enlarged set (ties: the earliest candidate).
+
+    Scores are computed as :func:`_quality_index_batch` computes them (same operations
+    and summation order), one candidate at a time.
+    """
+    two_pi = 2.0 * np.pi
+    chosen = np.empty(k, dtype=np.int64)
+    chosen[0] = first
+    nc = 1
+    rem = remaining.copy()
+    nr = rem.shape[0]
+    X = np.empty(k)
+    Y = np.empty(k)
+    sq = np.empty(k)
+    ang = np.empty(k)
+    ws = np.empty(k)
+    while nc < k:
+        n = nc + 1
+        sx, sy = 0.0, 0.0
+        for i in range(nc):
+            X[i] = uv[chosen[i], 0]
+            Y[i] = uv[chosen[i], 1]
+            ws[i] = w[chosen[i]]
+            sx, sy = sx + X[i], sy + Y[i]
+        w_sum = _np_sum(ws, nc)
+        even = two_pi / n
+        best, best_j = -np.inf, -1
+        for j in range(nr):
+            c = rem[j]
+            X[nc] = uv[c, 0]
+            Y[nc] = uv[c, 1]
+            mx = (sx + uv[c, 0]) / n
+            my = (sy + uv[c, 1]) / n
+            for i in range(n):
+                dx = X[i] - mx
+                dy = Y[i] - my
+                sq[i] = dx * dx + dy * dy
+                ang[i] = math.atan2(dy, dx)
+            q_s = min(1.0, math.sqrt(_np_sum(sq, n) / n) / half_diag)
+            if n < 3:
+                q_a = 1.0
+            else:
+                for i in range(1, n):  # insertion sort: a handful of angles
+                    v = ang[i]
+                    m = i - 1
+                    while m >= 0 and ang[m] > v:
+                        ang[m + 1] = ang[m]
+                        m -= 1
+                    ang[m + 1] = v
+                gmax = (ang[0] + two_pi) - ang[n - 1]
+                g_in = ang[1] - ang[0]
+                for i in range(2, n):
+                    g_in = max(g_in, ang[i] - ang[i - 1])
+                gmax = max(g_in, gmax)
+                q_a = 1.0 - (gmax - even) / (two_pi - even)
+            score = (w_sum + w[c]) / n * q_s * q_a
+            if score > best or best_j < 0:
+                best, best_j = score, j
+        chosen[nc] = rem[best_j]
+        nc += 1
+        for j in range(best_j, nr - 1):
+            rem[j] = rem[j + 1]
+        nr -= 1
+    return chosen
 
 
 def _quality_index_batch(uv_S, w_S, uv_c, w_c, image_size) -> np.ndarray:
