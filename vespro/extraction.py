@@ -26,6 +26,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from .jit import njit
+
 __all__ = ["Why", "ExtractionResult", "window_half_sizes", "extract_corners"]
 
 MIN_HALF_SIZE = 4
@@ -315,6 +317,77 @@ def _refine_lines_batch(img, q, radius, tip_px=2.0, min_edge_angle_deg=20.0, rel
     return out
 
 
+@njit
+def _window_candidate(ev, iy0, iy1, ix0, ix1, px0, py0, u32, v32, min_eig, rel_quality32, min_isotropy32,
+                      ambiguity32, nms_radius):
+    """The corner candidate of one window, from its ``cv2.cornerEigenValsAndVecs`` patch.
+
+    Shi-Tomasi response ``min(lambda_1, lambda_2)``, non-maximum suppression over
+    ``(2 nms_radius + 1)^2`` pixels of the patch (as ``cv2.dilate``, which ignores
+    pixels outside), the absolute and relative thresholds and the isotropy test
+    on ``inner = [iy0, iy1] x [ix0, ix1]``; then the candidate nearest to the
+    prediction ``(u32, v32)`` (float32, as NumPy computes with the float32
+    response), or AMBIGUOUS when a second one is similarly close.
+
+    Returns ``(why, n_candidates, cx, cy)``; ``cx, cy`` (float32, image pixels)
+    only when ``why`` is FOUND.
+    """
+    hp, wp = ev.shape[0], ev.shape[1]
+    resp = np.empty((hp, wp), dtype=np.float32)
+    for y in range(hp):
+        for x in range(wp):
+            resp[y, x] = min(ev[y, x, 0], ev[y, x, 1])
+    best = resp[iy0, ix0]
+    for y in range(iy0, iy1 + 1):
+        for x in range(ix0, ix1 + 1):
+            if resp[y, x] > best:
+                best = resp[y, x]
+    t_rel = rel_quality32 * best
+    thr = t_rel if t_rel > min_eig else np.float32(min_eig)
+    n = 0
+    nmax = (iy1 - iy0 + 1) * (ix1 - ix0 + 1)
+    cxs = np.empty(nmax, dtype=np.float32)
+    cys = np.empty(nmax, dtype=np.float32)
+    for y in range(iy0, iy1 + 1):
+        for x in range(ix0, ix1 + 1):
+            rv = resp[y, x]
+            if not rv >= thr:
+                continue
+            peak = True
+            for yy in range(max(y - nms_radius, 0), min(y + nms_radius, hp - 1) + 1):
+                for xx in range(max(x - nms_radius, 0), min(x + nms_radius, wp - 1) + 1):
+                    if resp[yy, xx] > rv:
+                        peak = False
+                        break
+                if not peak:
+                    break
+            if not peak:
+                continue
+            # straight edges have a small but non-zero lambda_min: the tensor must be 2-D as well
+            if not rv >= min_isotropy32 * max(ev[y, x, 0], ev[y, x, 1]):
+                continue
+            cxs[n] = np.float32(x + px0)
+            cys[n] = np.float32(y + py0)
+            n += 1
+    if n == 0:
+        return 3, 0, np.float32(0.0), np.float32(0.0)  # Why.NO_CORNER
+    # nearest and second nearest, float32 distances as np.hypot gives them (ties: the first)
+    j, d1, d2 = -1, np.float32(0.0), np.float32(0.0)
+    for k in range(n):
+        dx = np.float64(cxs[k] - u32)
+        dy = np.float64(cys[k] - v32)
+        d = np.float32(math.sqrt(dx * dx + dy * dy))
+        if j < 0 or d < d1:
+            if j >= 0:
+                d2 = d1
+            j, d1 = k, d
+        elif k == 1 or d < d2:
+            d2 = d
+    if n > 1 and d1 > ambiguity32 * d2:
+        return 4, n, np.float32(0.0), np.float32(0.0)  # Why.AMBIGUOUS
+    return 0, n, cxs[j], cys[j]
+
+
 #: Direction bins of :func:`_refine_lines` and each bin's circular neighbours.
 _NB = 36
 _PREV = np.r_[_NB - 1, np.arange(_NB - 1)]
@@ -452,10 +525,12 @@ def extract_corners(
     H, W = img.shape
     pad = block_size // 2 + 2  # Sobel (1) + block support, so the response is valid at the window edge
     crit = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 40, 0.001)
-    kernel = np.ones((2 * nms_radius + 1, 2 * nms_radius + 1), np.uint8)
 
     uv_list, r_list = uv_pred.tolist(), r_all.tolist()
-    to_refine = []  # (feature, u, v, r) of the corners found, for the edge-line refinement
+    # NumPy 2 computes the float32 response's thresholds in float32: the kernel gets them so
+    params = (float(min_eig), np.float32(rel_quality), np.float32(min_isotropy), np.float32(ambiguity_ratio),
+              int(nms_radius))
+    picked = []  # (feature, u, v, r, cx, cy): the candidate nearest to each prediction
     for i in range(K):
         u, v = uv_list[i]
         r = r_list[i]
@@ -478,50 +553,47 @@ def extract_corners(
                 why[i] = Why.OUTSIDE
                 continue
             ev = cv2.cornerEigenValsAndVecs(img[py0 : py1 + 1, px0 : px1 + 1], block_size, ksize=3)
-            resp = np.minimum(ev[:, :, 0], ev[:, :, 1])  # == cv2.cornerMinEigenVal
-            dil = cv2.dilate(resp, kernel)
-            inner = (slice(iy0, iy1 + 1), slice(ix0, ix1 + 1))
-            r_in = resp[inner]
-            best = r_in.max()
-            ys, xs = np.nonzero((r_in >= dil[inner]) & (r_in >= max(min_eig, rel_quality * best)))
-            # straight edges (aliased or noisy) have a small but non-zero lambda_min: ask
-            # the structure tensor to be two-dimensional as well (tested at the peaks only)
-            e = ev[ys + iy0, xs + ix0]
-            iso = r_in[ys, xs] >= min_isotropy * np.maximum(e[:, 0], e[:, 1])
-            ys, xs = ys[iso], xs[iso]
-            ncand[i] = len(xs)
-            if len(xs) == 0:
-                why[i] = Why.NO_CORNER
+            code, n, cx, cy = _window_candidate(ev, iy0, iy1, ix0, ix1, px0, py0, np.float32(u), np.float32(v),
+                                                *params)
+            ncand[i] = n
+            if code != Why.FOUND:
+                why[i] = code
                 continue
-            cx = (xs + (ix0 + px0)).astype(np.float32)
-            cy = (ys + (iy0 + py0)).astype(np.float32)
-            d = np.hypot(cx - u, cy - v)
-            if len(d) > 1:
-                order = np.argsort(d, kind="stable")
-                j = order[0]
-                if d[j] > ambiguity_ratio * d[order[1]]:
-                    why[i] = Why.AMBIGUOUS
-                    continue
-            else:
-                j = 0
-            c0 = np.array([[[cx[j], cy[j]]]], np.float32)
-            sh = int(max(2, min(subpix_half, r)))
-            ref = cv2.cornerSubPix(img, c0.copy(), (sh, sh), (-1, -1), crit).reshape(2).astype(float)
+            picked.append((i, u, v, r, cx, cy))
+        except (cv2.error, ValueError, IndexError, TypeError):
+            why[i] = Why.INVALID
+            uv_out[i] = np.nan
+
+    # Sub-pixel refinement, all corners of one sub-window size in one call (OpenCV refines
+    # each point on its own: the same result as one call per corner).
+    to_refine = []  # (feature, u, v, r) of the corners found, for the edge-line refinement
+    by_sh = {}
+    for item in picked:
+        by_sh.setdefault(int(max(2, min(subpix_half, item[3]))), []).append(item)
+    for sh, items in by_sh.items():
+        c0 = np.array([[[it[4], it[5]]] for it in items], np.float32)
+        try:
+            refs = cv2.cornerSubPix(img, c0.copy(), (sh, sh), (-1, -1), crit).reshape(-1, 2).astype(float).tolist()
+        except cv2.error:
+            refs = []
+            for c in c0:  # one by one, so that a failing corner does not take the others along
+                try:
+                    refs.append(cv2.cornerSubPix(img, c[None].copy(), (sh, sh), (-1, -1), crit).reshape(2).astype(float).tolist())
+                except cv2.error:
+                    refs.append([math.nan, math.nan])
+        for (i, u, v, r, cx, cy), (rx, ry) in zip(items, refs):
             if (
-                not (math.isfinite(ref[0]) and math.isfinite(ref[1]))
-                or np.hypot(ref[0] - c0[0, 0, 0], ref[1] - c0[0, 0, 1]) > max_subpix_shift
-                or abs(ref[0] - u) > r
-                or abs(ref[1] - v) > r
+                not (math.isfinite(rx) and math.isfinite(ry))
+                or np.hypot(rx - float(cx), ry - float(cy)) > max_subpix_shift
+                or abs(rx - u) > r
+                or abs(ry - v) > r
             ):
                 why[i] = Why.NO_CORNER
                 continue
             if refine_lines:
                 to_refine.append((i, u, v, r))
-            uv_out[i] = ref
+            uv_out[i] = (rx, ry)
             why[i] = Why.FOUND
-        except (cv2.error, ValueError, IndexError, TypeError):
-            why[i] = Why.INVALID
-            uv_out[i] = np.nan
 
     if to_refine:
         # all windows at once (same results as one _refine_lines call per window)
