@@ -237,47 +237,16 @@ def _refine_lines_batch(img, q, radius, tip_px=2.0, min_edge_angle_deg=20.0, rel
     off = np.arange(-R, R + 1)
     xr = (ub[:, None] + off[None, :]).astype(float) - q[idx, :1]  # (m, 2R+1)
     yr = (vb[:, None] + off[None, :]).astype(float) - q[idx, 1:]
-    dist2 = xr[:, None, :] * xr[:, None, :] + yr[:, :, None] * yr[:, :, None]
-    g2 = gx * gx + gy * gy
-    # each corner's own (2 R_i + 1)^2 square
-    Rb = Ri[idx]
-    sq1 = np.abs(off)[None, :] <= Rb[:, None]
-    sq = sq1[:, :, None] & sq1[:, None, :]
-    g2max = np.where(sq, g2, -np.inf).max(axis=(1, 2)).astype(np.float32)
-    rb = radius[idx]
-    msk = sq & (dist2 > tip_px * tip_px) & (dist2 <= (rb * rb)[:, None, None]) & (g2 > (rel_grad**2) * g2max[:, None, None])
-    wi, iy, ix = np.nonzero(msk)
-    npx = np.bincount(wi, minlength=m)
-    dxm, dym = xr[wi, ix], yr[wi, iy]
-    gxm, gym = gx[wi, iy, ix].astype(float), gy[wi, iy, ix].astype(float)
-    w = gxm * gxm + gym * gym
+    # Compiled pixel work between the NumPy transcendental calls (kept in NumPy, whose
+    # SIMD arctan2 differs from libm's in the last bit, so the results stay those of
+    # _refine_lines bit for bit).
+    wi, dxm, dym, gxm, gym, w, npx = _edge_pixels(np.ascontiguousarray(gx), np.ascontiguousarray(gy), xr, yr,
+                                                  Ri[idx], radius[idx], float(tip_px * tip_px),
+                                                  np.float32(rel_grad**2))
     theta = np.arctan2(dym, dxm)
-    nb = _NB
-    binx = ((theta + np.pi) * (nb / (2 * np.pi))).astype(int) % nb
-    hist = np.bincount(wi * nb + binx, weights=w, minlength=m * nb).reshape(m, nb)
-    sm = hist + 0.5 * (hist[:, _PREV] + hist[:, _NEXT])
-    pk = (sm >= sm[:, _PREV]) & (sm > sm[:, _NEXT]) & (sm > 0.15 * sm.max(axis=1, keepdims=True))
-    npk = pk.sum(axis=1)
-    live = (npx >= 6) & (npk >= 2)
-    P = int(npk.max())
+    P, live, cnt, a_, b_, c_, sw, swx, swy = _edge_groups(theta, wi, dxm, dym, gxm, gym, w, npx, _NB)
     if not live.any() or P < 2:
         return out
-    # peak bins per corner, ascending, padded at the end
-    rank = np.cumsum(pk, axis=1) - 1
-    pw, pb = np.nonzero(pk)
-    centres = np.full((m, P), np.nan)
-    centres[pw, rank[pw, pb]] = (pb + 0.5) * (2 * np.pi / nb) - np.pi
-    diff = np.abs((theta[:, None] - centres[wi] + np.pi) % (2 * np.pi) - np.pi)
-    diff[np.isnan(diff)] = np.inf
-    lab = wi * P + np.argmin(diff, axis=1)
-    G = m * P
-    cnt = np.bincount(lab, minlength=G).reshape(m, P)
-    a_ = np.bincount(lab, gxm * gxm, G).reshape(m, P)
-    b_ = np.bincount(lab, gxm * gym, G).reshape(m, P)
-    c_ = np.bincount(lab, gym * gym, G).reshape(m, P)
-    sw = np.bincount(lab, w, G).reshape(m, P)
-    swx = np.bincount(lab, w * dxm, G).reshape(m, P)
-    swy = np.bincount(lab, w * dym, G).reshape(m, P)
     half_tr, disc = 0.5 * (a_ + c_), np.hypot(0.5 * (a_ - c_), b_)
     ev0, ev1 = half_tr - disc, half_tr + disc
     phi = 0.5 * np.arctan2(2.0 * b_, a_ - c_)
@@ -386,6 +355,136 @@ def _window_candidate(ev, iy0, iy1, ix0, ix1, px0, py0, u32, v32, min_eig, rel_q
     if n > 1 and d1 > ambiguity32 * d2:
         return 4, n, np.float32(0.0), np.float32(0.0)  # Why.AMBIGUOUS
     return 0, n, cxs[j], cys[j]
+
+
+@njit
+def _edge_pixels(gx, gy, xr, yr, Rb, rb, tip2, rel_grad2_32):
+    """Gradient pixels of each stacked patch that :func:`_refine_lines` uses.
+
+    ``gx``, ``gy`` (m, 2R+1, 2R+1) float32; ``xr``, ``yr`` (m, 2R+1) pixel offsets
+    from each corner; ``Rb`` (m,) each corner's own half-size, ``rb`` (m,) its
+    radius. A pixel counts when inside its corner's own square, outside the tip
+    disc, within the radius and with ``|g|^2`` above ``rel_grad^2`` times the
+    square's largest (float32, as NumPy computes it). Returned in the order of
+    ``np.nonzero`` (corner, row, column): ``wi`` (corner), ``dxm``, ``dym``
+    (offsets), ``gxm``, ``gym`` (float64 gradients), ``w = |g|^2`` (float64), and
+    ``npx`` (m,) the count per corner.
+    """
+    m, S = gx.shape[0], gx.shape[1]
+    R = (S - 1) // 2
+    n_max = m * S * S
+    wi = np.empty(n_max, dtype=np.int64)
+    dxm = np.empty(n_max)
+    dym = np.empty(n_max)
+    gxm = np.empty(n_max)
+    gym = np.empty(n_max)
+    w = np.empty(n_max)
+    npx = np.zeros(m, dtype=np.int64)
+    n = 0
+    for k in range(m):
+        lo, hi = R - Rb[k], R + Rb[k]
+        g2max = np.float32(-np.inf)
+        for y in range(lo, hi + 1):
+            for x in range(lo, hi + 1):
+                g2 = gx[k, y, x] * gx[k, y, x] + gy[k, y, x] * gy[k, y, x]
+                if g2 > g2max:
+                    g2max = g2
+        thr = rel_grad2_32 * g2max
+        r2 = rb[k] * rb[k]
+        for y in range(lo, hi + 1):
+            for x in range(lo, hi + 1):
+                d2 = xr[k, x] * xr[k, x] + yr[k, y] * yr[k, y]
+                g2 = gx[k, y, x] * gx[k, y, x] + gy[k, y, x] * gy[k, y, x]
+                if d2 > tip2 and d2 <= r2 and g2 > thr:
+                    wi[n] = k
+                    dxm[n] = xr[k, x]
+                    dym[n] = yr[k, y]
+                    a = np.float64(gx[k, y, x])
+                    b = np.float64(gy[k, y, x])
+                    gxm[n] = a
+                    gym[n] = b
+                    w[n] = a * a + b * b
+                    n += 1
+                    npx[k] += 1
+    return wi[:n], dxm[:n], dym[:n], gxm[:n], gym[:n], w[:n], npx
+
+
+@njit
+def _edge_groups(theta, wi, dxm, dym, gxm, gym, w, npx, nb):
+    """Edge groups of each corner: direction histogram peaks, pixel labels and per-group sums.
+
+    As the NumPy formulation of :func:`_refine_lines` (sums in pixel order, as
+    ``np.bincount``; ``%`` on floats as ``np.remainder``). Returns ``P`` (most peaks
+    of any corner), ``live`` (m,) and per (corner, group) (m, P): count, the
+    structure tensor sums ``a``, ``b``, ``c``, the weight ``sw`` and the weighted
+    offsets ``swx``, ``swy``.
+    """
+    m = npx.shape[0]
+    n = theta.shape[0]
+    pi = np.pi
+    two_pi = 2 * np.pi
+    scale = nb / (2 * np.pi)
+    step = 2 * np.pi / nb
+    hist = np.zeros((m, nb))
+    for i in range(n):
+        b = np.int64((theta[i] + pi) * scale) % nb
+        hist[wi[i], b] += w[i]
+    pk = np.zeros((m, nb), dtype=np.bool_)
+    npk = np.zeros(m, dtype=np.int64)
+    sm = np.empty(nb)
+    for k in range(m):
+        for b in range(nb):
+            sm[b] = hist[k, b] + 0.5 * (hist[k, (b - 1) % nb] + hist[k, (b + 1) % nb])
+        smax = sm[0]
+        for b in range(1, nb):
+            if sm[b] > smax:
+                smax = sm[b]
+        for b in range(nb):
+            if sm[b] >= sm[(b - 1) % nb] and sm[b] > sm[(b + 1) % nb] and sm[b] > 0.15 * smax:
+                pk[k, b] = True
+                npk[k] += 1
+    live = (npx >= 6) & (npk >= 2)
+    P = 0
+    for k in range(m):
+        P = max(P, npk[k])
+    cnt = np.zeros((m, P), dtype=np.int64)
+    a_ = np.zeros((m, P))
+    b_ = np.zeros((m, P))
+    c_ = np.zeros((m, P))
+    sw = np.zeros((m, P))
+    swx = np.zeros((m, P))
+    swy = np.zeros((m, P))
+    if P < 2:
+        return P, live, cnt, a_, b_, c_, sw, swx, swy
+    centres = np.full((m, P), np.nan)
+    for k in range(m):
+        r = 0
+        for b in range(nb):
+            if pk[k, b]:
+                centres[k, r] = (b + 0.5) * step - pi
+                r += 1
+    for i in range(n):
+        k = wi[i]
+        best, lab = np.inf, 0
+        for p in range(P):
+            a = theta[i] - centres[k, p] + pi
+            mod = np.fmod(a, two_pi)  # then as np.remainder: the sign of the divisor
+            if mod != 0.0:
+                if mod < 0.0:
+                    mod += two_pi
+            d = abs(mod - pi)
+            if math.isnan(d):
+                d = np.inf
+            if d < best:
+                best, lab = d, p
+        cnt[k, lab] += 1
+        a_[k, lab] += gxm[i] * gxm[i]
+        b_[k, lab] += gxm[i] * gym[i]
+        c_[k, lab] += gym[i] * gym[i]
+        sw[k, lab] += w[i]
+        swx[k, lab] += w[i] * dxm[i]
+        swy[k, lab] += w[i] * dym[i]
+    return P, live, cnt, a_, b_, c_, sw, swx, swy
 
 
 #: Direction bins of :func:`_refine_lines` and each bin's circular neighbours.
