@@ -110,78 +110,14 @@ def _refine_lines(img, q, radius, tip_px=2.0, min_edge_angle_deg=20.0, rel_grad=
     ``max_shift`` px from ``q`` (cornerSubPix's bias is a few tenths) is refused.
 
     Returns the refined point (2,) or None (fewer than two usable, non-parallel edges).
+
+    One corner at a time through :func:`_refine_lines_batch` (a batch of one);
+    ``tests/vespro/test_extraction.py`` keeps the plain NumPy formulation this
+    was first written as, and checks against it.
     """
-    H, W = img.shape
-    R = int(math.ceil(radius))
-    u0, v0 = int(round(float(q[0]))), int(round(float(q[1])))
-    if u0 - R - 1 < 0 or v0 - R - 1 < 0 or u0 + R + 1 > W - 1 or v0 + R + 1 > H - 1:
-        return None
-    patch = img[v0 - R - 1 : v0 + R + 2, u0 - R - 1 : u0 + R + 2].astype(np.float32)
-    gx = cv2.Sobel(patch, cv2.CV_32F, 1, 0, ksize=3)[1:-1, 1:-1] / 8.0
-    gy = cv2.Sobel(patch, cv2.CV_32F, 0, 1, ksize=3)[1:-1, 1:-1] / 8.0
-    # pixel offsets from q along a row (x) and a column (y)
-    xr = np.arange(u0 - R, u0 + R + 1, dtype=float) - q[0]
-    yr = np.arange(v0 - R, v0 + R + 1, dtype=float) - q[1]
-    dist2 = xr[None, :] * xr[None, :] + yr[:, None] * yr[:, None]
-    g2 = gx * gx + gy * gy
-    m = (dist2 > tip_px * tip_px) & (dist2 <= radius * radius) & (g2 > (rel_grad**2) * g2.max())
-    iy, ix = np.nonzero(m)
-    if iy.size < 6:
-        return None
-    dxm, dym, gxm, gym = xr[ix], yr[iy], gx[iy, ix].astype(float), gy[iy, ix].astype(float)
-    w = gxm * gxm + gym * gym
-    # the edges are rays from the corner: group pixels by their direction seen from q
-    theta = np.arctan2(dym, dxm)
-    nb = _NB
-    hist = np.bincount(((theta + np.pi) * (nb / (2 * np.pi))).astype(int) % nb, weights=w, minlength=nb)
-    sm = hist + 0.5 * (hist[_PREV] + hist[_NEXT])
-    peaks = np.flatnonzero((sm >= sm[_PREV]) & (sm > sm[_NEXT]) & (sm > 0.15 * sm.max()))
-    if len(peaks) < 2:
-        return None
-    centres = (peaks + 0.5) * (2 * np.pi / nb) - np.pi
-    diff = (theta[:, None] - centres[None, :] + np.pi) % (2 * np.pi) - np.pi
-    lab = np.argmin(np.abs(diff), axis=1)
-    K = len(centres)
-    cnt = np.bincount(lab, minlength=K)
-    a_ = np.bincount(lab, gxm * gxm, K)
-    b_ = np.bincount(lab, gxm * gym, K)
-    c_ = np.bincount(lab, gym * gym, K)
-    sw = np.bincount(lab, w, K)
-    swx = np.bincount(lab, w * dxm, K)  # coordinates relative to q keep the sums well conditioned
-    swy = np.bincount(lab, w * dym, K)
-    # per group: 2x2 structure tensor in closed form, normal = dominant eigenvector
-    half_tr, disc = 0.5 * (a_ + c_), np.hypot(0.5 * (a_ - c_), b_)
-    ev0, ev1 = half_tr - disc, half_tr + disc
-    phi = 0.5 * np.arctan2(2.0 * b_, a_ - c_)
-    nx, ny = np.cos(phi), np.sin(phi)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        c_rel = (nx * swx + ny * swy) / sw          # line offset relative to q: n . (x - q) = c_rel
-    # a single straight edge (not a corner / clutter), passing near q
-    ok = np.flatnonzero((cnt >= 3) & (ev1 > 0) & (ev0 <= 0.2 * ev1) & (np.abs(c_rel) <= 1.5))
-    return _intersect_lines(q, nx[ok], ny[ok], c_rel[ok], sw[ok], min_edge_angle_deg, max_line_residual, max_shift)
-
-
-def _intersect_lines(q, nx, ny, c_rel, sw, min_edge_angle_deg, max_line_residual, max_shift):
-    """Weighted least-squares meeting point of lines ``n . (x - q) = c_rel`` (the end of :func:`_refine_lines`)."""
-    N = np.stack([nx, ny], axis=1)
-    C, Wt = c_rel, sw
-    cos_min = math.cos(math.radians(min_edge_angle_deg))
-    while len(C) >= 2:
-        G = np.abs(N @ N.T)
-        np.fill_diagonal(G, np.inf)
-        if G.min() > cos_min:  # all edges nearly parallel
-            return None
-        p = np.linalg.solve((N.T * Wt) @ N, (N.T * Wt) @ C)
-        res = np.abs(N @ p - C)
-        # three or more edges must meet in one point; drop the one that does not
-        if len(C) > 2 and res.max() > max_line_residual:
-            keep = np.arange(len(C)) != int(np.argmax(res))
-            N, C, Wt = N[keep], C[keep], Wt[keep]
-            continue
-        if not (math.isfinite(p[0]) and math.isfinite(p[1])) or np.hypot(*p) > max_shift:
-            return None
-        return q + p
-    return None
+    p = _refine_lines_batch(img, np.asarray(q, dtype=float).reshape(1, 2), np.array([float(radius)]), tip_px,
+                            min_edge_angle_deg, rel_grad, max_line_residual, max_shift)[0]
+    return None if np.isnan(p[0]) else p
 
 
 def _refine_lines_batch(img, q, radius, tip_px=2.0, min_edge_angle_deg=20.0, rel_grad=0.25, max_line_residual=0.6,
@@ -237,9 +173,9 @@ def _refine_lines_batch(img, q, radius, tip_px=2.0, min_edge_angle_deg=20.0, rel
     off = np.arange(-R, R + 1)
     xr = (ub[:, None] + off[None, :]).astype(float) - q[idx, :1]  # (m, 2R+1)
     yr = (vb[:, None] + off[None, :]).astype(float) - q[idx, 1:]
-    # Compiled pixel work between the NumPy transcendental calls (kept in NumPy, whose
-    # SIMD arctan2 differs from libm's in the last bit, so the results stay those of
-    # _refine_lines bit for bit).
+    # Compiled: the pixel selection, the grouping and the line fits; the pixel directions
+    # use NumPy's arctan2 (SIMD, may differ from libm's in the last bit) so that a
+    # direction on a bin boundary falls in the same bin as it always did.
     wi, dxm, dym, gxm, gym, w, npx = _edge_pixels(np.ascontiguousarray(gx), np.ascontiguousarray(gy), xr, yr,
                                                   Ri[idx], radius[idx], float(tip_px * tip_px),
                                                   np.float32(rel_grad**2))
@@ -247,42 +183,8 @@ def _refine_lines_batch(img, q, radius, tip_px=2.0, min_edge_angle_deg=20.0, rel
     P, live, cnt, a_, b_, c_, sw, swx, swy = _edge_groups(theta, wi, dxm, dym, gxm, gym, w, npx, _NB)
     if not live.any() or P < 2:
         return out
-    half_tr, disc = 0.5 * (a_ + c_), np.hypot(0.5 * (a_ - c_), b_)
-    ev0, ev1 = half_tr - disc, half_tr + disc
-    phi = 0.5 * np.arctan2(2.0 * b_, a_ - c_)
-    nx, ny = np.cos(phi), np.sin(phi)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        c_rel = (nx * swx + ny * swy) / sw
-    ok = (cnt >= 3) & (ev1 > 0) & (ev0 <= 0.2 * ev1) & (np.abs(c_rel) <= 1.5)
-    ok[~live] = False
-    n_lines = ok.sum(axis=1)
-    # Two lines (the usual L/Y corner seen with one edge too weak): all at once,
-    # the same arithmetic as _intersect_lines (stacked solve == one solve per matrix).
-    two = np.flatnonzero(n_lines == 2)
-    if two.size:
-        o = ok[two]
-        N = np.stack([nx[two][o].reshape(-1, 2), ny[two][o].reshape(-1, 2)], axis=2)  # (k, 2 lines, 2)
-        C2, W2 = c_rel[two][o].reshape(-1, 2), sw[two][o].reshape(-1, 2)
-        crossed = np.abs((N @ N.transpose(0, 2, 1))[:, 0, 1]) <= math.cos(math.radians(min_edge_angle_deg))
-        two, N, C2, W2 = two[crossed], N[crossed], C2[crossed], W2[crossed]
-        NtW = N.transpose(0, 2, 1) * W2[:, None, :]
-        try:
-            p = np.linalg.solve(NtW @ N, (NtW @ C2[:, :, None]))[:, :, 0]
-        except np.linalg.LinAlgError:  # a degenerate pair: one by one, as the scalar path
-            p = np.full((len(two), 2), np.nan)
-            for j in range(len(two)):
-                try:
-                    p[j] = np.linalg.solve(NtW[j] @ N[j], NtW[j] @ C2[j])
-                except np.linalg.LinAlgError:
-                    pass
-        good = np.isfinite(p).all(axis=1) & ~(np.hypot(p[:, 0], p[:, 1]) > max_shift)
-        out[idx[two[good]]] = q[idx[two[good]]] + p[good]
-    for k in np.flatnonzero(n_lines >= 3):
-        o = ok[k]
-        p = _intersect_lines(q[idx[k]], nx[k, o], ny[k, o], c_rel[k, o], sw[k, o], min_edge_angle_deg,
-                             max_line_residual, max_shift)
-        if p is not None:
-            out[idx[k]] = p
+    out[idx] = _edge_lines_meet(q[idx], live, cnt, a_, b_, c_, sw, swx, swy, math.cos(math.radians(min_edge_angle_deg)),
+                                max_line_residual, max_shift)
     return out
 
 
@@ -485,6 +387,78 @@ def _edge_groups(theta, wi, dxm, dym, gxm, gym, w, npx, nb):
         swx[k, lab] += w[i] * dxm[i]
         swy[k, lab] += w[i] * dym[i]
     return P, live, cnt, a_, b_, c_, sw, swx, swy
+
+
+@njit
+def _edge_lines_meet(q, live, cnt, a_, b_, c_, sw, swx, swy, cos_min, max_line_residual, max_shift):
+    """Lines from the edge groups and their weighted least-squares meeting point, per corner.
+
+    Per group: the normal ``n`` is the dominant eigenvector of the 2x2
+    structure tensor ``[[a, b], [b, c]]`` and the offset ``n . (x - q)`` the
+    ``|g|^2``-weighted mean; a group is a usable line when it has 3 or more
+    pixels, is one-dimensional (``lambda_min <= 0.2 lambda_max``) and passes
+    within 1.5 px of ``q``. Then, as :func:`_refine_lines` describes: no two
+    lines more parallel than ``cos_min`` allows; solve; while more than two
+    lines remain and one misses the point by more than ``max_line_residual``
+    px, drop the farthest; refuse a shift beyond ``max_shift`` px.
+
+    Returns (m, 2): ``q + p``, NaN where refused.
+    """
+    m, P = cnt.shape
+    out = np.full((m, 2), np.nan)
+    nx = np.empty(P)
+    ny = np.empty(P)
+    cr = np.empty(P)
+    wt = np.empty(P)
+    res = np.empty(P)
+    for k in range(m):
+        if not live[k]:
+            continue
+        L = 0
+        for g in range(P):
+            a, b, c = a_[k, g], b_[k, g], c_[k, g]
+            half_tr = 0.5 * (a + c)
+            disc = math.hypot(0.5 * (a - c), b)
+            ev0, ev1 = half_tr - disc, half_tr + disc
+            phi = 0.5 * math.atan2(2.0 * b, a - c)
+            cx, cy = math.cos(phi), math.sin(phi)
+            c_rel = (cx * swx[k, g] + cy * swy[k, g]) / sw[k, g]
+            if cnt[k, g] >= 3 and ev1 > 0 and ev0 <= 0.2 * ev1 and abs(c_rel) <= 1.5:
+                nx[L], ny[L], cr[L], wt[L] = cx, cy, c_rel, sw[k, g]
+                L += 1
+        while L >= 2:
+            gmin = np.inf
+            for i in range(L):
+                for j in range(i + 1, L):
+                    gmin = min(gmin, abs(nx[i] * nx[j] + ny[i] * ny[j]))
+            if gmin > cos_min:  # all edges nearly parallel
+                break
+            A00 = A01 = A11 = r0 = r1 = 0.0
+            for i in range(L):
+                A00 += wt[i] * nx[i] * nx[i]
+                A01 += wt[i] * nx[i] * ny[i]
+                A11 += wt[i] * ny[i] * ny[i]
+                r0 += wt[i] * nx[i] * cr[i]
+                r1 += wt[i] * ny[i] * cr[i]
+            det = A00 * A11 - A01 * A01
+            p0 = (A11 * r0 - A01 * r1) / det
+            p1 = (A00 * r1 - A01 * r0) / det
+            worst = 0
+            for i in range(L):
+                res[i] = abs(nx[i] * p0 + ny[i] * p1 - cr[i])
+                if res[i] > res[worst]:
+                    worst = i
+            # three or more edges must meet in one point; drop the one that does not
+            if L > 2 and res[worst] > max_line_residual:
+                for i in range(worst, L - 1):
+                    nx[i], ny[i], cr[i], wt[i] = nx[i + 1], ny[i + 1], cr[i + 1], wt[i + 1]
+                L -= 1
+                continue
+            if math.isfinite(p0) and math.isfinite(p1) and not math.hypot(p0, p1) > max_shift:
+                out[k, 0] = q[k, 0] + p0
+                out[k, 1] = q[k, 1] + p1
+            break
+    return out
 
 
 #: Direction bins of :func:`_refine_lines` and each bin's circular neighbours.
