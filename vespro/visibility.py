@@ -552,10 +552,10 @@ def _outline_pieces_kernel(V_c, front, ea, eb, eface, etwin, n_faces, fx, fy, cx
             ncols += 1
     tol = 1e-9
     # pieces of each contour edge between its crossings
-    maxp = nS * (ncols + 1)
-    P0 = np.empty((maxp, 2))
-    P1 = np.empty((maxp, 2))
-    psf = np.empty(maxp, dtype=np.int64)
+    cap = 4 * nS + 8  # grown when needed
+    P0 = np.empty((cap, 2))
+    P1 = np.empty((cap, 2))
+    psf = np.empty(cap, dtype=np.int64)
     npc = 0
     par = np.empty(ncols + 2)
     for s in range(m):
@@ -576,9 +576,14 @@ def _outline_pieces_kernel(V_c, front, ea, eb, eface, etwin, n_faces, fx, fy, cx
             ex, ey = D[q, 0] - qx, D[q, 1] - qy
             den = rx * ey - ry * ex
             wx, wy = qx - ax, qy - ay
-            t = (wx * ey - wy * ex) / den
+            nt = wx * ey - wy * ex
+            if not ((nt > 0 and den > 0) or (nt < 0 and den < 0)):
+                continue  # t = nt / den would be <= 0, infinite or NaN: no crossing
+            t = nt / den
+            if not (t > tol and t < 1 - tol):
+                continue
             u = (wx * ry - wy * rx) / den
-            if t > tol and t < 1 - tol and u >= -tol and u <= 1 + tol:
+            if u >= -tol and u <= 1 + tol:
                 par[npar] = t
                 npar += 1
         # insertion sort of the parameters (a handful)
@@ -589,6 +594,11 @@ def _outline_pieces_kernel(V_c, front, ea, eb, eface, etwin, n_faces, fx, fy, cx
                 par[j + 1] = par[j]
                 j -= 1
             par[j + 1] = v
+        if npc + npar > cap:
+            cap = 2 * (npc + npar)
+            P0n, P1n, psfn = np.empty((cap, 2)), np.empty((cap, 2)), np.empty(cap, dtype=np.int64)
+            P0n[:npc], P1n[:npc], psfn[:npc] = P0[:npc], P1[:npc], psf[:npc]
+            P0, P1, psf = P0n, P1n, psfn
         for i in range(npar - 1):
             t0, t1 = par[i], par[i + 1]
             x0, y0 = ax + t0 * rx, ay + t0 * ry
@@ -598,23 +608,45 @@ def _outline_pieces_kernel(V_c, front, ea, eb, eface, etwin, n_faces, fx, fy, cx
                 P1[npc, 0], P1[npc, 1] = x1, y1
                 psf[npc] = sf
                 npc += 1
-    # keep the pieces whose midpoint is inside no other front face (even-odd rule)
-    counts = np.zeros(n_faces, dtype=np.int64)
+    # keep the pieces whose midpoint is inside no other front face (even-odd rule); the
+    # table lists each face's edges together, so a face's crossings are counted over its
+    # own run of edges, and only for faces whose box holds the midpoint: the ray from a
+    # point above or below the box meets no edge, from a point right of it none, from a
+    # point left of it every edge that spans its height, an even number on closed loops
+    # (the 1e-6 px margin covers the rounding of the crossing abscissa)
+    first = np.full(n_faces, -1, dtype=np.int64)
+    last = np.full(n_faces, -1, dtype=np.int64)
+    fbox = np.empty((n_faces, 4))
+    for j in range(m):
+        f = eface[ef[j]]
+        if first[f] < 0:
+            first[f] = j
+            fbox[f, 0] = fbox[f, 2] = C[j, 0]
+            fbox[f, 1] = fbox[f, 3] = C[j, 1]
+        last[f] = j
+        fbox[f, 0] = min(fbox[f, 0], C[j, 0])
+        fbox[f, 1] = min(fbox[f, 1], C[j, 1])
+        fbox[f, 2] = max(fbox[f, 2], C[j, 0])
+        fbox[f, 3] = max(fbox[f, 3], C[j, 1])
     keep = np.zeros(npc, dtype=np.bool_)
     nk = 0
     for p in range(npc):
         mx = 0.5 * (P0[p, 0] + P1[p, 0])
         my = 0.5 * (P0[p, 1] + P1[p, 1])
-        counts[:] = 0
-        for j in range(m):
-            cxj, cyj, dyj = C[j, 0], C[j, 1], D[j, 1]
-            if (cyj > my) != (dyj > my):
-                x_at = cxj + (my - cyj) * ((D[j, 0] - cxj) / (dyj - cyj))
-                if mx < x_at:
-                    counts[eface[ef[j]]] += 1
         inside = False
         for f in range(n_faces):
-            if f != psf[p] and counts[f] % 2 == 1:
+            if f == psf[p] or first[f] < 0:
+                continue
+            if my < fbox[f, 1] or my >= fbox[f, 3] or mx < fbox[f, 0] - 1e-6 or mx > fbox[f, 2] + 1e-6:
+                continue
+            count = 0
+            for j in range(first[f], last[f] + 1):
+                cxj, cyj, dyj = C[j, 0], C[j, 1], D[j, 1]
+                if (cyj > my) != (dyj > my):
+                    x_at = cxj + (my - cyj) * ((D[j, 0] - cxj) / (dyj - cyj))
+                    if mx < x_at:
+                        count += 1
+            if count % 2 == 1:
                 inside = True
                 break
         if not inside:
