@@ -137,55 +137,18 @@ def _refine_lines_batch(img, q, radius, tip_px=2.0, min_edge_angle_deg=20.0, rel
     ndarray, shape (n, 2)
         Refined corners; NaN where :func:`_refine_lines` gives None.
     """
-    q = np.asarray(q, dtype=float).reshape(-1, 2)
-    radius = np.asarray(radius, dtype=float).reshape(-1)
-    n = len(q)
-    out = np.full((n, 2), np.nan)
-    if n == 0:
-        return out
-    H, W = img.shape
-    Ri = np.ceil(radius).astype(np.int64)
-    u0, v0 = np.rint(q[:, 0]).astype(np.int64), np.rint(q[:, 1]).astype(np.int64)  # round half to even, as round()
-
-    def inside(Rk):
-        return (u0 - Rk - 1 >= 0) & (v0 - Rk - 1 >= 0) & (u0 + Rk + 1 <= W - 1) & (v0 + Rk + 1 <= H - 1)
-
-    own = inside(Ri)
-    if not own.any():
-        return out
-    R = int(Ri[own].max())
-    batch = own & inside(R)
-    for i in np.flatnonzero(own & ~batch):  # near the image border with a smaller radius than the others
-        p = _refine_lines(img, q[i], radius[i], tip_px, min_edge_angle_deg, rel_grad, max_line_residual, max_shift)
-        if p is not None:
-            out[i] = p
-    idx = np.flatnonzero(batch)
-    m = idx.size
-    if m == 0:
-        return out
-    S = 2 * R + 3
-    ub, vb = u0[idx], v0[idx]
-    # Patches stacked vertically: the 3x3 Sobel of the rows kept never reaches a neighbouring patch.
-    stack = np.concatenate([img[v - R - 1 : v + R + 2, u - R - 1 : u + R + 2] for u, v in zip(ub.tolist(), vb.tolist())])
-    stack = stack.astype(np.float32)
-    gx = (cv2.Sobel(stack, cv2.CV_32F, 1, 0, ksize=3).reshape(m, S, S)[:, 1:-1, 1:-1]) / 8.0
-    gy = (cv2.Sobel(stack, cv2.CV_32F, 0, 1, ksize=3).reshape(m, S, S)[:, 1:-1, 1:-1]) / 8.0
-    off = np.arange(-R, R + 1)
-    xr = (ub[:, None] + off[None, :]).astype(float) - q[idx, :1]  # (m, 2R+1)
-    yr = (vb[:, None] + off[None, :]).astype(float) - q[idx, 1:]
-    # Compiled: the pixel selection, the grouping and the line fits; the pixel directions
-    # use NumPy's arctan2 (SIMD, may differ from libm's in the last bit) so that a
-    # direction on a bin boundary falls in the same bin as it always did.
-    wi, dxm, dym, gxm, gym, w, npx = _edge_pixels(np.ascontiguousarray(gx), np.ascontiguousarray(gy), xr, yr,
-                                                  Ri[idx], radius[idx], float(tip_px * tip_px),
+    q = np.ascontiguousarray(q, dtype=float).reshape(-1, 2)
+    radius = np.ascontiguousarray(radius, dtype=float).reshape(-1)
+    # Compiled: the gradients (3x3 Sobel / 8 of a uint8 image: small integers, exact in
+    # any order, so cv2.Sobel's values), the pixel selection, the grouping and the line
+    # fits. The pixel directions use NumPy's arctan2 (SIMD: it may differ from libm's
+    # in the last bit), so a direction on a bin boundary falls where it always did.
+    wi, dxm, dym, gxm, gym, w, npx = _edge_pixels(np.ascontiguousarray(img), q, radius, float(tip_px * tip_px),
                                                   np.float32(rel_grad**2))
     theta = np.arctan2(dym, dxm)
     P, live, cnt, a_, b_, c_, sw, swx, swy = _edge_groups(theta, wi, dxm, dym, gxm, gym, w, npx, _NB)
-    if not live.any() or P < 2:
-        return out
-    out[idx] = _edge_lines_meet(q[idx], live, cnt, a_, b_, c_, sw, swx, swy, math.cos(math.radians(min_edge_angle_deg)),
-                                max_line_residual, max_shift)
-    return out
+    return _edge_lines_meet(q, live, cnt, a_, b_, c_, sw, swx, swy, math.cos(math.radians(min_edge_angle_deg)),
+                            max_line_residual, max_shift)
 
 
 @njit
@@ -260,21 +223,26 @@ def _window_candidate(ev, iy0, iy1, ix0, ix1, px0, py0, u32, v32, min_eig, rel_q
 
 
 @njit
-def _edge_pixels(gx, gy, xr, yr, Rb, rb, tip2, rel_grad2_32):
-    """Gradient pixels of each stacked patch that :func:`_refine_lines` uses.
+def _edge_pixels(img, q, radius, tip2, rel_grad2_32):
+    """Gradient pixels around each corner that :func:`_refine_lines` uses.
 
-    ``gx``, ``gy`` (m, 2R+1, 2R+1) float32; ``xr``, ``yr`` (m, 2R+1) pixel offsets
-    from each corner; ``Rb`` (m,) each corner's own half-size, ``rb`` (m,) its
-    radius. A pixel counts when inside its corner's own square, outside the tip
-    disc, within the radius and with ``|g|^2`` above ``rel_grad^2`` times the
-    square's largest (float32, as NumPy computes it). Returned in the order of
-    ``np.nonzero`` (corner, row, column): ``wi`` (corner), ``dxm``, ``dym``
-    (offsets), ``gxm``, ``gym`` (float64 gradients), ``w = |g|^2`` (float64), and
-    ``npx`` (m,) the count per corner.
+    Corner ``k`` at ``q[k]`` (px) looks at the ``(2 R + 1)^2`` pixels around the
+    nearest pixel ``(u0, v0)`` (``R = ceil(radius[k])``; none when that square
+    and its 1-pixel rim do not fit in the image). Gradients: the 3x3 Sobel / 8,
+    float32. A pixel counts when outside the tip disc (``d^2 > tip2``), within
+    the radius and with ``|g|^2`` above ``rel_grad^2`` times the square's
+    largest (float32, as NumPy computes it).
+
+    Returns, in the order of ``np.nonzero`` (corner, row, column): ``wi``
+    (corner), ``dxm``, ``dym`` (offsets from ``q``), ``gxm``, ``gym`` (float64
+    gradients), ``w = |g|^2`` (float64), and ``npx`` (m,) the count per corner.
     """
-    m, S = gx.shape[0], gx.shape[1]
-    R = (S - 1) // 2
-    n_max = m * S * S
+    H, W = img.shape
+    m = q.shape[0]
+    n_max = 0
+    for k in range(m):
+        Rk = int(math.ceil(radius[k]))
+        n_max += (2 * Rk + 1) * (2 * Rk + 1)
     wi = np.empty(n_max, dtype=np.int64)
     dxm = np.empty(n_max)
     dym = np.empty(n_max)
@@ -282,30 +250,49 @@ def _edge_pixels(gx, gy, xr, yr, Rb, rb, tip2, rel_grad2_32):
     gym = np.empty(n_max)
     w = np.empty(n_max)
     npx = np.zeros(m, dtype=np.int64)
+    eight = np.float32(8.0)
     n = 0
     for k in range(m):
-        lo, hi = R - Rb[k], R + Rb[k]
+        R = int(math.ceil(radius[k]))
+        u0, v0 = int(np.rint(q[k, 0])), int(np.rint(q[k, 1]))  # round half to even, as round()
+        if u0 - R - 1 < 0 or v0 - R - 1 < 0 or u0 + R + 1 > W - 1 or v0 + R + 1 > H - 1:
+            continue
+        S = 2 * R + 1
+        gx = np.empty((S, S), dtype=np.float32)
+        gy = np.empty((S, S), dtype=np.float32)
         g2max = np.float32(-np.inf)
-        for y in range(lo, hi + 1):
-            for x in range(lo, hi + 1):
-                g2 = gx[k, y, x] * gx[k, y, x] + gy[k, y, x] * gy[k, y, x]
+        for y in range(S):
+            yy = v0 - R + y
+            for x in range(S):
+                xx = u0 - R + x
+                a = np.int64(img[yy - 1, xx + 1]) - np.int64(img[yy - 1, xx - 1])
+                b = np.int64(img[yy, xx + 1]) - np.int64(img[yy, xx - 1])
+                c = np.int64(img[yy + 1, xx + 1]) - np.int64(img[yy + 1, xx - 1])
+                gx[y, x] = np.float32(a + 2 * b + c) / eight
+                a = np.int64(img[yy + 1, xx - 1]) - np.int64(img[yy - 1, xx - 1])
+                b = np.int64(img[yy + 1, xx]) - np.int64(img[yy - 1, xx])
+                c = np.int64(img[yy + 1, xx + 1]) - np.int64(img[yy - 1, xx + 1])
+                gy[y, x] = np.float32(a + 2 * b + c) / eight
+                g2 = gx[y, x] * gx[y, x] + gy[y, x] * gy[y, x]
                 if g2 > g2max:
                     g2max = g2
         thr = rel_grad2_32 * g2max
-        r2 = rb[k] * rb[k]
-        for y in range(lo, hi + 1):
-            for x in range(lo, hi + 1):
-                d2 = xr[k, x] * xr[k, x] + yr[k, y] * yr[k, y]
-                g2 = gx[k, y, x] * gx[k, y, x] + gy[k, y, x] * gy[k, y, x]
+        r2 = radius[k] * radius[k]
+        for y in range(S):
+            dy = np.float64(v0 - R + y) - q[k, 1]
+            for x in range(S):
+                dx = np.float64(u0 - R + x) - q[k, 0]
+                d2 = dx * dx + dy * dy
+                g2 = gx[y, x] * gx[y, x] + gy[y, x] * gy[y, x]
                 if d2 > tip2 and d2 <= r2 and g2 > thr:
                     wi[n] = k
-                    dxm[n] = xr[k, x]
-                    dym[n] = yr[k, y]
-                    a = np.float64(gx[k, y, x])
-                    b = np.float64(gy[k, y, x])
-                    gxm[n] = a
-                    gym[n] = b
-                    w[n] = a * a + b * b
+                    dxm[n] = dx
+                    dym[n] = dy
+                    a2 = np.float64(gx[y, x])
+                    b2 = np.float64(gy[y, x])
+                    gxm[n] = a2
+                    gym[n] = b2
+                    w[n] = a2 * a2 + b2 * b2
                     n += 1
                     npx[k] += 1
     return wi[:n], dxm[:n], dym[:n], gxm[:n], gym[:n], w[:n], npx
