@@ -448,6 +448,94 @@ def _edge_lines_meet(q, live, cnt, a_, b_, c_, sw, swx, swy, cos_min, max_line_r
     return out
 
 
+@njit
+def _window_geometry(uv, r_all, W, H, pad):
+    """Search windows of all features, as integer pixel bounds.
+
+    Row ``i``: ``(code, py0, py1, px0, px1, iy0, iy1, ix0, ix1)``: code -1 for a
+    non-finite prediction or size below 1 (left INVALID), OUTSIDE, or FOUND (0)
+    for a window to search; the patch ``[py0, py1] x [px0, px1]`` (the window
+    plus ``pad``, clipped to the image) and, in patch coordinates, the window
+    proper away from the image's outer two pixels. Also the half-sizes rounded
+    half to even (as Python's ``round``), as floats (m,).
+    """
+    K = uv.shape[0]
+    geo = np.full((K, 9), -1, dtype=np.int64)
+    r_int = np.zeros(K)
+    for i in range(K):
+        u, v, r = uv[i, 0], uv[i, 1], r_all[i]
+        if not (math.isfinite(u) and math.isfinite(v) and math.isfinite(r) and r >= 1):
+            continue
+        r = np.rint(r)
+        r_int[i] = r
+        # in floats until known to lie in the image (no integer overflow on wild input)
+        wx0, wx1 = max(np.floor(u - r), 0.0), min(np.ceil(u + r), W - 1.0)
+        wy0, wy1 = max(np.floor(v - r), 0.0), min(np.ceil(v + r), H - 1.0)
+        if wx1 - wx0 < 4 or wy1 - wy0 < 4:
+            geo[i, 0] = 2  # Why.OUTSIDE
+            continue
+        px0, px1 = max(int(wx0) - pad, 0), min(int(wx1) + pad, W - 1)
+        py0, py1 = max(int(wy0) - pad, 0), min(int(wy1) + pad, H - 1)
+        ix0, ix1 = max(int(wx0), 2) - px0, min(int(wx1), W - 3) - px0
+        iy0, iy1 = max(int(wy0), 2) - py0, min(int(wy1), H - 3) - py0
+        if ix1 < ix0 or iy1 < iy0:
+            geo[i, 0] = 2  # Why.OUTSIDE
+            continue
+        geo[i, 0] = 0
+        geo[i, 1], geo[i, 2], geo[i, 3], geo[i, 4] = py0, py1, px0, px1
+        geo[i, 5], geo[i, 6], geo[i, 7], geo[i, 8] = iy0, iy1, ix0, ix1
+    return geo, r_int
+
+
+@njit
+def _subpix_ok(ref, c0, uv, r, max_shift):
+    """Sub-pixel results to keep: finite, moved at most ``max_shift`` px from the
+    candidate ``c0`` (float32) and inside the window ``|ref - uv| <= r``; (n,) bool."""
+    n = ref.shape[0]
+    ok = np.zeros(n, dtype=np.bool_)
+    for j in range(n):
+        rx, ry = ref[j, 0], ref[j, 1]
+        if not (math.isfinite(rx) and math.isfinite(ry)):
+            continue
+        if math.hypot(rx - np.float64(c0[j, 0]), ry - np.float64(c0[j, 1])) > max_shift:
+            continue
+        if abs(rx - uv[j, 0]) > r[j] or abs(ry - uv[j, 1]) > r[j]:
+            continue
+        ok[j] = True
+    return ok
+
+
+@njit
+def _take_refined(uv_out, ii, P, uv, r):
+    """Edge-line refinements that are finite and inside their window replace the
+    sub-pixel corners ``uv_out[ii]`` (in place)."""
+    for j in range(ii.shape[0]):
+        i = ii[j]
+        px, py = P[j, 0], P[j, 1]
+        if math.isfinite(px) and math.isfinite(py) and abs(px - uv[i, 0]) <= r[i] and abs(py - uv[i, 1]) <= r[i]:
+            uv_out[i, 0] = px
+            uv_out[i, 1] = py
+
+
+@njit
+def _mark_shared(uv_out, why, shared_px):
+    """Found corners closer than ``shared_px`` to another found corner become SHARED (in place)."""
+    K = why.shape[0]
+    clash = np.zeros(K, dtype=np.bool_)
+    for i in range(K):
+        if why[i] != 0:
+            continue
+        for j in range(K):
+            if j != i and why[j] == 0 and math.hypot(uv_out[i, 0] - uv_out[j, 0], uv_out[i, 1] - uv_out[j, 1]) < shared_px:
+                clash[i] = True
+                break
+    for i in range(K):
+        if clash[i]:
+            why[i] = 5  # Why.SHARED
+            uv_out[i, 0] = np.nan
+            uv_out[i, 1] = np.nan
+
+
 #: Direction bins of :func:`_refine_lines` and each bin's circular neighbours.
 _NB = 36
 _PREV = np.r_[_NB - 1, np.arange(_NB - 1)]
@@ -586,93 +674,60 @@ def extract_corners(
     pad = block_size // 2 + 2  # Sobel (1) + block support, so the response is valid at the window edge
     crit = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 40, 0.001)
 
-    uv_list, r_list = uv_pred.tolist(), r_all.tolist()
-    # NumPy 2 computes the float32 response's thresholds in float32: the kernel gets them so
+    # Window bounds of every feature at once; then one OpenCV structure-tensor call and
+    # one compiled candidate search per window (a patch of its own: the response at the
+    # window's edge depends on the patch border, so patches are not merged).
+    geo, r_int = _window_geometry(np.ascontiguousarray(uv_pred), np.ascontiguousarray(r_all, dtype=float), W, H, pad)
+    why[geo[:, 0] == Why.OUTSIDE] = Why.OUTSIDE
+    go = np.flatnonzero(geo[:, 0] == Why.FOUND)
+    uv32 = uv_pred.astype(np.float32)  # NumPy 2 computes with the float32 response in float32
     params = (float(min_eig), np.float32(rel_quality), np.float32(min_isotropy), np.float32(ambiguity_ratio),
               int(nms_radius))
-    picked = []  # (feature, u, v, r, cx, cy): the candidate nearest to each prediction
-    for i in range(K):
-        u, v = uv_list[i]
-        r = r_list[i]
-        if not (math.isfinite(u) and math.isfinite(v) and math.isfinite(r) and r >= 1):
-            continue
-        r = int(round(r))
+    picked, cxy = [], []  # features with a candidate, and the candidate (float32 pixels)
+    for i, (_, py0, py1, px0, px1, iy0, iy1, ix0, ix1) in zip(go.tolist(), geo[go].tolist()):
         try:
-            x0, x1 = math.floor(u - r), math.ceil(u + r)
-            y0, y1 = math.floor(v - r), math.ceil(v + r)
-            wx0, wx1, wy0, wy1 = max(x0, 0), min(x1, W - 1), max(y0, 0), min(y1, H - 1)
-            if wx1 - wx0 < 4 or wy1 - wy0 < 4:
-                why[i] = Why.OUTSIDE
-                continue
-            px0, px1 = max(wx0 - pad, 0), min(wx1 + pad, W - 1)
-            py0, py1 = max(wy0 - pad, 0), min(wy1 + pad, H - 1)
-            # only the window proper, away from the image's outer pixels (no valid gradient there)
-            ix0, ix1 = max(wx0, 2) - px0, min(wx1, W - 3) - px0
-            iy0, iy1 = max(wy0, 2) - py0, min(wy1, H - 3) - py0
-            if ix1 < ix0 or iy1 < iy0:
-                why[i] = Why.OUTSIDE
-                continue
             ev = cv2.cornerEigenValsAndVecs(img[py0 : py1 + 1, px0 : px1 + 1], block_size, ksize=3)
-            code, n, cx, cy = _window_candidate(ev, iy0, iy1, ix0, ix1, px0, py0, np.float32(u), np.float32(v),
-                                                *params)
-            ncand[i] = n
-            if code != Why.FOUND:
-                why[i] = code
-                continue
-            picked.append((i, u, v, r, cx, cy))
-        except (cv2.error, ValueError, IndexError, TypeError):
+        except cv2.error:
             why[i] = Why.INVALID
-            uv_out[i] = np.nan
+            continue
+        code, n, cx, cy = _window_candidate(ev, iy0, iy1, ix0, ix1, px0, py0, uv32[i, 0], uv32[i, 1], *params)
+        ncand[i] = n
+        if code != Why.FOUND:
+            why[i] = code
+            continue
+        picked.append(i)
+        cxy.append((cx, cy))
+    if not picked:
+        return ExtractionResult(uv_out, why == Why.FOUND, why, ncand)
 
     # Sub-pixel refinement, all corners of one sub-window size in one call (OpenCV refines
     # each point on its own: the same result as one call per corner).
-    to_refine = []  # (feature, u, v, r) of the corners found, for the edge-line refinement
-    by_sh = {}
-    for item in picked:
-        by_sh.setdefault(int(max(2, min(subpix_half, item[3]))), []).append(item)
-    for sh, items in by_sh.items():
-        c0 = np.array([[[it[4], it[5]]] for it in items], np.float32)
+    picked = np.array(picked)
+    c0 = np.array(cxy, np.float32).reshape(-1, 1, 2)
+    ref = np.full((len(picked), 2), np.nan)
+    sh_all = np.maximum(2, np.minimum(subpix_half, r_int[picked])).astype(int)
+    for sh in np.unique(sh_all).tolist():
+        rows = np.flatnonzero(sh_all == sh)
         try:
-            refs = cv2.cornerSubPix(img, c0.copy(), (sh, sh), (-1, -1), crit).reshape(-1, 2).astype(float).tolist()
+            ref[rows] = cv2.cornerSubPix(img, c0[rows].copy(), (sh, sh), (-1, -1), crit).reshape(-1, 2)
         except cv2.error:
-            refs = []
-            for c in c0:  # one by one, so that a failing corner does not take the others along
+            for j in rows:  # one by one, so that a failing corner does not take the others along
                 try:
-                    refs.append(cv2.cornerSubPix(img, c[None].copy(), (sh, sh), (-1, -1), crit).reshape(2).astype(float).tolist())
+                    ref[j] = cv2.cornerSubPix(img, c0[j : j + 1].copy(), (sh, sh), (-1, -1), crit).reshape(2)
                 except cv2.error:
-                    refs.append([math.nan, math.nan])
-        for (i, u, v, r, cx, cy), (rx, ry) in zip(items, refs):
-            if (
-                not (math.isfinite(rx) and math.isfinite(ry))
-                or np.hypot(rx - float(cx), ry - float(cy)) > max_subpix_shift
-                or abs(rx - u) > r
-                or abs(ry - v) > r
-            ):
-                why[i] = Why.NO_CORNER
-                continue
-            if refine_lines:
-                to_refine.append((i, u, v, r))
-            uv_out[i] = (rx, ry)
-            why[i] = Why.FOUND
-
-    if to_refine:
+                    pass
+    ok = _subpix_ok(ref, c0.reshape(-1, 2), uv_pred[picked], r_int[picked], float(max_subpix_shift))
+    why[picked[~ok]] = Why.NO_CORNER
+    ii = picked[ok]
+    uv_out[ii] = ref[ok]
+    why[ii] = Why.FOUND
+    if refine_lines and ii.size:
         # all windows at once (same results as one _refine_lines call per window)
-        ii, uu, vv, rr = (np.array(c) for c in zip(*to_refine))
         try:
-            P = _refine_lines_batch(img, uv_out[ii], np.minimum(line_radius, rr + 2.0))
+            P = _refine_lines_batch(img, uv_out[ii], np.minimum(line_radius, r_int[ii] + 2.0))
         except (cv2.error, ValueError, IndexError, TypeError):
             P = np.full((len(ii), 2), np.nan)
-        with np.errstate(invalid="ignore"):
-            take = np.isfinite(P).all(axis=1) & (np.abs(P[:, 0] - uu) <= rr) & (np.abs(P[:, 1] - vv) <= rr)
-        uv_out[ii[take]] = P[take]
-
-    found_idx = np.flatnonzero(why == Why.FOUND)
-    if len(found_idx) > 1:
-        P = uv_out[found_idx]
-        dd = np.hypot(P[:, None, 0] - P[None, :, 0], P[:, None, 1] - P[None, :, 1])
-        np.fill_diagonal(dd, np.inf)
-        clash = found_idx[np.any(dd < shared_px, axis=1)]
-        why[clash] = Why.SHARED
-        uv_out[clash] = np.nan
+        _take_refined(uv_out, ii, P, uv_pred, r_int)
+    _mark_shared(uv_out, why, float(shared_px))
     found = why == Why.FOUND
     return ExtractionResult(uv_out, found, why, ncand)
