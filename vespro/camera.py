@@ -7,6 +7,8 @@ pixel, as in OpenCV.
 
 from __future__ import annotations
 
+import functools
+
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -78,8 +80,9 @@ class CameraIntrinsics:
     def cy(self) -> float:
         return float(self.K[1, 2])
 
-    @property
+    @functools.cached_property
     def has_distortion(self) -> bool:
+        # cached: dist is read-only, and this is asked several times per camera and frame
         return bool(np.any(self.dist != 0.0))
 
     @classmethod

@@ -203,17 +203,48 @@ def select_quality(
     enlarged set. O(N k) index evaluations.
     """
     uv = _check(uv)
-    w = feature_weights(uv, view_angle, silhouette_px, image_size, border_px, sil_ref_px, max_view_angle, min_separation_px)
-    el = np.flatnonzero(w > 0.0)
-    if el.size <= k:
-        return el[np.argsort(-w[el], kind="stable")].astype(np.intp)
-    c = uv[el].mean(axis=0)
-    dist = np.linalg.norm(uv[el] - c, axis=1)
-    first = el[np.lexsort((-dist, -w[el]))[0]]
-    remaining = el[el != first].astype(np.int64)
+    n = len(uv)
+    va = _vec(view_angle, n, "view_angle", 0.0)
+    sil = _vec(silhouette_px, n, "silhouette_px", sil_ref_px)
     wdt, hgt = image_size
-    return _greedy_quality_kernel(np.ascontiguousarray(uv), np.ascontiguousarray(w), int(first), remaining, int(k),
-                                  float(0.5 * np.hypot(wdt, hgt))).astype(np.intp)
+    w = _weights_kernel(np.ascontiguousarray(uv), np.ascontiguousarray(va), np.ascontiguousarray(sil), int(wdt), int(hgt),
+                        float(border_px), float(sil_ref_px), float(max_view_angle), float(np.cos(max_view_angle)),
+                        float(min_separation_px))
+    return _greedy_quality_kernel(np.ascontiguousarray(uv), w, int(k), float(0.5 * np.hypot(wdt, hgt))).astype(np.intp)
+
+
+@njit
+def _weights_kernel(uv, va, sil, wdt, hgt, border_px, sil_ref_px, max_view_angle, cmin, min_separation_px):
+    """:func:`feature_weights` (with its :func:`eligible_mask`), compiled; the same arithmetic, (N,)."""
+    n = uv.shape[0]
+    w = np.zeros(n)
+    for i in range(n):
+        u, v = uv[i, 0], uv[i, 1]
+        if not (math.isfinite(u) and math.isfinite(v)):
+            continue
+        if not (u >= border_px and u <= wdt - 1 - border_px and v >= border_px and v <= hgt - 1 - border_px):
+            continue
+        if not (math.isfinite(va[i]) and va[i] < max_view_angle):
+            continue
+        if min_separation_px > 0 and n > 1:
+            near = False
+            for j in range(n):
+                if j != i and math.hypot(u - uv[j, 0], v - uv[j, 1]) < min_separation_px:
+                    near = True
+                    break
+            if near:
+                continue
+        t_view = min(max((math.cos(va[i]) - cmin) / (1.0 - cmin), 0.0), 1.0)
+        t_sil = sil[i] / sil_ref_px
+        if not math.isnan(t_sil):
+            t_sil = min(max(t_sil, 0.0), 1.0)
+        t_sil = 0.5 + 0.5 * t_sil
+        d_border = min(min(min(u, v), wdt - 1 - u), hgt - 1 - v)
+        t_border = 0.5 + 0.5 * min(max((d_border - border_px) / (2.0 * border_px), 0.0), 1.0)
+        wi = t_view * t_sil * t_border
+        if not math.isnan(wi):
+            w[i] = wi
+    return w
 
 
 @njit
@@ -249,19 +280,55 @@ def _np_sum(a, n):
 
 
 @njit
-def _greedy_quality_kernel(uv, w, first, remaining, k, half_diag):
-    """Compiled greedy loop of :func:`select_quality`: each step adds the candidate that
-    maximises :func:`quality_index` of the enlarged set (ties: the earliest candidate).
+def _greedy_quality_kernel(uv, w, k, half_diag):
+    """Compiled greedy selection of :func:`select_quality` from the weights ``w`` (N,).
 
-    Scores are computed as :func:`_quality_index_batch` computes them (same operations
-    and summation order), one candidate at a time.
+    The eligible candidates are those with ``w > 0``; with at most ``k`` of them, all,
+    by decreasing weight (stable). Otherwise the first pick is the most reliable (ties:
+    the farthest from their centroid, then the earliest), and each step adds the
+    candidate that maximises :func:`quality_index` of the enlarged set (ties: the
+    earliest). Scores are computed as :func:`_quality_index_batch` computes them (same
+    operations and summation order), one candidate at a time.
     """
     two_pi = 2.0 * np.pi
+    n_all = w.shape[0]
+    el = np.empty(n_all, dtype=np.int64)
+    m = 0
+    for i in range(n_all):
+        if w[i] > 0.0:
+            el[m] = i
+            m += 1
+    if m <= k:
+        out = el[:m].copy()
+        for i in range(1, m):  # stable insertion sort by decreasing weight
+            e = out[i]
+            j = i - 1
+            while j >= 0 and w[out[j]] < w[e]:
+                out[j + 1] = out[j]
+                j -= 1
+            out[j + 1] = e
+        return out
+    # centroid (NumPy's axis-0 mean adds row after row) and distances to it
+    sx, sy = 0.0, 0.0
+    for i in range(m):
+        sx += uv[el[i], 0]
+        sy += uv[el[i], 1]
+    cx, cy = sx / m, sy / m
+    first, bw, bd = -1, 0.0, 0.0
+    for i in range(m):
+        dx, dy = uv[el[i], 0] - cx, uv[el[i], 1] - cy
+        d = math.sqrt(dx * dx + dy * dy)
+        if first < 0 or w[el[i]] > bw or (w[el[i]] == bw and d > bd):
+            first, bw, bd = el[i], w[el[i]], d
     chosen = np.empty(k, dtype=np.int64)
     chosen[0] = first
     nc = 1
-    rem = remaining.copy()
-    nr = rem.shape[0]
+    rem = np.empty(m - 1, dtype=np.int64)
+    nr = 0
+    for i in range(m):
+        if el[i] != first:
+            rem[nr] = el[i]
+            nr += 1
     X = np.empty(k)
     Y = np.empty(k)
     sq = np.empty(k)
