@@ -283,8 +283,7 @@ class BSPTree:
         k = B.shape[0]
         h_start = self.normal @ a - self.offset
         rows = np.ascontiguousarray(rows, dtype=np.int64)
-        t0 = np.ascontiguousarray(np.broadcast_to(np.asarray(t_lo, dtype=float), (k,)))
-        t1 = np.ascontiguousarray(np.broadcast_to(np.asarray(t_hi, dtype=float), (k,)))
+        t0, t1 = _per_segment(t_lo, k), _per_segment(t_hi, k)
         return _blocked_from_kernel(a, B, self.bounds, h_start, self.node_sign, self.node_plane,
                                     np.ascontiguousarray(end_dist, dtype=float), rows, t0, t1, self._children,
                                     float(self.plane_eps))
@@ -351,6 +350,13 @@ class BSPTree:
 
     def arrays(self) -> dict:
         return {name: getattr(self, name) for name in _ARRAYS}
+
+
+def _per_segment(t, k):
+    """``t`` (scalar or (k,)) as a contiguous float64 array (k,); as is when it already is one."""
+    if type(t) is np.ndarray and t.dtype == np.float64 and t.shape == (k,) and t.flags.c_contiguous:
+        return t
+    return np.ascontiguousarray(np.broadcast_to(np.asarray(t, dtype=float), (k,)))
 
 
 @njit

@@ -159,9 +159,10 @@ def project_points(intr: CameraIntrinsics, T_camera_object: np.ndarray, P_object
     if intr.has_distortion:
         xy = distort_normalized(xy, intr.dist)
     K = intr.K
-    u = K[0, 0] * xy[:, 0] + K[0, 2]
-    v = K[1, 1] * xy[:, 1] + K[1, 2]
-    return np.stack([u, v], axis=1), z
+    uv = np.empty((len(xy), 2))
+    uv[:, 0] = K[0, 0] * xy[:, 0] + K[0, 2]
+    uv[:, 1] = K[1, 1] * xy[:, 1] + K[1, 2]
+    return uv, z
 
 
 def undistort_pixels(intr: CameraIntrinsics, uv: np.ndarray) -> np.ndarray:
