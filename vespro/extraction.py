@@ -83,13 +83,26 @@ def window_half_sizes(S, n_sigma: float = 3.0, min_px: int = MIN_HALF_SIZE, max_
         ``ceil(n_sigma * sqrt(lambda_max(S_i)))`` clamped to ``[min_px, max_px]``;
         ``max_px`` where S is not finite.
     """
-    S = np.asarray(S, dtype=float).reshape(-1, 2, 2)
-    tr = S[:, 0, 0] + S[:, 1, 1]
-    det = S[:, 0, 0] * S[:, 1, 1] - S[:, 0, 1] * S[:, 1, 0]
-    lam = 0.5 * tr + np.sqrt(np.maximum(0.25 * tr * tr - det, 0.0))
-    r = np.ceil(n_sigma * np.sqrt(np.maximum(lam, 0.0)))
-    r = np.where(np.isfinite(r), r, max_px)
-    return np.clip(r, min_px, max_px).astype(int)
+    S = np.ascontiguousarray(S, dtype=float).reshape(-1, 2, 2)
+    return _half_sizes_kernel(S, float(n_sigma), float(min_px), float(max_px))
+
+
+@njit
+def _half_sizes_kernel(S, n_sigma, min_px, max_px):
+    """:func:`window_half_sizes`, compiled: ``lambda_max`` of each 2x2 in closed form
+    (NaN passes through ``max(., 0)`` as in ``np.maximum``), (K,) int64."""
+    K = S.shape[0]
+    out = np.empty(K, dtype=np.int64)
+    for k in range(K):
+        tr = S[k, 0, 0] + S[k, 1, 1]
+        det = S[k, 0, 0] * S[k, 1, 1] - S[k, 0, 1] * S[k, 1, 0]
+        q = 0.25 * tr * tr - det
+        lam = 0.5 * tr + math.sqrt(q if (q > 0.0 or math.isnan(q)) else 0.0)
+        r = np.ceil(n_sigma * math.sqrt(lam if (lam > 0.0 or math.isnan(lam)) else 0.0))
+        if not math.isfinite(r):
+            r = max_px
+        out[k] = int(min(max(r, min_px), max_px))
+    return out
 
 
 def _refine_lines(img, q, radius, tip_px=2.0, min_edge_angle_deg=20.0, rel_grad=0.25, max_line_residual=0.6, max_shift=1.0):
@@ -572,8 +585,8 @@ def _as_grey(image, region=None):
             x0, y0 = max(int(region[0]), 0), max(int(region[1]), 0)
             x1, y1 = min(int(region[2]), W - 1), min(int(region[3]), H - 1)
             grey = np.zeros((H, W), np.uint8)
-            if x1 >= x0 and y1 >= y0:
-                grey[y0 : y1 + 1, x0 : x1 + 1] = cv2.cvtColor(img[y0 : y1 + 1, x0 : x1 + 1], cv2.COLOR_BGR2GRAY)
+            if x1 >= x0 and y1 >= y0:  # converted straight into the region
+                cv2.cvtColor(img[y0 : y1 + 1, x0 : x1 + 1], cv2.COLOR_BGR2GRAY, dst=grey[y0 : y1 + 1, x0 : x1 + 1])
             img = grey
     if img.ndim != 2 or min(img.shape) < 8:
         return None
