@@ -135,7 +135,10 @@ def _refine_lines(img, q, radius, tip_px=2.0, min_edge_angle_deg=20.0, rel_grad=
 
 def _refine_lines_batch(img, q, radius, tip_px=2.0, min_edge_angle_deg=20.0, rel_grad=0.25, max_line_residual=0.6,
                         max_shift=1.0):
-    """:func:`_refine_lines` for many corners of one image at once (same results, bit for bit).
+    """:func:`_refine_lines` for many corners of one image at once.
+
+    Each corner is refined on its own (:func:`_refine_lines` is this with one
+    corner), so the results do not depend on the other corners of the batch.
 
     Parameters
     ----------

@@ -3,9 +3,11 @@
 The tracker's per-frame work is many small array operations (tens of
 segments, a few hundred edges, eight windows per camera), where NumPy's
 per-call overhead, not the arithmetic, sets the time. The kernels that replace
-those chains are plain loops compiled by numba; each keeps the arithmetic of
-the NumPy code it replaces, operation for operation, so results agree to the
-last bit where the same libm functions are used (and to rounding elsewhere).
+those chains are plain loops compiled by numba that keep the arithmetic of the
+NumPy code, operation for operation, so most results agree to the last bit.
+Where they cannot (NumPy's SIMD ``arctan2`` and the BLAS/LAPACK order of small
+matrix products and 2x2 solves round differently) they agree to rounding
+(1e-12 px, 1e-15 in the pose); each kernel's docstring or test says which.
 
 ``cache=True`` writes the machine code next to the module (``__pycache__``):
 the first process compiles (a few seconds), later ones load it. No
