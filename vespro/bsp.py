@@ -361,80 +361,81 @@ def _per_segment(t, k):
 
 @njit
 def _blocked_from_kernel(a, B, bounds, h_start, sign, plane, end_dist, rows, t_lo, t_hi, children, pe):
-    """Compiled core of :meth:`BSPTree.segments_blocked_from`.
-
-    Per segment: clip ``[t_lo, t_hi]`` to ``bounds`` (as :meth:`BSPTree.clip_to_bounds`),
-    then walk the tree depth first with a stack of ``(node, t0, t1)`` pieces, with the
-    per-piece arithmetic of :meth:`BSPTree._traverse`. Returns (K,) bool.
-    """
+    """Compiled core of :meth:`BSPTree.segments_blocked_from`; returns (K,) bool."""
     k = B.shape[0]
     out = np.zeros(k, dtype=np.bool_)
-    n_nodes = children.shape[0]
-    st_node = np.empty(n_nodes + 2, dtype=np.int64)
-    st_t0 = np.empty(n_nodes + 2)
-    st_t1 = np.empty(n_nodes + 2)
+    st_node = np.empty(children.shape[0] + 2, dtype=np.int64)
+    st_t = np.empty((children.shape[0] + 2, 2))
     for i in range(k):
-        t0 = t_lo[i]
-        t1 = t_hi[i]
-        for ax in range(3):
-            d = B[i, ax] - a[ax]
-            if d == 0.0:
-                if a[ax] < bounds[0, ax] or a[ax] > bounds[1, ax]:
-                    t0 = np.inf
-                    t1 = -np.inf
-                continue
-            ta = (bounds[0, ax] - a[ax]) / d
-            tb = (bounds[1, ax] - a[ax]) / d
-            lo = min(ta, tb)
-            hi = max(ta, tb)
-            if lo > t0:
-                t0 = lo
-            if hi < t1:
-                t1 = hi
-        if not (t1 - t0 > 0.0):
-            continue
-        row = rows[i]
-        top = 0
-        st_node[0] = 0
-        st_t0[0] = t0
-        st_t1[0] = t1
-        top = 1
-        blocked = False
-        while top > 0 and not blocked:
-            top -= 1
-            node = st_node[top]
-            p0 = st_t0[top]
-            p1 = st_t1[top]
-            ha = h_start[node]
-            dh = sign[node] * end_dist[row, plane[node]] - ha
-            h0 = ha + p0 * dh
-            h1 = ha + p1 * dh
-            b0 = h0 < -pe
-            b1 = h1 < -pe
-            f0 = h0 > pe
-            f1 = h1 > pe
-            side0 = 1 if (b0 or ((not f0) and b1)) else 0
-            c0 = children[node, side0]
-            if (b0 and f1) or (f0 and b1):
-                ts = -ha / dh
-                c1 = children[node, 1 - side0]
-                if c1 == -2:
-                    blocked = True
-                elif c1 >= 0:
-                    st_node[top] = c1
-                    st_t0[top] = ts
-                    st_t1[top] = p1
-                    top += 1
-                p1 = ts
-            if c0 == -2:
-                blocked = True
-            elif c0 >= 0:
-                st_node[top] = c0
-                st_t0[top] = p0
-                st_t1[top] = p1
-                top += 1
-        out[i] = blocked
+        out[i] = _segment_blocked(a, B[i, 0], B[i, 1], B[i, 2], bounds, h_start, sign, plane, end_dist, rows[i],
+                                  t_lo[i], t_hi[i], children, pe, st_node, st_t)
     return out
+
+
+@njit
+def _segment_blocked(a, bx, by, bz, bounds, h_start, sign, plane, end_dist, row, t0, t1, children, pe, st_node, st_t):
+    """Whether the segment ``a -> (bx, by, bz)``, ``t in [t0, t1]``, passes through the solid.
+
+    Clip to ``bounds`` (as :meth:`BSPTree.clip_to_bounds`), then walk the tree depth
+    first with a stack of ``(node, t0, t1)`` pieces (``st_node``, ``st_t``: room for
+    depth + 1 of them), with the per-piece arithmetic of :meth:`BSPTree._traverse`.
+    The end's plane distances are row ``row`` of ``end_dist``.
+    """
+    for ax in range(3):
+        bv = bx if ax == 0 else (by if ax == 1 else bz)
+        d = bv - a[ax]
+        if d == 0.0:
+            if a[ax] < bounds[0, ax] or a[ax] > bounds[1, ax]:
+                return False  # parallel to the slab and outside it: empty
+            continue
+        ta = (bounds[0, ax] - a[ax]) / d
+        tb = (bounds[1, ax] - a[ax]) / d
+        lo = min(ta, tb)
+        hi = max(ta, tb)
+        if lo > t0:
+            t0 = lo
+        if hi < t1:
+            t1 = hi
+    if not (t1 - t0 > 0.0):
+        return False
+    st_node[0] = 0
+    st_t[0, 0] = t0
+    st_t[0, 1] = t1
+    top = 1
+    while top > 0:
+        top -= 1
+        node = st_node[top]
+        p0 = st_t[top, 0]
+        p1 = st_t[top, 1]
+        ha = h_start[node]
+        dh = sign[node] * end_dist[row, plane[node]] - ha
+        h0 = ha + p0 * dh
+        h1 = ha + p1 * dh
+        b0 = h0 < -pe
+        b1 = h1 < -pe
+        f0 = h0 > pe
+        f1 = h1 > pe
+        side0 = 1 if (b0 or ((not f0) and b1)) else 0
+        c0 = children[node, side0]
+        if (b0 and f1) or (f0 and b1):
+            ts = -ha / dh
+            c1 = children[node, 1 - side0]
+            if c1 == -2:
+                return True
+            if c1 >= 0:
+                st_node[top] = c1
+                st_t[top, 0] = ts
+                st_t[top, 1] = p1
+                top += 1
+            p1 = ts
+        if c0 == -2:
+            return True
+        if c0 >= 0:
+            st_node[top] = c0
+            st_t[top, 0] = p0
+            st_t[top, 1] = p1
+            top += 1
+    return False
 
 
 def planar_vertices(model: Model, max_move_rel: float = 1e-4):

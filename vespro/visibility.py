@@ -30,7 +30,7 @@ from typing import Sequence
 
 import numpy as np
 
-from vespro.bsp import BSPTree
+from vespro.bsp import BSPTree, _segment_blocked
 from vespro.camera import CameraIntrinsics, distort_normalized, project_points
 from vespro.jit import njit
 from vespro.model import Model
@@ -328,11 +328,20 @@ class VisibilityScene:
         T_object_camera = invert_transform(T_camera_object)
         c = T_object_camera[:3, 3]
 
-        facing, cos_best, dist = corner_facing(model, c, facing_eps)
-        idx = np.flatnonzero(facing)
-        t_lo, t_hi = _trim(dist[idx], end_eps)
+        own = self.bodies[i]
+        if own.corner_plane_dist is not None:
+            # facing test, trims and the body's own occlusion in one compiled pass
+            tree = own.tree
+            idx, t_lo, t_hi, blocked, cos_best, dist = _facing_blocked_kernel(
+                np.ascontiguousarray(c), model.face_normals, model.face_offsets, model.corner_face_table, model.corners,
+                float(facing_eps), float(end_eps), tree.normal, tree.offset, tree.node_sign, tree.node_plane,
+                own.corner_plane_dist, tree.bounds, tree._children, float(tree.plane_eps))
+        else:
+            facing, cos_best, dist = corner_facing(model, c, facing_eps)
+            idx = np.flatnonzero(facing)
+            t_lo, t_hi = _trim(dist[idx], end_eps)
+            blocked = own.corners_blocked(c, idx, t_lo, t_hi)
         P = model.corners[idx]
-        blocked = self.bodies[i].corners_blocked(c, idx, t_lo, t_hi)
         for j, other in enumerate(self.bodies):
             if j == i or blocked.all():
                 continue
@@ -370,6 +379,55 @@ class VisibilityScene:
             depth=_freeze(depth),
             silhouette_distance=_freeze(sil),
         )
+
+
+@njit
+def _facing_blocked_kernel(c, face_normals, face_offsets, table, corners, facing_eps, end_eps, normal, offset, sign,
+                           plane, corner_plane_dist, bounds, children, plane_eps):
+    """:func:`corner_facing`, :func:`_trim` and ``SceneBody.corners_blocked`` in one pass.
+
+    Returns the facing corners ``idx`` (K,), their trims ``t_lo``, ``t_hi`` (K,),
+    whether the body itself blocks them (K,), and ``cos_best``, ``dist`` (C,) of
+    every corner. The same formulas as those functions; the dot products are
+    summed left to right (NumPy's matrix-vector products may round differently).
+    """
+    nf = face_normals.shape[0]
+    h = np.empty(nf + 1)
+    for f in range(nf):
+        h[f] = face_normals[f, 0] * c[0] + face_normals[f, 1] * c[1] + face_normals[f, 2] * c[2] - face_offsets[f]
+    h[nf] = -np.inf  # the -1 padding of the incidence table
+    n_nodes = normal.shape[0]
+    h_start = np.empty(n_nodes)
+    for q in range(n_nodes):
+        h_start[q] = normal[q, 0] * c[0] + normal[q, 1] * c[1] + normal[q, 2] * c[2] - offset[q]
+    C = corners.shape[0]
+    cos_best = np.empty(C)
+    dist = np.empty(C)
+    idx = np.empty(C, dtype=np.int64)
+    k = 0
+    for i in range(C):
+        best = -np.inf
+        for j in range(table.shape[1]):
+            best = max(best, h[table[i, j]])
+        dx, dy, dz = c[0] - corners[i, 0], c[1] - corners[i, 1], c[2] - corners[i, 2]
+        dist[i] = math.sqrt(dx * dx + dy * dy + dz * dz)
+        cos_best[i] = best / dist[i]
+        if cos_best[i] > facing_eps:
+            idx[k] = i
+            k += 1
+    idx = idx[:k]
+    t_lo = np.empty(k)
+    t_hi = np.empty(k)
+    blocked = np.zeros(k, dtype=np.bool_)
+    st_node = np.empty(n_nodes + 2, dtype=np.int64)
+    st_t = np.empty((n_nodes + 2, 2))
+    for m in range(k):
+        i = idx[m]
+        t_lo[m] = min(end_eps / dist[i], 0.5)
+        t_hi[m] = 1.0 - t_lo[m]
+        blocked[m] = _segment_blocked(c, corners[i, 0], corners[i, 1], corners[i, 2], bounds, h_start, sign, plane,
+                                      corner_plane_dist, i, t_lo[m], t_hi[m], children, plane_eps, st_node, st_t)
+    return idx, t_lo, t_hi, blocked, cos_best, dist
 
 
 def _segments_near_sphere(A, B, ctr, r):
@@ -692,6 +750,37 @@ def _point_segment_distance_kernel(uv, P0, P1):
     return out
 
 
+@njit
+def _silhouette_kernel(V, T, face_normals, face_offsets, ea, eb, eface, etwin, fx, fy, cx, cy, uv, snap):
+    """:func:`silhouette_distance` without lens distortion, compiled: the vertices in the
+    camera (NaN everywhere when one is at or behind the camera plane), the front faces,
+    the outline (:func:`_outline_pieces_kernel`) and the distances, those below ``snap``
+    reported as 0. The products are summed left to right (NumPy's may round differently)."""
+    K = uv.shape[0]
+    out = np.full(K, np.nan)
+    nv = V.shape[0]
+    V_c = np.empty((nv, 3))
+    for i in range(nv):
+        for r in range(3):
+            V_c[i, r] = T[r, 0] * V[i, 0] + T[r, 1] * V[i, 1] + T[r, 2] * V[i, 2] + T[r, 3]
+        if not V_c[i, 2] > 1e-9:
+            return out
+    c = np.empty(3)  # the camera centre in the object frame, -R^T t
+    for r in range(3):
+        c[r] = -(T[0, r] * T[0, 3] + T[1, r] * T[1, 3] + T[2, r] * T[2, 3])
+    nf = face_normals.shape[0]
+    front = np.empty(nf, dtype=np.bool_)
+    for f in range(nf):
+        front[f] = face_normals[f, 0] * c[0] + face_normals[f, 1] * c[1] + face_normals[f, 2] * c[2] - face_offsets[f] > 0
+    P0, P1 = _outline_pieces_kernel(V_c, front, ea, eb, eface, etwin, nf, fx, fy, cx, cy)
+    if P0.shape[0] == 0 or K == 0:
+        return out
+    d = _point_segment_distance_kernel(uv, P0, P1)
+    for i in range(K):
+        out[i] = 0.0 if d[i] < snap else d[i]
+    return out
+
+
 def _point_segment_distance(uv, P0, P1):
     """Distance from each point (K, 2) to the nearest segment P0->P1 (M, 2), shape (K,).
 
@@ -734,7 +823,13 @@ def silhouette_distance(
     (shapely union of the projected front faces), equal within 1e-6 px.
     """
     uv = np.asarray(uv, dtype=float).reshape(-1, 2)
-    segs = _outline_segments(model, T_camera_object, intr, densify=8 if intr.has_distortion else 1)
+    if not intr.has_distortion:  # straight edges: all of it in one compiled pass
+        tab = _edge_table(model)
+        Kc = intr.K
+        return _silhouette_kernel(model.vertices, np.ascontiguousarray(T_camera_object, dtype=float), model.face_normals,
+                                  model.face_offsets, tab.a, tab.b, tab.face, tab.twin, float(Kc[0, 0]), float(Kc[1, 1]),
+                                  float(Kc[0, 2]), float(Kc[1, 2]), np.ascontiguousarray(uv), SILHOUETTE_SNAP_PX)
+    segs = _outline_segments(model, T_camera_object, intr, densify=8)
     if segs is None or len(segs[0]) == 0 or len(uv) == 0:
         return np.full(len(uv), np.nan)
     d = _point_segment_distance_kernel(np.ascontiguousarray(uv), *(np.ascontiguousarray(p) for p in segs))
