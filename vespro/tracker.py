@@ -24,6 +24,7 @@ starts from an explicit pose (:meth:`Tracker.start`) or from an
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field
 from typing import Callable
@@ -478,7 +479,7 @@ class Tracker:
                     # Covariance matching: E[NIS] = 2 per point when R is right.
                     ratio = min(max(mean_nis / 2.0, 0.25), 4.0)
                     s2 = self.sigma_px**2 * (1.0 + c.noise_adapt_rate * (ratio - 1.0))
-                    self.sigma_px = float(np.clip(np.sqrt(s2), c.sigma_min_px, c.sigma_max_px))
+                    self.sigma_px = float(min(max(math.sqrt(s2), c.sigma_min_px), c.sigma_max_px))  # np.clip, minus its overhead
                 # Mark accepted features per camera.
                 offset = 0
                 obs = list(obs)
