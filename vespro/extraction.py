@@ -373,8 +373,14 @@ def _edge_groups(theta, wi, dxm, dym, gxm, gym, w, npx, nb):
         best, lab = np.inf, 0
         for p in range(P):
             a = theta[i] - centres[k, p] + pi
-            mod = np.fmod(a, two_pi)  # then as np.remainder: the sign of the divisor
-            if mod != 0.0:
+            # np.remainder(a, 2 pi), which is fmod then + 2 pi when negative; a lies in
+            # [-pi, 3 pi], where fmod is a itself or (exactly, Sterbenz) a - 2 pi
+            if a >= two_pi and a < 2.0 * two_pi:
+                mod = a - two_pi
+            elif a >= -two_pi and a < two_pi:
+                mod = a + two_pi if a < 0.0 else a
+            else:
+                mod = np.fmod(a, two_pi)
                 if mod < 0.0:
                     mod += two_pi
             d = abs(mod - pi)
