@@ -307,7 +307,7 @@ class Tracker:
         x0, y0, x1, y1 = intr.width // 4, intr.height // 4, intr.width // 2, intr.height // 2
         img[y0:y1, x0:x1] = 200
         corners = np.array([[x0, y0], [x1 - 1, y0], [x0, y1 - 1], [x1 - 1, y1 - 1]], float) - 0.5
-        extract_corners(img, corners, np.full(len(corners), 6))
+        extract_corners(img, corners, window_half_sizes(np.tile(np.eye(2), (len(corners), 1, 1))))
 
     # -- starting and stopping ----------------------------------------------
     def canonical_pose(self, T_world_object: np.ndarray) -> np.ndarray:
