@@ -471,6 +471,24 @@ def _edge_lines_meet(q, live, cnt, a_, b_, c_, sw, swx, swy, cos_min, max_line_r
 
 
 @njit
+def _grey_region(uv, r_all, margin):
+    """Box around the searchable windows (finite prediction, half-size >= 1): their
+    predictions' box grown by ``margin`` plus the largest half-size, as floats
+    ``(x0, y0, x1, y1)``; NaN when there is none."""
+    lo_x = lo_y = hi_x = hi_y = r_max = np.nan
+    for i in range(uv.shape[0]):
+        u, v, r = uv[i, 0], uv[i, 1], r_all[i]
+        if not (math.isfinite(u) and math.isfinite(v) and math.isfinite(r) and r >= 1):
+            continue
+        if math.isnan(lo_x):
+            lo_x, lo_y, hi_x, hi_y, r_max = u, v, u, v, r
+        else:
+            lo_x, lo_y, hi_x, hi_y, r_max = min(lo_x, u), min(lo_y, v), max(hi_x, u), max(hi_y, v), max(r_max, r)
+    m = margin + r_max
+    return lo_x - m, lo_y - m, hi_x + m, hi_y + m
+
+
+@njit
 def _window_geometry(uv, r_all, W, H, pad):
     """Search windows of all features, as integer pixel bounds.
 
@@ -681,13 +699,10 @@ def extract_corners(
     except Exception:  # noqa: BLE001
         return ExtractionResult(uv_out, np.zeros(K, bool), why, ncand)
 
-    with np.errstate(invalid="ignore"):
-        live = np.isfinite(uv_pred).all(axis=1) & np.isfinite(r_all) & (r_all >= 1)
-    region = None
-    if live.any():
-        m = GREY_MARGIN_PX + r_all[live].max()
-        lo, hi = uv_pred[live].min(axis=0) - m, uv_pred[live].max(axis=0) + m
-        region = (math.floor(lo[0]), math.floor(lo[1]), math.ceil(hi[0]), math.ceil(hi[1]))
+    uv_pred = np.ascontiguousarray(uv_pred)
+    r_all = np.ascontiguousarray(r_all, dtype=float)
+    lo_x, lo_y, hi_x, hi_y = _grey_region(uv_pred, r_all, float(GREY_MARGIN_PX))
+    region = None if math.isnan(lo_x) else (math.floor(lo_x), math.floor(lo_y), math.ceil(hi_x), math.ceil(hi_y))
     img = _as_grey(image, region)
     if img is None:
         why[:] = Why.NO_IMAGE
@@ -699,7 +714,7 @@ def extract_corners(
     # Window bounds of every feature at once; then one OpenCV structure-tensor call and
     # one compiled candidate search per window (a patch of its own: the response at the
     # window's edge depends on the patch border, so patches are not merged).
-    geo, r_int = _window_geometry(np.ascontiguousarray(uv_pred), np.ascontiguousarray(r_all, dtype=float), W, H, pad)
+    geo, r_int = _window_geometry(uv_pred, r_all, W, H, pad)
     why[geo[:, 0] == Why.OUTSIDE] = Why.OUTSIDE
     go = np.flatnonzero(geo[:, 0] == Why.FOUND)
     uv32 = uv_pred.astype(np.float32)  # NumPy 2 computes with the float32 response in float32
