@@ -7,6 +7,8 @@ pixel, as in OpenCV.
 
 from __future__ import annotations
 
+import functools
+
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -78,8 +80,9 @@ class CameraIntrinsics:
     def cy(self) -> float:
         return float(self.K[1, 2])
 
-    @property
+    @functools.cached_property
     def has_distortion(self) -> bool:
+        # cached: dist is read-only, and this is asked several times per camera and frame
         return bool(np.any(self.dist != 0.0))
 
     @classmethod
@@ -156,9 +159,10 @@ def project_points(intr: CameraIntrinsics, T_camera_object: np.ndarray, P_object
     if intr.has_distortion:
         xy = distort_normalized(xy, intr.dist)
     K = intr.K
-    u = K[0, 0] * xy[:, 0] + K[0, 2]
-    v = K[1, 1] * xy[:, 1] + K[1, 2]
-    return np.stack([u, v], axis=1), z
+    uv = np.empty((len(xy), 2))
+    uv[:, 0] = K[0, 0] * xy[:, 0] + K[0, 2]
+    uv[:, 1] = K[1, 1] * xy[:, 1] + K[1, 2]
+    return uv, z
 
 
 def undistort_pixels(intr: CameraIntrinsics, uv: np.ndarray) -> np.ndarray:

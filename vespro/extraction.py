@@ -26,6 +26,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from .jit import njit
+
 __all__ = ["Why", "ExtractionResult", "window_half_sizes", "extract_corners"]
 
 MIN_HALF_SIZE = 4
@@ -81,13 +83,26 @@ def window_half_sizes(S, n_sigma: float = 3.0, min_px: int = MIN_HALF_SIZE, max_
         ``ceil(n_sigma * sqrt(lambda_max(S_i)))`` clamped to ``[min_px, max_px]``;
         ``max_px`` where S is not finite.
     """
-    S = np.asarray(S, dtype=float).reshape(-1, 2, 2)
-    tr = S[:, 0, 0] + S[:, 1, 1]
-    det = S[:, 0, 0] * S[:, 1, 1] - S[:, 0, 1] * S[:, 1, 0]
-    lam = 0.5 * tr + np.sqrt(np.maximum(0.25 * tr * tr - det, 0.0))
-    r = np.ceil(n_sigma * np.sqrt(np.maximum(lam, 0.0)))
-    r = np.where(np.isfinite(r), r, max_px)
-    return np.clip(r, min_px, max_px).astype(int)
+    S = np.ascontiguousarray(S, dtype=float).reshape(-1, 2, 2)
+    return _half_sizes_kernel(S, float(n_sigma), float(min_px), float(max_px))
+
+
+@njit
+def _half_sizes_kernel(S, n_sigma, min_px, max_px):
+    """:func:`window_half_sizes`, compiled: ``lambda_max`` of each 2x2 in closed form
+    (NaN passes through ``max(., 0)`` as in ``np.maximum``), (K,) int64."""
+    K = S.shape[0]
+    out = np.empty(K, dtype=np.int64)
+    for k in range(K):
+        tr = S[k, 0, 0] + S[k, 1, 1]
+        det = S[k, 0, 0] * S[k, 1, 1] - S[k, 0, 1] * S[k, 1, 0]
+        q = 0.25 * tr * tr - det
+        lam = 0.5 * tr + math.sqrt(q if (q > 0.0 or math.isnan(q)) else 0.0)
+        r = np.ceil(n_sigma * math.sqrt(lam if (lam > 0.0 or math.isnan(lam)) else 0.0))
+        if not math.isfinite(r):
+            r = max_px
+        out[k] = int(min(max(r, min_px), max_px))
+    return out
 
 
 def _refine_lines(img, q, radius, tip_px=2.0, min_edge_angle_deg=20.0, rel_grad=0.25, max_line_residual=0.6, max_shift=1.0):
@@ -108,83 +123,22 @@ def _refine_lines(img, q, radius, tip_px=2.0, min_edge_angle_deg=20.0, rel_grad=
     ``max_shift`` px from ``q`` (cornerSubPix's bias is a few tenths) is refused.
 
     Returns the refined point (2,) or None (fewer than two usable, non-parallel edges).
+
+    One corner at a time through :func:`_refine_lines_batch` (a batch of one);
+    ``tests/vespro/test_extraction.py`` keeps the plain NumPy formulation this
+    was first written as, and checks against it.
     """
-    H, W = img.shape
-    R = int(math.ceil(radius))
-    u0, v0 = int(round(float(q[0]))), int(round(float(q[1])))
-    if u0 - R - 1 < 0 or v0 - R - 1 < 0 or u0 + R + 1 > W - 1 or v0 + R + 1 > H - 1:
-        return None
-    patch = img[v0 - R - 1 : v0 + R + 2, u0 - R - 1 : u0 + R + 2].astype(np.float32)
-    gx = cv2.Sobel(patch, cv2.CV_32F, 1, 0, ksize=3)[1:-1, 1:-1] / 8.0
-    gy = cv2.Sobel(patch, cv2.CV_32F, 0, 1, ksize=3)[1:-1, 1:-1] / 8.0
-    # pixel offsets from q along a row (x) and a column (y)
-    xr = np.arange(u0 - R, u0 + R + 1, dtype=float) - q[0]
-    yr = np.arange(v0 - R, v0 + R + 1, dtype=float) - q[1]
-    dist2 = xr[None, :] * xr[None, :] + yr[:, None] * yr[:, None]
-    g2 = gx * gx + gy * gy
-    m = (dist2 > tip_px * tip_px) & (dist2 <= radius * radius) & (g2 > (rel_grad**2) * g2.max())
-    iy, ix = np.nonzero(m)
-    if iy.size < 6:
-        return None
-    dxm, dym, gxm, gym = xr[ix], yr[iy], gx[iy, ix].astype(float), gy[iy, ix].astype(float)
-    w = gxm * gxm + gym * gym
-    # the edges are rays from the corner: group pixels by their direction seen from q
-    theta = np.arctan2(dym, dxm)
-    nb = _NB
-    hist = np.bincount(((theta + np.pi) * (nb / (2 * np.pi))).astype(int) % nb, weights=w, minlength=nb)
-    sm = hist + 0.5 * (hist[_PREV] + hist[_NEXT])
-    peaks = np.flatnonzero((sm >= sm[_PREV]) & (sm > sm[_NEXT]) & (sm > 0.15 * sm.max()))
-    if len(peaks) < 2:
-        return None
-    centres = (peaks + 0.5) * (2 * np.pi / nb) - np.pi
-    diff = (theta[:, None] - centres[None, :] + np.pi) % (2 * np.pi) - np.pi
-    lab = np.argmin(np.abs(diff), axis=1)
-    K = len(centres)
-    cnt = np.bincount(lab, minlength=K)
-    a_ = np.bincount(lab, gxm * gxm, K)
-    b_ = np.bincount(lab, gxm * gym, K)
-    c_ = np.bincount(lab, gym * gym, K)
-    sw = np.bincount(lab, w, K)
-    swx = np.bincount(lab, w * dxm, K)  # coordinates relative to q keep the sums well conditioned
-    swy = np.bincount(lab, w * dym, K)
-    # per group: 2x2 structure tensor in closed form, normal = dominant eigenvector
-    half_tr, disc = 0.5 * (a_ + c_), np.hypot(0.5 * (a_ - c_), b_)
-    ev0, ev1 = half_tr - disc, half_tr + disc
-    phi = 0.5 * np.arctan2(2.0 * b_, a_ - c_)
-    nx, ny = np.cos(phi), np.sin(phi)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        c_rel = (nx * swx + ny * swy) / sw          # line offset relative to q: n . (x - q) = c_rel
-    # a single straight edge (not a corner / clutter), passing near q
-    ok = np.flatnonzero((cnt >= 3) & (ev1 > 0) & (ev0 <= 0.2 * ev1) & (np.abs(c_rel) <= 1.5))
-    return _intersect_lines(q, nx[ok], ny[ok], c_rel[ok], sw[ok], min_edge_angle_deg, max_line_residual, max_shift)
-
-
-def _intersect_lines(q, nx, ny, c_rel, sw, min_edge_angle_deg, max_line_residual, max_shift):
-    """Weighted least-squares meeting point of lines ``n . (x - q) = c_rel`` (the end of :func:`_refine_lines`)."""
-    N = np.stack([nx, ny], axis=1)
-    C, Wt = c_rel, sw
-    cos_min = math.cos(math.radians(min_edge_angle_deg))
-    while len(C) >= 2:
-        G = np.abs(N @ N.T)
-        np.fill_diagonal(G, np.inf)
-        if G.min() > cos_min:  # all edges nearly parallel
-            return None
-        p = np.linalg.solve((N.T * Wt) @ N, (N.T * Wt) @ C)
-        res = np.abs(N @ p - C)
-        # three or more edges must meet in one point; drop the one that does not
-        if len(C) > 2 and res.max() > max_line_residual:
-            keep = np.arange(len(C)) != int(np.argmax(res))
-            N, C, Wt = N[keep], C[keep], Wt[keep]
-            continue
-        if not (math.isfinite(p[0]) and math.isfinite(p[1])) or np.hypot(*p) > max_shift:
-            return None
-        return q + p
-    return None
+    p = _refine_lines_batch(img, np.asarray(q, dtype=float).reshape(1, 2), np.array([float(radius)]), tip_px,
+                            min_edge_angle_deg, rel_grad, max_line_residual, max_shift)[0]
+    return None if np.isnan(p[0]) else p
 
 
 def _refine_lines_batch(img, q, radius, tip_px=2.0, min_edge_angle_deg=20.0, rel_grad=0.25, max_line_residual=0.6,
                         max_shift=1.0):
-    """:func:`_refine_lines` for many corners of one image at once (same results, bit for bit).
+    """:func:`_refine_lines` for many corners of one image at once.
+
+    Each corner is refined on its own (:func:`_refine_lines` is this with one
+    corner), so the results do not depend on the other corners of the batch.
 
     Parameters
     ----------
@@ -199,120 +153,427 @@ def _refine_lines_batch(img, q, radius, tip_px=2.0, min_edge_angle_deg=20.0, rel
     ndarray, shape (n, 2)
         Refined corners; NaN where :func:`_refine_lines` gives None.
     """
-    q = np.asarray(q, dtype=float).reshape(-1, 2)
-    radius = np.asarray(radius, dtype=float).reshape(-1)
-    n = len(q)
-    out = np.full((n, 2), np.nan)
-    if n == 0:
-        return out
-    H, W = img.shape
-    Ri = np.ceil(radius).astype(np.int64)
-    u0, v0 = np.rint(q[:, 0]).astype(np.int64), np.rint(q[:, 1]).astype(np.int64)  # round half to even, as round()
-
-    def inside(Rk):
-        return (u0 - Rk - 1 >= 0) & (v0 - Rk - 1 >= 0) & (u0 + Rk + 1 <= W - 1) & (v0 + Rk + 1 <= H - 1)
-
-    own = inside(Ri)
-    if not own.any():
-        return out
-    R = int(Ri[own].max())
-    batch = own & inside(R)
-    for i in np.flatnonzero(own & ~batch):  # near the image border with a smaller radius than the others
-        p = _refine_lines(img, q[i], radius[i], tip_px, min_edge_angle_deg, rel_grad, max_line_residual, max_shift)
-        if p is not None:
-            out[i] = p
-    idx = np.flatnonzero(batch)
-    m = idx.size
-    if m == 0:
-        return out
-    S = 2 * R + 3
-    ub, vb = u0[idx], v0[idx]
-    # Patches stacked vertically: the 3x3 Sobel of the rows kept never reaches a neighbouring patch.
-    stack = np.concatenate([img[v - R - 1 : v + R + 2, u - R - 1 : u + R + 2] for u, v in zip(ub.tolist(), vb.tolist())])
-    stack = stack.astype(np.float32)
-    gx = (cv2.Sobel(stack, cv2.CV_32F, 1, 0, ksize=3).reshape(m, S, S)[:, 1:-1, 1:-1]) / 8.0
-    gy = (cv2.Sobel(stack, cv2.CV_32F, 0, 1, ksize=3).reshape(m, S, S)[:, 1:-1, 1:-1]) / 8.0
-    off = np.arange(-R, R + 1)
-    xr = (ub[:, None] + off[None, :]).astype(float) - q[idx, :1]  # (m, 2R+1)
-    yr = (vb[:, None] + off[None, :]).astype(float) - q[idx, 1:]
-    dist2 = xr[:, None, :] * xr[:, None, :] + yr[:, :, None] * yr[:, :, None]
-    g2 = gx * gx + gy * gy
-    # each corner's own (2 R_i + 1)^2 square
-    Rb = Ri[idx]
-    sq1 = np.abs(off)[None, :] <= Rb[:, None]
-    sq = sq1[:, :, None] & sq1[:, None, :]
-    g2max = np.where(sq, g2, -np.inf).max(axis=(1, 2)).astype(np.float32)
-    rb = radius[idx]
-    msk = sq & (dist2 > tip_px * tip_px) & (dist2 <= (rb * rb)[:, None, None]) & (g2 > (rel_grad**2) * g2max[:, None, None])
-    wi, iy, ix = np.nonzero(msk)
-    npx = np.bincount(wi, minlength=m)
-    dxm, dym = xr[wi, ix], yr[wi, iy]
-    gxm, gym = gx[wi, iy, ix].astype(float), gy[wi, iy, ix].astype(float)
-    w = gxm * gxm + gym * gym
+    q = np.ascontiguousarray(q, dtype=float).reshape(-1, 2)
+    radius = np.ascontiguousarray(radius, dtype=float).reshape(-1)
+    # Compiled: the gradients (3x3 Sobel / 8 of a uint8 image: small integers, exact in
+    # any order, so cv2.Sobel's values), the pixel selection, the grouping and the line
+    # fits. The pixel directions use NumPy's arctan2 (SIMD: it may differ from libm's
+    # in the last bit), so a direction on a bin boundary falls where it always did.
+    wi, dxm, dym, gxm, gym, w, npx = _edge_pixels(np.ascontiguousarray(img), q, radius, float(tip_px * tip_px),
+                                                  np.float32(rel_grad**2))
     theta = np.arctan2(dym, dxm)
-    nb = _NB
-    binx = ((theta + np.pi) * (nb / (2 * np.pi))).astype(int) % nb
-    hist = np.bincount(wi * nb + binx, weights=w, minlength=m * nb).reshape(m, nb)
-    sm = hist + 0.5 * (hist[:, _PREV] + hist[:, _NEXT])
-    pk = (sm >= sm[:, _PREV]) & (sm > sm[:, _NEXT]) & (sm > 0.15 * sm.max(axis=1, keepdims=True))
-    npk = pk.sum(axis=1)
+    P, live, cnt, a_, b_, c_, sw, swx, swy = _edge_groups(theta, wi, dxm, dym, gxm, gym, w, npx, _NB)
+    return _edge_lines_meet(q, live, cnt, a_, b_, c_, sw, swx, swy, math.cos(math.radians(min_edge_angle_deg)),
+                            max_line_residual, max_shift)
+
+
+@njit
+def _window_candidate(ev, iy0, iy1, ix0, ix1, px0, py0, u32, v32, min_eig, rel_quality32, min_isotropy32,
+                      ambiguity32, nms_radius):
+    """The corner candidate of one window, from its ``cv2.cornerEigenValsAndVecs`` patch.
+
+    Shi-Tomasi response ``min(lambda_1, lambda_2)``, non-maximum suppression over
+    ``(2 nms_radius + 1)^2`` pixels of the patch (as ``cv2.dilate``, which ignores
+    pixels outside), the absolute and relative thresholds and the isotropy test
+    on ``inner = [iy0, iy1] x [ix0, ix1]``; then the candidate nearest to the
+    prediction ``(u32, v32)`` (float32, as NumPy computes with the float32
+    response), or AMBIGUOUS when a second one is similarly close.
+
+    Returns ``(why, n_candidates, cx, cy)``; ``cx, cy`` (float32, image pixels)
+    only when ``why`` is FOUND.
+    """
+    hp, wp = ev.shape[0], ev.shape[1]
+    resp = np.empty((hp, wp), dtype=np.float32)
+    for y in range(hp):
+        for x in range(wp):
+            resp[y, x] = min(ev[y, x, 0], ev[y, x, 1])
+    best = resp[iy0, ix0]
+    for y in range(iy0, iy1 + 1):
+        for x in range(ix0, ix1 + 1):
+            if resp[y, x] > best:
+                best = resp[y, x]
+    t_rel = rel_quality32 * best
+    thr = t_rel if t_rel > min_eig else np.float32(min_eig)
+    n = 0
+    nmax = (iy1 - iy0 + 1) * (ix1 - ix0 + 1)
+    cxs = np.empty(nmax, dtype=np.float32)
+    cys = np.empty(nmax, dtype=np.float32)
+    for y in range(iy0, iy1 + 1):
+        for x in range(ix0, ix1 + 1):
+            rv = resp[y, x]
+            if not rv >= thr:
+                continue
+            peak = True
+            for yy in range(max(y - nms_radius, 0), min(y + nms_radius, hp - 1) + 1):
+                for xx in range(max(x - nms_radius, 0), min(x + nms_radius, wp - 1) + 1):
+                    if resp[yy, xx] > rv:
+                        peak = False
+                        break
+                if not peak:
+                    break
+            if not peak:
+                continue
+            # straight edges have a small but non-zero lambda_min: the tensor must be 2-D as well
+            if not rv >= min_isotropy32 * max(ev[y, x, 0], ev[y, x, 1]):
+                continue
+            cxs[n] = np.float32(x + px0)
+            cys[n] = np.float32(y + py0)
+            n += 1
+    if n == 0:
+        return 3, 0, np.float32(0.0), np.float32(0.0)  # Why.NO_CORNER
+    # nearest and second nearest, float32 distances as np.hypot gives them (ties: the first)
+    j, d1, d2 = -1, np.float32(0.0), np.float32(0.0)
+    for k in range(n):
+        dx = np.float64(cxs[k] - u32)
+        dy = np.float64(cys[k] - v32)
+        d = np.float32(math.sqrt(dx * dx + dy * dy))
+        if j < 0 or d < d1:
+            if j >= 0:
+                d2 = d1
+            j, d1 = k, d
+        elif k == 1 or d < d2:
+            d2 = d
+    if n > 1 and d1 > ambiguity32 * d2:
+        return 4, n, np.float32(0.0), np.float32(0.0)  # Why.AMBIGUOUS
+    return 0, n, cxs[j], cys[j]
+
+
+@njit
+def _edge_pixels(img, q, radius, tip2, rel_grad2_32):
+    """Gradient pixels around each corner that :func:`_refine_lines` uses.
+
+    Corner ``k`` at ``q[k]`` (px) looks at the ``(2 R + 1)^2`` pixels around the
+    nearest pixel ``(u0, v0)`` (``R = ceil(radius[k])``; none when that square
+    and its 1-pixel rim do not fit in the image). Gradients: the 3x3 Sobel / 8,
+    float32. A pixel counts when outside the tip disc (``d^2 > tip2``), within
+    the radius and with ``|g|^2`` above ``rel_grad^2`` times the square's
+    largest (float32, as NumPy computes it).
+
+    Returns, in the order of ``np.nonzero`` (corner, row, column): ``wi``
+    (corner), ``dxm``, ``dym`` (offsets from ``q``), ``gxm``, ``gym`` (float64
+    gradients), ``w = |g|^2`` (float64), and ``npx`` (m,) the count per corner.
+    """
+    H, W = img.shape
+    m = q.shape[0]
+    n_max = 0
+    for k in range(m):
+        Rk = int(math.ceil(radius[k]))
+        n_max += (2 * Rk + 1) * (2 * Rk + 1)
+    wi = np.empty(n_max, dtype=np.int64)
+    dxm = np.empty(n_max)
+    dym = np.empty(n_max)
+    gxm = np.empty(n_max)
+    gym = np.empty(n_max)
+    w = np.empty(n_max)
+    npx = np.zeros(m, dtype=np.int64)
+    eight = np.float32(8.0)
+    n = 0
+    for k in range(m):
+        R = int(math.ceil(radius[k]))
+        u0, v0 = int(np.rint(q[k, 0])), int(np.rint(q[k, 1]))  # round half to even, as round()
+        if u0 - R - 1 < 0 or v0 - R - 1 < 0 or u0 + R + 1 > W - 1 or v0 + R + 1 > H - 1:
+            continue
+        S = 2 * R + 1
+        gx = np.empty((S, S), dtype=np.float32)
+        gy = np.empty((S, S), dtype=np.float32)
+        g2max = np.float32(-np.inf)
+        for y in range(S):
+            yy = v0 - R + y
+            for x in range(S):
+                xx = u0 - R + x
+                a = np.int64(img[yy - 1, xx + 1]) - np.int64(img[yy - 1, xx - 1])
+                b = np.int64(img[yy, xx + 1]) - np.int64(img[yy, xx - 1])
+                c = np.int64(img[yy + 1, xx + 1]) - np.int64(img[yy + 1, xx - 1])
+                gx[y, x] = np.float32(a + 2 * b + c) / eight
+                a = np.int64(img[yy + 1, xx - 1]) - np.int64(img[yy - 1, xx - 1])
+                b = np.int64(img[yy + 1, xx]) - np.int64(img[yy - 1, xx])
+                c = np.int64(img[yy + 1, xx + 1]) - np.int64(img[yy - 1, xx + 1])
+                gy[y, x] = np.float32(a + 2 * b + c) / eight
+                g2 = gx[y, x] * gx[y, x] + gy[y, x] * gy[y, x]
+                if g2 > g2max:
+                    g2max = g2
+        thr = rel_grad2_32 * g2max
+        r2 = radius[k] * radius[k]
+        for y in range(S):
+            dy = np.float64(v0 - R + y) - q[k, 1]
+            for x in range(S):
+                dx = np.float64(u0 - R + x) - q[k, 0]
+                d2 = dx * dx + dy * dy
+                g2 = gx[y, x] * gx[y, x] + gy[y, x] * gy[y, x]
+                if d2 > tip2 and d2 <= r2 and g2 > thr:
+                    wi[n] = k
+                    dxm[n] = dx
+                    dym[n] = dy
+                    a2 = np.float64(gx[y, x])
+                    b2 = np.float64(gy[y, x])
+                    gxm[n] = a2
+                    gym[n] = b2
+                    w[n] = a2 * a2 + b2 * b2
+                    n += 1
+                    npx[k] += 1
+    return wi[:n], dxm[:n], dym[:n], gxm[:n], gym[:n], w[:n], npx
+
+
+@njit
+def _edge_groups(theta, wi, dxm, dym, gxm, gym, w, npx, nb):
+    """Edge groups of each corner: direction histogram peaks, pixel labels and per-group sums.
+
+    As the NumPy formulation of :func:`_refine_lines` (sums in pixel order, as
+    ``np.bincount``; ``%`` on floats as ``np.remainder``). Returns ``P`` (most peaks
+    of any corner), ``live`` (m,) and per (corner, group) (m, P): count, the
+    structure tensor sums ``a``, ``b``, ``c``, the weight ``sw`` and the weighted
+    offsets ``swx``, ``swy``.
+    """
+    m = npx.shape[0]
+    n = theta.shape[0]
+    pi = np.pi
+    two_pi = 2 * np.pi
+    scale = nb / (2 * np.pi)
+    step = 2 * np.pi / nb
+    hist = np.zeros((m, nb))
+    for i in range(n):
+        b = np.int64((theta[i] + pi) * scale) % nb
+        hist[wi[i], b] += w[i]
+    pk = np.zeros((m, nb), dtype=np.bool_)
+    npk = np.zeros(m, dtype=np.int64)
+    sm = np.empty(nb)
+    for k in range(m):
+        for b in range(nb):
+            sm[b] = hist[k, b] + 0.5 * (hist[k, (b - 1) % nb] + hist[k, (b + 1) % nb])
+        smax = sm[0]
+        for b in range(1, nb):
+            if sm[b] > smax:
+                smax = sm[b]
+        for b in range(nb):
+            if sm[b] >= sm[(b - 1) % nb] and sm[b] > sm[(b + 1) % nb] and sm[b] > 0.15 * smax:
+                pk[k, b] = True
+                npk[k] += 1
     live = (npx >= 6) & (npk >= 2)
-    P = int(npk.max())
-    if not live.any() or P < 2:
-        return out
-    # peak bins per corner, ascending, padded at the end
-    rank = np.cumsum(pk, axis=1) - 1
-    pw, pb = np.nonzero(pk)
+    P = 0
+    for k in range(m):
+        P = max(P, npk[k])
+    cnt = np.zeros((m, P), dtype=np.int64)
+    a_ = np.zeros((m, P))
+    b_ = np.zeros((m, P))
+    c_ = np.zeros((m, P))
+    sw = np.zeros((m, P))
+    swx = np.zeros((m, P))
+    swy = np.zeros((m, P))
+    if P < 2:
+        return P, live, cnt, a_, b_, c_, sw, swx, swy
     centres = np.full((m, P), np.nan)
-    centres[pw, rank[pw, pb]] = (pb + 0.5) * (2 * np.pi / nb) - np.pi
-    diff = np.abs((theta[:, None] - centres[wi] + np.pi) % (2 * np.pi) - np.pi)
-    diff[np.isnan(diff)] = np.inf
-    lab = wi * P + np.argmin(diff, axis=1)
-    G = m * P
-    cnt = np.bincount(lab, minlength=G).reshape(m, P)
-    a_ = np.bincount(lab, gxm * gxm, G).reshape(m, P)
-    b_ = np.bincount(lab, gxm * gym, G).reshape(m, P)
-    c_ = np.bincount(lab, gym * gym, G).reshape(m, P)
-    sw = np.bincount(lab, w, G).reshape(m, P)
-    swx = np.bincount(lab, w * dxm, G).reshape(m, P)
-    swy = np.bincount(lab, w * dym, G).reshape(m, P)
-    half_tr, disc = 0.5 * (a_ + c_), np.hypot(0.5 * (a_ - c_), b_)
-    ev0, ev1 = half_tr - disc, half_tr + disc
-    phi = 0.5 * np.arctan2(2.0 * b_, a_ - c_)
-    nx, ny = np.cos(phi), np.sin(phi)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        c_rel = (nx * swx + ny * swy) / sw
-    ok = (cnt >= 3) & (ev1 > 0) & (ev0 <= 0.2 * ev1) & (np.abs(c_rel) <= 1.5)
-    ok[~live] = False
-    n_lines = ok.sum(axis=1)
-    # Two lines (the usual L/Y corner seen with one edge too weak): all at once,
-    # the same arithmetic as _intersect_lines (stacked solve == one solve per matrix).
-    two = np.flatnonzero(n_lines == 2)
-    if two.size:
-        o = ok[two]
-        N = np.stack([nx[two][o].reshape(-1, 2), ny[two][o].reshape(-1, 2)], axis=2)  # (k, 2 lines, 2)
-        C2, W2 = c_rel[two][o].reshape(-1, 2), sw[two][o].reshape(-1, 2)
-        crossed = np.abs((N @ N.transpose(0, 2, 1))[:, 0, 1]) <= math.cos(math.radians(min_edge_angle_deg))
-        two, N, C2, W2 = two[crossed], N[crossed], C2[crossed], W2[crossed]
-        NtW = N.transpose(0, 2, 1) * W2[:, None, :]
-        try:
-            p = np.linalg.solve(NtW @ N, (NtW @ C2[:, :, None]))[:, :, 0]
-        except np.linalg.LinAlgError:  # a degenerate pair: one by one, as the scalar path
-            p = np.full((len(two), 2), np.nan)
-            for j in range(len(two)):
-                try:
-                    p[j] = np.linalg.solve(NtW[j] @ N[j], NtW[j] @ C2[j])
-                except np.linalg.LinAlgError:
-                    pass
-        good = np.isfinite(p).all(axis=1) & ~(np.hypot(p[:, 0], p[:, 1]) > max_shift)
-        out[idx[two[good]]] = q[idx[two[good]]] + p[good]
-    for k in np.flatnonzero(n_lines >= 3):
-        o = ok[k]
-        p = _intersect_lines(q[idx[k]], nx[k, o], ny[k, o], c_rel[k, o], sw[k, o], min_edge_angle_deg,
-                             max_line_residual, max_shift)
-        if p is not None:
-            out[idx[k]] = p
+    for k in range(m):
+        r = 0
+        for b in range(nb):
+            if pk[k, b]:
+                centres[k, r] = (b + 0.5) * step - pi
+                r += 1
+    for i in range(n):
+        k = wi[i]
+        best, lab = np.inf, 0
+        for p in range(P):
+            a = theta[i] - centres[k, p] + pi
+            # np.remainder(a, 2 pi), which is fmod then + 2 pi when negative; a lies in
+            # [-pi, 3 pi], where fmod is a itself or (exactly, Sterbenz) a - 2 pi
+            if a >= two_pi and a < 2.0 * two_pi:
+                mod = a - two_pi
+            elif a >= -two_pi and a < two_pi:
+                mod = a + two_pi if a < 0.0 else a
+            else:
+                mod = np.fmod(a, two_pi)
+                if mod < 0.0:
+                    mod += two_pi
+            d = abs(mod - pi)
+            if math.isnan(d):
+                d = np.inf
+            if d < best:
+                best, lab = d, p
+        cnt[k, lab] += 1
+        a_[k, lab] += gxm[i] * gxm[i]
+        b_[k, lab] += gxm[i] * gym[i]
+        c_[k, lab] += gym[i] * gym[i]
+        sw[k, lab] += w[i]
+        swx[k, lab] += w[i] * dxm[i]
+        swy[k, lab] += w[i] * dym[i]
+    return P, live, cnt, a_, b_, c_, sw, swx, swy
+
+
+@njit
+def _edge_lines_meet(q, live, cnt, a_, b_, c_, sw, swx, swy, cos_min, max_line_residual, max_shift):
+    """Lines from the edge groups and their weighted least-squares meeting point, per corner.
+
+    Per group: the normal ``n`` is the dominant eigenvector of the 2x2
+    structure tensor ``[[a, b], [b, c]]`` and the offset ``n . (x - q)`` the
+    ``|g|^2``-weighted mean; a group is a usable line when it has 3 or more
+    pixels, is one-dimensional (``lambda_min <= 0.2 lambda_max``) and passes
+    within 1.5 px of ``q``. Then, as :func:`_refine_lines` describes: no two
+    lines more parallel than ``cos_min`` allows; solve; while more than two
+    lines remain and one misses the point by more than ``max_line_residual``
+    px, drop the farthest; refuse a shift beyond ``max_shift`` px.
+
+    Returns (m, 2): ``q + p``, NaN where refused.
+    """
+    m, P = cnt.shape
+    out = np.full((m, 2), np.nan)
+    nx = np.empty(P)
+    ny = np.empty(P)
+    cr = np.empty(P)
+    wt = np.empty(P)
+    res = np.empty(P)
+    for k in range(m):
+        if not live[k]:
+            continue
+        L = 0
+        for g in range(P):
+            a, b, c = a_[k, g], b_[k, g], c_[k, g]
+            half_tr = 0.5 * (a + c)
+            disc = math.hypot(0.5 * (a - c), b)
+            ev0, ev1 = half_tr - disc, half_tr + disc
+            phi = 0.5 * math.atan2(2.0 * b, a - c)
+            cx, cy = math.cos(phi), math.sin(phi)
+            c_rel = (cx * swx[k, g] + cy * swy[k, g]) / sw[k, g]
+            if cnt[k, g] >= 3 and ev1 > 0 and ev0 <= 0.2 * ev1 and abs(c_rel) <= 1.5:
+                nx[L], ny[L], cr[L], wt[L] = cx, cy, c_rel, sw[k, g]
+                L += 1
+        while L >= 2:
+            gmin = np.inf
+            for i in range(L):
+                for j in range(i + 1, L):
+                    gmin = min(gmin, abs(nx[i] * nx[j] + ny[i] * ny[j]))
+            if gmin > cos_min:  # all edges nearly parallel
+                break
+            A00 = A01 = A11 = r0 = r1 = 0.0
+            for i in range(L):
+                A00 += wt[i] * nx[i] * nx[i]
+                A01 += wt[i] * nx[i] * ny[i]
+                A11 += wt[i] * ny[i] * ny[i]
+                r0 += wt[i] * nx[i] * cr[i]
+                r1 += wt[i] * ny[i] * cr[i]
+            det = A00 * A11 - A01 * A01
+            p0 = (A11 * r0 - A01 * r1) / det
+            p1 = (A00 * r1 - A01 * r0) / det
+            worst = 0
+            for i in range(L):
+                res[i] = abs(nx[i] * p0 + ny[i] * p1 - cr[i])
+                if res[i] > res[worst]:
+                    worst = i
+            # three or more edges must meet in one point; drop the one that does not
+            if L > 2 and res[worst] > max_line_residual:
+                for i in range(worst, L - 1):
+                    nx[i], ny[i], cr[i], wt[i] = nx[i + 1], ny[i + 1], cr[i + 1], wt[i + 1]
+                L -= 1
+                continue
+            if math.isfinite(p0) and math.isfinite(p1) and not math.hypot(p0, p1) > max_shift:
+                out[k, 0] = q[k, 0] + p0
+                out[k, 1] = q[k, 1] + p1
+            break
     return out
+
+
+@njit
+def _grey_region(uv, r_all, margin):
+    """Box around the searchable windows (finite prediction, half-size >= 1): their
+    predictions' box grown by ``margin`` plus the largest half-size, as floats
+    ``(x0, y0, x1, y1)``; NaN when there is none."""
+    lo_x = lo_y = hi_x = hi_y = r_max = np.nan
+    for i in range(uv.shape[0]):
+        u, v, r = uv[i, 0], uv[i, 1], r_all[i]
+        if not (math.isfinite(u) and math.isfinite(v) and math.isfinite(r) and r >= 1):
+            continue
+        if math.isnan(lo_x):
+            lo_x, lo_y, hi_x, hi_y, r_max = u, v, u, v, r
+        else:
+            lo_x, lo_y, hi_x, hi_y, r_max = min(lo_x, u), min(lo_y, v), max(hi_x, u), max(hi_y, v), max(r_max, r)
+    m = margin + r_max
+    return lo_x - m, lo_y - m, hi_x + m, hi_y + m
+
+
+@njit
+def _window_geometry(uv, r_all, W, H, pad):
+    """Search windows of all features, as integer pixel bounds.
+
+    Row ``i``: ``(code, py0, py1, px0, px1, iy0, iy1, ix0, ix1)``: code -1 for a
+    non-finite prediction or size below 1 (left INVALID), OUTSIDE, or FOUND (0)
+    for a window to search; the patch ``[py0, py1] x [px0, px1]`` (the window
+    plus ``pad``, clipped to the image) and, in patch coordinates, the window
+    proper away from the image's outer two pixels. Also the half-sizes rounded
+    half to even (as Python's ``round``), as floats (m,).
+    """
+    K = uv.shape[0]
+    geo = np.full((K, 9), -1, dtype=np.int64)
+    r_int = np.zeros(K)
+    for i in range(K):
+        u, v, r = uv[i, 0], uv[i, 1], r_all[i]
+        if not (math.isfinite(u) and math.isfinite(v) and math.isfinite(r) and r >= 1):
+            continue
+        r = np.rint(r)
+        r_int[i] = r
+        # in floats until known to lie in the image (no integer overflow on wild input)
+        wx0, wx1 = max(np.floor(u - r), 0.0), min(np.ceil(u + r), W - 1.0)
+        wy0, wy1 = max(np.floor(v - r), 0.0), min(np.ceil(v + r), H - 1.0)
+        if wx1 - wx0 < 4 or wy1 - wy0 < 4:
+            geo[i, 0] = 2  # Why.OUTSIDE
+            continue
+        px0, px1 = max(int(wx0) - pad, 0), min(int(wx1) + pad, W - 1)
+        py0, py1 = max(int(wy0) - pad, 0), min(int(wy1) + pad, H - 1)
+        ix0, ix1 = max(int(wx0), 2) - px0, min(int(wx1), W - 3) - px0
+        iy0, iy1 = max(int(wy0), 2) - py0, min(int(wy1), H - 3) - py0
+        if ix1 < ix0 or iy1 < iy0:
+            geo[i, 0] = 2  # Why.OUTSIDE
+            continue
+        geo[i, 0] = 0
+        geo[i, 1], geo[i, 2], geo[i, 3], geo[i, 4] = py0, py1, px0, px1
+        geo[i, 5], geo[i, 6], geo[i, 7], geo[i, 8] = iy0, iy1, ix0, ix1
+    return geo, r_int
+
+
+@njit
+def _subpix_ok(ref, c0, uv, r, max_shift):
+    """Sub-pixel results to keep: finite, moved at most ``max_shift`` px from the
+    candidate ``c0`` (float32) and inside the window ``|ref - uv| <= r``; (n,) bool."""
+    n = ref.shape[0]
+    ok = np.zeros(n, dtype=np.bool_)
+    for j in range(n):
+        rx, ry = ref[j, 0], ref[j, 1]
+        if not (math.isfinite(rx) and math.isfinite(ry)):
+            continue
+        if math.hypot(rx - np.float64(c0[j, 0]), ry - np.float64(c0[j, 1])) > max_shift:
+            continue
+        if abs(rx - uv[j, 0]) > r[j] or abs(ry - uv[j, 1]) > r[j]:
+            continue
+        ok[j] = True
+    return ok
+
+
+@njit
+def _take_refined(uv_out, ii, P, uv, r):
+    """Edge-line refinements that are finite and inside their window replace the
+    sub-pixel corners ``uv_out[ii]`` (in place)."""
+    for j in range(ii.shape[0]):
+        i = ii[j]
+        px, py = P[j, 0], P[j, 1]
+        if math.isfinite(px) and math.isfinite(py) and abs(px - uv[i, 0]) <= r[i] and abs(py - uv[i, 1]) <= r[i]:
+            uv_out[i, 0] = px
+            uv_out[i, 1] = py
+
+
+@njit
+def _mark_shared(uv_out, why, shared_px):
+    """Found corners closer than ``shared_px`` to another found corner become SHARED (in place)."""
+    K = why.shape[0]
+    clash = np.zeros(K, dtype=np.bool_)
+    for i in range(K):
+        if why[i] != 0:
+            continue
+        for j in range(K):
+            if j != i and why[j] == 0 and math.hypot(uv_out[i, 0] - uv_out[j, 0], uv_out[i, 1] - uv_out[j, 1]) < shared_px:
+                clash[i] = True
+                break
+    for i in range(K):
+        if clash[i]:
+            why[i] = 5  # Why.SHARED
+            uv_out[i, 0] = np.nan
+            uv_out[i, 1] = np.nan
 
 
 #: Direction bins of :func:`_refine_lines` and each bin's circular neighbours.
@@ -351,8 +612,8 @@ def _as_grey(image, region=None):
             x0, y0 = max(int(region[0]), 0), max(int(region[1]), 0)
             x1, y1 = min(int(region[2]), W - 1), min(int(region[3]), H - 1)
             grey = np.zeros((H, W), np.uint8)
-            if x1 >= x0 and y1 >= y0:
-                grey[y0 : y1 + 1, x0 : x1 + 1] = cv2.cvtColor(img[y0 : y1 + 1, x0 : x1 + 1], cv2.COLOR_BGR2GRAY)
+            if x1 >= x0 and y1 >= y0:  # converted straight into the region
+                cv2.cvtColor(img[y0 : y1 + 1, x0 : x1 + 1], cv2.COLOR_BGR2GRAY, dst=grey[y0 : y1 + 1, x0 : x1 + 1])
             img = grey
     if img.ndim != 2 or min(img.shape) < 8:
         return None
@@ -438,13 +699,10 @@ def extract_corners(
     except Exception:  # noqa: BLE001
         return ExtractionResult(uv_out, np.zeros(K, bool), why, ncand)
 
-    with np.errstate(invalid="ignore"):
-        live = np.isfinite(uv_pred).all(axis=1) & np.isfinite(r_all) & (r_all >= 1)
-    region = None
-    if live.any():
-        m = GREY_MARGIN_PX + r_all[live].max()
-        lo, hi = uv_pred[live].min(axis=0) - m, uv_pred[live].max(axis=0) + m
-        region = (math.floor(lo[0]), math.floor(lo[1]), math.ceil(hi[0]), math.ceil(hi[1]))
+    uv_pred = np.ascontiguousarray(uv_pred)
+    r_all = np.ascontiguousarray(r_all, dtype=float)
+    lo_x, lo_y, hi_x, hi_y = _grey_region(uv_pred, r_all, float(GREY_MARGIN_PX))
+    region = None if math.isnan(lo_x) else (math.floor(lo_x), math.floor(lo_y), math.ceil(hi_x), math.ceil(hi_y))
     img = _as_grey(image, region)
     if img is None:
         why[:] = Why.NO_IMAGE
@@ -452,95 +710,61 @@ def extract_corners(
     H, W = img.shape
     pad = block_size // 2 + 2  # Sobel (1) + block support, so the response is valid at the window edge
     crit = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 40, 0.001)
-    kernel = np.ones((2 * nms_radius + 1, 2 * nms_radius + 1), np.uint8)
 
-    uv_list, r_list = uv_pred.tolist(), r_all.tolist()
-    to_refine = []  # (feature, u, v, r) of the corners found, for the edge-line refinement
-    for i in range(K):
-        u, v = uv_list[i]
-        r = r_list[i]
-        if not (math.isfinite(u) and math.isfinite(v) and math.isfinite(r) and r >= 1):
-            continue
-        r = int(round(r))
+    # Window bounds of every feature at once; then one OpenCV structure-tensor call and
+    # one compiled candidate search per window (a patch of its own: the response at the
+    # window's edge depends on the patch border, so patches are not merged).
+    geo, r_int = _window_geometry(uv_pred, r_all, W, H, pad)
+    why[geo[:, 0] == Why.OUTSIDE] = Why.OUTSIDE
+    go = np.flatnonzero(geo[:, 0] == Why.FOUND)
+    uv32 = uv_pred.astype(np.float32)  # NumPy 2 computes with the float32 response in float32
+    params = (float(min_eig), np.float32(rel_quality), np.float32(min_isotropy), np.float32(ambiguity_ratio),
+              int(nms_radius))
+    picked, cxy = [], []  # features with a candidate, and the candidate (float32 pixels)
+    for i, (_, py0, py1, px0, px1, iy0, iy1, ix0, ix1) in zip(go.tolist(), geo[go].tolist()):
         try:
-            x0, x1 = math.floor(u - r), math.ceil(u + r)
-            y0, y1 = math.floor(v - r), math.ceil(v + r)
-            wx0, wx1, wy0, wy1 = max(x0, 0), min(x1, W - 1), max(y0, 0), min(y1, H - 1)
-            if wx1 - wx0 < 4 or wy1 - wy0 < 4:
-                why[i] = Why.OUTSIDE
-                continue
-            px0, px1 = max(wx0 - pad, 0), min(wx1 + pad, W - 1)
-            py0, py1 = max(wy0 - pad, 0), min(wy1 + pad, H - 1)
-            # only the window proper, away from the image's outer pixels (no valid gradient there)
-            ix0, ix1 = max(wx0, 2) - px0, min(wx1, W - 3) - px0
-            iy0, iy1 = max(wy0, 2) - py0, min(wy1, H - 3) - py0
-            if ix1 < ix0 or iy1 < iy0:
-                why[i] = Why.OUTSIDE
-                continue
             ev = cv2.cornerEigenValsAndVecs(img[py0 : py1 + 1, px0 : px1 + 1], block_size, ksize=3)
-            resp = np.minimum(ev[:, :, 0], ev[:, :, 1])  # == cv2.cornerMinEigenVal
-            dil = cv2.dilate(resp, kernel)
-            inner = (slice(iy0, iy1 + 1), slice(ix0, ix1 + 1))
-            r_in = resp[inner]
-            best = r_in.max()
-            ys, xs = np.nonzero((r_in >= dil[inner]) & (r_in >= max(min_eig, rel_quality * best)))
-            # straight edges (aliased or noisy) have a small but non-zero lambda_min: ask
-            # the structure tensor to be two-dimensional as well (tested at the peaks only)
-            e = ev[ys + iy0, xs + ix0]
-            iso = r_in[ys, xs] >= min_isotropy * np.maximum(e[:, 0], e[:, 1])
-            ys, xs = ys[iso], xs[iso]
-            ncand[i] = len(xs)
-            if len(xs) == 0:
-                why[i] = Why.NO_CORNER
-                continue
-            cx = (xs + (ix0 + px0)).astype(np.float32)
-            cy = (ys + (iy0 + py0)).astype(np.float32)
-            d = np.hypot(cx - u, cy - v)
-            if len(d) > 1:
-                order = np.argsort(d, kind="stable")
-                j = order[0]
-                if d[j] > ambiguity_ratio * d[order[1]]:
-                    why[i] = Why.AMBIGUOUS
-                    continue
-            else:
-                j = 0
-            c0 = np.array([[[cx[j], cy[j]]]], np.float32)
-            sh = int(max(2, min(subpix_half, r)))
-            ref = cv2.cornerSubPix(img, c0.copy(), (sh, sh), (-1, -1), crit).reshape(2).astype(float)
-            if (
-                not (math.isfinite(ref[0]) and math.isfinite(ref[1]))
-                or np.hypot(ref[0] - c0[0, 0, 0], ref[1] - c0[0, 0, 1]) > max_subpix_shift
-                or abs(ref[0] - u) > r
-                or abs(ref[1] - v) > r
-            ):
-                why[i] = Why.NO_CORNER
-                continue
-            if refine_lines:
-                to_refine.append((i, u, v, r))
-            uv_out[i] = ref
-            why[i] = Why.FOUND
-        except (cv2.error, ValueError, IndexError, TypeError):
+        except cv2.error:
             why[i] = Why.INVALID
-            uv_out[i] = np.nan
+            continue
+        code, n, cx, cy = _window_candidate(ev, iy0, iy1, ix0, ix1, px0, py0, uv32[i, 0], uv32[i, 1], *params)
+        ncand[i] = n
+        if code != Why.FOUND:
+            why[i] = code
+            continue
+        picked.append(i)
+        cxy.append((cx, cy))
+    if not picked:
+        return ExtractionResult(uv_out, why == Why.FOUND, why, ncand)
 
-    if to_refine:
-        # all windows at once (same results as one _refine_lines call per window)
-        ii, uu, vv, rr = (np.array(c) for c in zip(*to_refine))
+    # Sub-pixel refinement, all corners of one sub-window size in one call (OpenCV refines
+    # each point on its own: the same result as one call per corner).
+    picked = np.array(picked)
+    c0 = np.array(cxy, np.float32).reshape(-1, 1, 2)
+    ref = np.full((len(picked), 2), np.nan)
+    sh_all = np.maximum(2, np.minimum(subpix_half, r_int[picked])).astype(int)
+    for sh in np.unique(sh_all).tolist():
+        rows = np.flatnonzero(sh_all == sh)
         try:
-            P = _refine_lines_batch(img, uv_out[ii], np.minimum(line_radius, rr + 2.0))
+            ref[rows] = cv2.cornerSubPix(img, c0[rows].copy(), (sh, sh), (-1, -1), crit).reshape(-1, 2)
+        except cv2.error:
+            for j in rows:  # one by one, so that a failing corner does not take the others along
+                try:
+                    ref[j] = cv2.cornerSubPix(img, c0[j : j + 1].copy(), (sh, sh), (-1, -1), crit).reshape(2)
+                except cv2.error:
+                    pass
+    ok = _subpix_ok(ref, c0.reshape(-1, 2), uv_pred[picked], r_int[picked], float(max_subpix_shift))
+    why[picked[~ok]] = Why.NO_CORNER
+    ii = picked[ok]
+    uv_out[ii] = ref[ok]
+    why[ii] = Why.FOUND
+    if refine_lines and ii.size:
+        # all windows at once (same results as one _refine_lines call per window)
+        try:
+            P = _refine_lines_batch(img, uv_out[ii], np.minimum(line_radius, r_int[ii] + 2.0))
         except (cv2.error, ValueError, IndexError, TypeError):
             P = np.full((len(ii), 2), np.nan)
-        with np.errstate(invalid="ignore"):
-            take = np.isfinite(P).all(axis=1) & (np.abs(P[:, 0] - uu) <= rr) & (np.abs(P[:, 1] - vv) <= rr)
-        uv_out[ii[take]] = P[take]
-
-    found_idx = np.flatnonzero(why == Why.FOUND)
-    if len(found_idx) > 1:
-        P = uv_out[found_idx]
-        dd = np.hypot(P[:, None, 0] - P[None, :, 0], P[:, None, 1] - P[None, :, 1])
-        np.fill_diagonal(dd, np.inf)
-        clash = found_idx[np.any(dd < shared_px, axis=1)]
-        why[clash] = Why.SHARED
-        uv_out[clash] = np.nan
+        _take_refined(uv_out, ii, P, uv_pred, r_int)
+    _mark_shared(uv_out, why, float(shared_px))
     found = why == Why.FOUND
     return ExtractionResult(uv_out, found, why, ncand)

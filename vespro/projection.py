@@ -22,6 +22,7 @@ from __future__ import annotations
 import numpy as np
 
 from .camera import CameraIntrinsics
+from .jit import njit
 from .se3 import exp_so3, transform_from_rt
 
 __all__ = ["project_with_jacobian", "apply_pose_error", "refine_pose_gauss_newton"]
@@ -83,64 +84,64 @@ def project_with_jacobian(
     if P_object.ndim != 2 or P_object.shape[1] != 3:
         raise ValueError(f"P_object: expected shape (N, 3), got {P_object.shape}")
 
-    R_wo, p_wo = T_world_object[:3, :3], T_world_object[:3, 3]
-    R_cw = T_world_camera[:3, :3].T
-    t_wc = T_world_camera[:3, 3]
+    return _project_kernel(np.ascontiguousarray(T_world_camera), np.ascontiguousarray(T_world_object),
+                           np.ascontiguousarray(P_object), intr.fx, intr.fy, intr.cx, intr.cy,
+                           np.ascontiguousarray(intr.dist, dtype=float), intr.has_distortion)
 
-    r_w = P_object @ R_wo.T                      # (N,3) lever arm P_w - p, world
-    P_c = (r_w + (p_wo - t_wc)) @ R_cw.T         # (N,3)
-    X, Y, Z = P_c[:, 0], P_c[:, 1], P_c[:, 2]
-    behind = Z <= MIN_DEPTH
-    with np.errstate(divide="ignore", invalid="ignore"):
-        iz = 1.0 / Z
-    iz[behind] = np.nan
-    x = X * iz
-    y = Y * iz
 
-    n = P_c.shape[0]
-    fx, fy, cx, cy = intr.fx, intr.fy, intr.cx, intr.cy
-    # D = d(u, v) / d(x, y), the 2x2 distortion Jacobian scaled by the focal lengths
-    if intr.has_distortion:
-        k1, k2, p1, p2, k3 = intr.dist
-        r2 = x * x + y * y
-        radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-        drad = k1 + r2 * (2.0 * k2 + 3.0 * r2 * k3)  # d radial / d r2
-        xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
-        yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
-        cross_term = 2.0 * x * y * drad + 2.0 * p1 * x + 2.0 * p2 * y
-        D00 = fx * (radial + 2.0 * x * x * drad + 2.0 * p1 * y + 6.0 * p2 * x)
-        D01 = fx * cross_term
-        D10 = fy * cross_term
-        D11 = fy * (radial + 2.0 * y * y * drad + 6.0 * p1 * y + 2.0 * p2 * x)
-    else:
-        xd, yd = x, y
-        D00 = np.full(n, fx)
-        D11 = np.full(n, fy)
-        D01 = D10 = np.zeros(n)
-
+@njit
+def _project_kernel(T_wc, T_wo, P, fx, fy, cx, cy, dist, has_dist):
+    """Compiled body of :func:`project_with_jacobian`, one point at a time (the chain
+    rule of its Notes). Returns ``uv`` (N, 2), ``Z`` (N,), ``J`` (N, 2, 6)."""
+    n = P.shape[0]
     uv = np.empty((n, 2))
-    uv[:, 0] = fx * xd + cx
-    uv[:, 1] = fy * yd + cy
-
-    # A = D @ d(x, y)/d P_c with d(x, y)/d P_c = [[1/Z, 0, -x/Z], [0, 1/Z, -y/Z]], (N, 2, 3)
-    A = np.empty((n, 2, 3))
-    A[:, 0, 0] = D00 * iz
-    A[:, 0, 1] = D01 * iz
-    A[:, 0, 2] = -(D00 * x + D01 * y) * iz
-    A[:, 1, 0] = D10 * iz
-    A[:, 1, 1] = D11 * iz
-    A[:, 1, 2] = -(D10 * x + D11 * y) * iz
-    # d P_c / d delta = R_cw [I, -[r]x]: position block B = A R_cw, rotation block
-    # -B [r]x, whose rows are r x b (b a row of B)
+    Z = np.empty(n)
     J = np.empty((n, 2, 6))
-    B = A @ R_cw
-    J[:, :, :3] = B
-    r0, r1, r2_ = r_w[:, 0:1], r_w[:, 1:2], r_w[:, 2:3]
-    b0, b1, b2 = B[:, :, 0], B[:, :, 1], B[:, :, 2]
-    J[:, :, 3] = r1 * b2 - r2_ * b1
-    J[:, :, 4] = r2_ * b0 - r0 * b2
-    J[:, :, 5] = r0 * b1 - r1 * b0
-    return uv, Z.copy(), J
+    k1, k2, p1, p2, k3 = dist[0], dist[1], dist[2], dist[3], dist[4]
+    dpx, dpy, dpz = T_wo[0, 3] - T_wc[0, 3], T_wo[1, 3] - T_wc[1, 3], T_wo[2, 3] - T_wc[2, 3]
+    for i in range(n):
+        # lever arm r = R_wo P (world) and the point in the camera, P_c = R_cw (r + p_wo - t_wc)
+        r0 = T_wo[0, 0] * P[i, 0] + T_wo[0, 1] * P[i, 1] + T_wo[0, 2] * P[i, 2]
+        r1 = T_wo[1, 0] * P[i, 0] + T_wo[1, 1] * P[i, 1] + T_wo[1, 2] * P[i, 2]
+        r2 = T_wo[2, 0] * P[i, 0] + T_wo[2, 1] * P[i, 1] + T_wo[2, 2] * P[i, 2]
+        w0, w1, w2 = r0 + dpx, r1 + dpy, r2 + dpz
+        X = T_wc[0, 0] * w0 + T_wc[1, 0] * w1 + T_wc[2, 0] * w2
+        Y = T_wc[0, 1] * w0 + T_wc[1, 1] * w1 + T_wc[2, 1] * w2
+        Zc = T_wc[0, 2] * w0 + T_wc[1, 2] * w1 + T_wc[2, 2] * w2
+        Z[i] = Zc
+        iz = np.nan if Zc <= MIN_DEPTH else 1.0 / Zc
+        x = X * iz
+        y = Y * iz
+        # D = d(u, v) / d(x, y): the distortion Jacobian scaled by the focal lengths
+        if has_dist:
+            rr = x * x + y * y
+            radial = 1.0 + rr * (k1 + rr * (k2 + rr * k3))
+            drad = k1 + rr * (2.0 * k2 + 3.0 * rr * k3)
+            xd = x * radial + 2.0 * p1 * x * y + p2 * (rr + 2.0 * x * x)
+            yd = y * radial + p1 * (rr + 2.0 * y * y) + 2.0 * p2 * x * y
+            cross_term = 2.0 * x * y * drad + 2.0 * p1 * x + 2.0 * p2 * y
+            D00 = fx * (radial + 2.0 * x * x * drad + 2.0 * p1 * y + 6.0 * p2 * x)
+            D01 = fx * cross_term
+            D10 = fy * cross_term
+            D11 = fy * (radial + 2.0 * y * y * drad + 6.0 * p1 * y + 2.0 * p2 * x)
+        else:
+            xd, yd = x, y
+            D00, D01, D10, D11 = fx, 0.0, 0.0, fy
+        uv[i, 0] = fx * xd + cx
+        uv[i, 1] = fy * yd + cy
+        # A = D d(x, y)/d P_c, B = A R_cw (position block), rotation block rows r x b
+        A00, A01, A02 = D00 * iz, D01 * iz, -(D00 * x + D01 * y) * iz
+        A10, A11, A12 = D10 * iz, D11 * iz, -(D10 * x + D11 * y) * iz
+        for row in range(2):
+            a0, a1, a2 = (A00, A01, A02) if row == 0 else (A10, A11, A12)
+            b0 = a0 * T_wc[0, 0] + a1 * T_wc[0, 1] + a2 * T_wc[0, 2]
+            b1 = a0 * T_wc[1, 0] + a1 * T_wc[1, 1] + a2 * T_wc[1, 2]
+            b2 = a0 * T_wc[2, 0] + a1 * T_wc[2, 1] + a2 * T_wc[2, 2]
+            J[i, row, 0], J[i, row, 1], J[i, row, 2] = b0, b1, b2
+            J[i, row, 3] = r1 * b2 - r2 * b1
+            J[i, row, 4] = r2 * b0 - r0 * b2
+            J[i, row, 5] = r0 * b1 - r1 * b0
+    return uv, Z, J
 
 
 def apply_pose_error(T_world_object: np.ndarray, delta: np.ndarray) -> np.ndarray:

@@ -14,6 +14,8 @@ Conventions (shared/STYLE.md):
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from scipy.spatial.transform import Rotation
 
@@ -114,6 +116,20 @@ def matrix_from_quat(q: np.ndarray) -> np.ndarray:
     R : ndarray, shape (3, 3) or (N, 3, 3)
     """
     q = quat_normalize(q)
+    if q.shape == (4,):
+        # One quaternion (every filter step): SciPy's arithmetic, written out (it
+        # normalises again, then the usual products), equal to it bit for bit and
+        # without its ~40 us of per-call overhead.
+        w, x, y, z = q.tolist()
+        n = math.sqrt(x * x + y * y + z * z + w * w)
+        x, y, z, w = x / n, y / n, z / n, w / n
+        x2, y2, z2, w2 = x * x, y * y, z * z, w * w
+        xy, zw, xz, yw, yz, xw = x * y, z * w, x * z, y * w, y * z, x * w
+        return np.array([
+            [x2 - y2 - z2 + w2, 2 * (xy - zw), 2 * (xz + yw)],
+            [2 * (xy + zw), -x2 + y2 - z2 + w2, 2 * (yz - xw)],
+            [2 * (xz - yw), 2 * (yz + xw), -x2 - y2 + z2 + w2],
+        ])
     q_xyzw = np.roll(q, -1, axis=-1)
     return Rotation.from_quat(q_xyzw).as_matrix()
 

@@ -22,7 +22,11 @@ candidates: all of them are returned.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
+
+from .jit import njit
 
 __all__ = [
     "eligible_mask",
@@ -126,8 +130,9 @@ def feature_weights(uv, view_angle, silhouette_px, image_size, border_px=DEFAULT
         d_border = np.minimum.reduce([uv[:, 0], uv[:, 1], w - 1 - uv[:, 0], h - 1 - uv[:, 1]])
         t_border = 0.5 + 0.5 * np.clip((d_border - border_px) / (2.0 * border_px), 0.0, 1.0)
     wts = t_view * t_sil * t_border
-    wts[~el] = 0.0
-    return np.nan_to_num(wts)
+    # each factor is clipped into [0, 1] or NaN, so NaN is the only non-finite value
+    wts[~el | np.isnan(wts)] = 0.0
+    return wts
 
 
 def quality_index(uv_sel, w_sel, image_size) -> float:
@@ -198,23 +203,185 @@ def select_quality(
     enlarged set. O(N k) index evaluations.
     """
     uv = _check(uv)
-    w = feature_weights(uv, view_angle, silhouette_px, image_size, border_px, sil_ref_px, max_view_angle, min_separation_px)
-    el = np.flatnonzero(w > 0.0)
-    if el.size <= k:
-        return el[np.argsort(-w[el], kind="stable")].astype(np.intp)
-    c = uv[el].mean(axis=0)
-    dist = np.linalg.norm(uv[el] - c, axis=1)
-    first = el[np.lexsort((-dist, -w[el]))[0]]
-    chosen = [int(first)]
-    remaining = el[el != first].astype(np.intp)
-    uv_r, w_r = uv[remaining], w[remaining]
-    while len(chosen) < k:
-        scores = _quality_index_batch(uv[chosen], w[chosen], uv_r, w_r, image_size)
-        best = int(np.argmax(scores))
-        chosen.append(int(remaining[best]))
-        keep = np.arange(len(remaining)) != best
-        remaining, uv_r, w_r = remaining[keep], uv_r[keep], w_r[keep]
-    return np.array(chosen, dtype=np.intp)
+    n = len(uv)
+    va = _vec(view_angle, n, "view_angle", 0.0)
+    sil = _vec(silhouette_px, n, "silhouette_px", sil_ref_px)
+    wdt, hgt = image_size
+    w = _weights_kernel(np.ascontiguousarray(uv), np.ascontiguousarray(va), np.ascontiguousarray(sil), int(wdt), int(hgt),
+                        float(border_px), float(sil_ref_px), float(max_view_angle), float(np.cos(max_view_angle)),
+                        float(min_separation_px))
+    return _greedy_quality_kernel(np.ascontiguousarray(uv), w, int(k), float(0.5 * np.hypot(wdt, hgt))).astype(np.intp)
+
+
+@njit
+def _weights_kernel(uv, va, sil, wdt, hgt, border_px, sil_ref_px, max_view_angle, cmin, min_separation_px):
+    """:func:`feature_weights` (with its :func:`eligible_mask`), compiled; the same arithmetic, (N,)."""
+    n = uv.shape[0]
+    w = np.zeros(n)
+    for i in range(n):
+        u, v = uv[i, 0], uv[i, 1]
+        if not (math.isfinite(u) and math.isfinite(v)):
+            continue
+        if not (u >= border_px and u <= wdt - 1 - border_px and v >= border_px and v <= hgt - 1 - border_px):
+            continue
+        if not (math.isfinite(va[i]) and va[i] < max_view_angle):
+            continue
+        if min_separation_px > 0 and n > 1:
+            near = False
+            for j in range(n):
+                if j != i and math.hypot(u - uv[j, 0], v - uv[j, 1]) < min_separation_px:
+                    near = True
+                    break
+            if near:
+                continue
+        t_view = min(max((math.cos(va[i]) - cmin) / (1.0 - cmin), 0.0), 1.0)
+        t_sil = sil[i] / sil_ref_px
+        if not math.isnan(t_sil):
+            t_sil = min(max(t_sil, 0.0), 1.0)
+        t_sil = 0.5 + 0.5 * t_sil
+        d_border = min(min(min(u, v), wdt - 1 - u), hgt - 1 - v)
+        t_border = 0.5 + 0.5 * min(max((d_border - border_px) / (2.0 * border_px), 0.0), 1.0)
+        wi = t_view * t_sil * t_border
+        if not math.isnan(wi):
+            w[i] = wi
+    return w
+
+
+@njit
+def _np_sum(a, n):
+    """Sum of ``a[:n]`` in NumPy's order (pairwise summation, as ``np.sum`` of a contiguous row)."""
+    if n < 8:
+        res = -0.0
+        for i in range(n):
+            res += a[i]
+        return res
+    if n <= 128:
+        r0, r1, r2, r3 = a[0], a[1], a[2], a[3]
+        r4, r5, r6, r7 = a[4], a[5], a[6], a[7]
+        i = 8
+        while i < n - (n % 8):
+            r0 += a[i]
+            r1 += a[i + 1]
+            r2 += a[i + 2]
+            r3 += a[i + 3]
+            r4 += a[i + 4]
+            r5 += a[i + 5]
+            r6 += a[i + 6]
+            r7 += a[i + 7]
+            i += 8
+        res = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
+        while i < n:
+            res += a[i]
+            i += 1
+        return res
+    n2 = n // 2
+    n2 -= n2 % 8
+    return _np_sum(a, n2) + _np_sum(a[n2:], n - n2)
+
+
+@njit
+def _greedy_quality_kernel(uv, w, k, half_diag):
+    """Compiled greedy selection of :func:`select_quality` from the weights ``w`` (N,).
+
+    The eligible candidates are those with ``w > 0``; with at most ``k`` of them, all,
+    by decreasing weight (stable). Otherwise the first pick is the most reliable (ties:
+    the farthest from their centroid, then the earliest), and each step adds the
+    candidate that maximises :func:`quality_index` of the enlarged set (ties: the
+    earliest). Scores are computed as :func:`_quality_index_batch` computes them (same
+    operations and summation order), one candidate at a time.
+    """
+    two_pi = 2.0 * np.pi
+    n_all = w.shape[0]
+    el = np.empty(n_all, dtype=np.int64)
+    m = 0
+    for i in range(n_all):
+        if w[i] > 0.0:
+            el[m] = i
+            m += 1
+    if m <= k:
+        out = el[:m].copy()
+        for i in range(1, m):  # stable insertion sort by decreasing weight
+            e = out[i]
+            j = i - 1
+            while j >= 0 and w[out[j]] < w[e]:
+                out[j + 1] = out[j]
+                j -= 1
+            out[j + 1] = e
+        return out
+    # centroid (NumPy's axis-0 mean adds row after row) and distances to it
+    sx, sy = 0.0, 0.0
+    for i in range(m):
+        sx += uv[el[i], 0]
+        sy += uv[el[i], 1]
+    cx, cy = sx / m, sy / m
+    first, bw, bd = -1, 0.0, 0.0
+    for i in range(m):
+        dx, dy = uv[el[i], 0] - cx, uv[el[i], 1] - cy
+        d = math.sqrt(dx * dx + dy * dy)
+        if first < 0 or w[el[i]] > bw or (w[el[i]] == bw and d > bd):
+            first, bw, bd = el[i], w[el[i]], d
+    chosen = np.empty(k, dtype=np.int64)
+    chosen[0] = first
+    nc = 1
+    rem = np.empty(m - 1, dtype=np.int64)
+    nr = 0
+    for i in range(m):
+        if el[i] != first:
+            rem[nr] = el[i]
+            nr += 1
+    X = np.empty(k)
+    Y = np.empty(k)
+    sq = np.empty(k)
+    ang = np.empty(k)
+    ws = np.empty(k)
+    while nc < k:
+        n = nc + 1
+        sx, sy = 0.0, 0.0
+        for i in range(nc):
+            X[i] = uv[chosen[i], 0]
+            Y[i] = uv[chosen[i], 1]
+            ws[i] = w[chosen[i]]
+            sx, sy = sx + X[i], sy + Y[i]
+        w_sum = _np_sum(ws, nc)
+        even = two_pi / n
+        best, best_j = -np.inf, -1
+        for j in range(nr):
+            c = rem[j]
+            X[nc] = uv[c, 0]
+            Y[nc] = uv[c, 1]
+            mx = (sx + uv[c, 0]) / n
+            my = (sy + uv[c, 1]) / n
+            for i in range(n):
+                dx = X[i] - mx
+                dy = Y[i] - my
+                sq[i] = dx * dx + dy * dy
+                ang[i] = math.atan2(dy, dx)
+            q_s = min(1.0, math.sqrt(_np_sum(sq, n) / n) / half_diag)
+            if n < 3:
+                q_a = 1.0
+            else:
+                for i in range(1, n):  # insertion sort: a handful of angles
+                    v = ang[i]
+                    m = i - 1
+                    while m >= 0 and ang[m] > v:
+                        ang[m + 1] = ang[m]
+                        m -= 1
+                    ang[m + 1] = v
+                gmax = (ang[0] + two_pi) - ang[n - 1]
+                g_in = ang[1] - ang[0]
+                for i in range(2, n):
+                    g_in = max(g_in, ang[i] - ang[i - 1])
+                gmax = max(g_in, gmax)
+                q_a = 1.0 - (gmax - even) / (two_pi - even)
+            score = (w_sum + w[c]) / n * q_s * q_a
+            if score > best or best_j < 0:
+                best, best_j = score, j
+        chosen[nc] = rem[best_j]
+        nc += 1
+        for j in range(best_j, nr - 1):
+            rem[j] = rem[j + 1]
+        nr -= 1
+    return chosen
 
 
 def _quality_index_batch(uv_S, w_S, uv_c, w_c, image_size) -> np.ndarray:

@@ -24,6 +24,7 @@ starts from an explicit pose (:meth:`Tracker.start`) or from an
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field
 from typing import Callable
@@ -296,6 +297,34 @@ class Tracker:
         self.lost_events = 0
         self.last_good = None  # (T_world_object, velocity (6,), t_ns) of the last tracking frame
         self._reseeded = True
+        self._warm_up()
+
+    def _warm_up(self) -> None:
+        """Run each stage once on made-up inputs, at set-up.
+
+        The per-frame kernels are compiled (numba): the first call in a process
+        loads them from the on-disk cache (~0.3 s in all) or, on a fresh
+        install, compiles them (~10-20 s, once). Doing it here keeps that out of
+        the first frame. The inputs only need the real types: the model some
+        diameters in front of the first camera, a bright rectangle on black.
+        """
+        if not self.rig.cameras:
+            return
+        cam = self.rig.cameras[0]
+        intr = cam.intrinsics
+        T_wc = cam.T_world_camera if cam.is_fixed else np.eye(4)
+        T_co = np.eye(4)
+        T_co[:3, 3] = [0.0, 0.0, 3.0 * self.model.diameter]
+        T_wo = T_wc @ T_co
+        vis = _Candidates.of(self.scene.query(0, T_wc, [T_wo], intr), self.salient)
+        uv, _, _ = project_with_jacobian(intr, T_wc, T_wo, vis.points)
+        select_quality(uv, vis.view_angle, vis.silhouette_distance, (intr.width, intr.height),
+                       k=self.config.features_per_camera)
+        img = np.zeros((intr.height, intr.width, 3), np.uint8)
+        x0, y0, x1, y1 = intr.width // 4, intr.height // 4, intr.width // 2, intr.height // 2
+        img[y0:y1, x0:x1] = 200
+        corners = np.array([[x0, y0], [x1 - 1, y0], [x0, y1 - 1], [x1 - 1, y1 - 1]], float) - 0.5
+        extract_corners(img, corners, window_half_sizes(np.tile(np.eye(2), (len(corners), 1, 1))))
 
     # -- starting and stopping ----------------------------------------------
     def canonical_pose(self, T_world_object: np.ndarray) -> np.ndarray:
@@ -503,7 +532,7 @@ class Tracker:
                     rate = max(c.noise_adapt_rate, 1.0 / (self._noise_updates + 1))
                     ratio = min(max(mean_nis / 2.0, 0.25), 4.0)
                     s2 = self.sigma_px**2 * (1.0 + rate * (ratio - 1.0))
-                    self.sigma_px = float(np.clip(np.sqrt(s2), c.sigma_min_px, c.sigma_max_px))
+                    self.sigma_px = float(min(max(math.sqrt(s2), c.sigma_min_px), c.sigma_max_px))  # np.clip, minus its overhead
                 if c.feature_noise:
                     # Each accepted corner's own squared residual in units of the shared sigma.
                     # Gated corners do not count: they are outliers (a wrong match), not noise,

@@ -23,14 +23,16 @@ holes included; a corner on the outline gets 0).
 
 from __future__ import annotations
 
+import math
 import weakref
 from dataclasses import dataclass, field
 from typing import Sequence
 
 import numpy as np
 
-from vespro.bsp import BSPTree
+from vespro.bsp import BSPTree, _segment_blocked
 from vespro.camera import CameraIntrinsics, distort_normalized, project_points
+from vespro.jit import njit
 from vespro.model import Model
 from vespro.se3 import check_transform, invert_transform, transform_points
 
@@ -326,11 +328,20 @@ class VisibilityScene:
         T_object_camera = invert_transform(T_camera_object)
         c = T_object_camera[:3, 3]
 
-        facing, cos_best, dist = corner_facing(model, c, facing_eps)
-        idx = np.flatnonzero(facing)
-        t_lo, t_hi = _trim(dist[idx], end_eps)
+        own = self.bodies[i]
+        if own.corner_plane_dist is not None:
+            # facing test, trims and the body's own occlusion in one compiled pass
+            tree = own.tree
+            idx, t_lo, t_hi, blocked, cos_best, dist = _facing_blocked_kernel(
+                np.ascontiguousarray(c), model.face_normals, model.face_offsets, model.corner_face_table, model.corners,
+                float(facing_eps), float(end_eps), tree.normal, tree.offset, tree.node_sign, tree.node_plane,
+                own.corner_plane_dist, tree.bounds, tree._children, float(tree.plane_eps))
+        else:
+            facing, cos_best, dist = corner_facing(model, c, facing_eps)
+            idx = np.flatnonzero(facing)
+            t_lo, t_hi = _trim(dist[idx], end_eps)
+            blocked = own.corners_blocked(c, idx, t_lo, t_hi)
         P = model.corners[idx]
-        blocked = self.bodies[i].corners_blocked(c, idx, t_lo, t_hi)
         for j, other in enumerate(self.bodies):
             if j == i or blocked.all():
                 continue
@@ -368,6 +379,55 @@ class VisibilityScene:
             depth=_freeze(depth),
             silhouette_distance=_freeze(sil),
         )
+
+
+@njit
+def _facing_blocked_kernel(c, face_normals, face_offsets, table, corners, facing_eps, end_eps, normal, offset, sign,
+                           plane, corner_plane_dist, bounds, children, plane_eps):
+    """:func:`corner_facing`, :func:`_trim` and ``SceneBody.corners_blocked`` in one pass.
+
+    Returns the facing corners ``idx`` (K,), their trims ``t_lo``, ``t_hi`` (K,),
+    whether the body itself blocks them (K,), and ``cos_best``, ``dist`` (C,) of
+    every corner. The same formulas as those functions; the dot products are
+    summed left to right (NumPy's matrix-vector products may round differently).
+    """
+    nf = face_normals.shape[0]
+    h = np.empty(nf + 1)
+    for f in range(nf):
+        h[f] = face_normals[f, 0] * c[0] + face_normals[f, 1] * c[1] + face_normals[f, 2] * c[2] - face_offsets[f]
+    h[nf] = -np.inf  # the -1 padding of the incidence table
+    n_nodes = normal.shape[0]
+    h_start = np.empty(n_nodes)
+    for q in range(n_nodes):
+        h_start[q] = normal[q, 0] * c[0] + normal[q, 1] * c[1] + normal[q, 2] * c[2] - offset[q]
+    C = corners.shape[0]
+    cos_best = np.empty(C)
+    dist = np.empty(C)
+    idx = np.empty(C, dtype=np.int64)
+    k = 0
+    for i in range(C):
+        best = -np.inf
+        for j in range(table.shape[1]):
+            best = max(best, h[table[i, j]])
+        dx, dy, dz = c[0] - corners[i, 0], c[1] - corners[i, 1], c[2] - corners[i, 2]
+        dist[i] = math.sqrt(dx * dx + dy * dy + dz * dz)
+        cos_best[i] = best / dist[i]
+        if cos_best[i] > facing_eps:
+            idx[k] = i
+            k += 1
+    idx = idx[:k]
+    t_lo = np.empty(k)
+    t_hi = np.empty(k)
+    blocked = np.zeros(k, dtype=np.bool_)
+    st_node = np.empty(n_nodes + 2, dtype=np.int64)
+    st_t = np.empty((n_nodes + 2, 2))
+    for m in range(k):
+        i = idx[m]
+        t_lo[m] = min(end_eps / dist[i], 0.5)
+        t_hi[m] = 1.0 - t_lo[m]
+        blocked[m] = _segment_blocked(c, corners[i, 0], corners[i, 1], corners[i, 2], bounds, h_start, sign, plane,
+                                      corner_plane_dist, i, t_lo[m], t_hi[m], children, plane_eps, st_node, st_t)
+    return idx, t_lo, t_hi, blocked, cos_best, dist
 
 
 def _segments_near_sphere(A, B, ctr, r):
@@ -443,8 +503,6 @@ class _EdgeTable:
         self.face = np.concatenate(f) if f else np.zeros(0, np.int64)
         owner = {(int(x), int(y)): int(fi) for x, y, fi in zip(self.a, self.b, self.face)}
         self.twin = np.array([owner.get((int(y), int(x)), -1) for x, y in zip(self.a, self.b)], dtype=np.int64)
-        self.onehot = np.zeros((self.face.size, len(model.faces)))  # edge -> face incidence, for counting
-        self.onehot[np.arange(self.face.size), self.face] = 1.0
 
 
 _EDGE_TABLES: "weakref.WeakKeyDictionary[Model, _EdgeTable]" = weakref.WeakKeyDictionary()
@@ -481,62 +539,11 @@ def _outline_segments(model: Model, T_camera_object: np.ndarray, intr: CameraInt
     tab = _edge_table(model)
     c = invert_transform(T_camera_object)[:3, 3]
     front = model.face_normals @ c - model.face_offsets > 0
-    ef = front[tab.face]
-    if not ef.any():
-        return None
-    ef_rows = np.flatnonzero(ef)
-    a, b, face, twin = tab.a[ef_rows], tab.b[ef_rows], tab.face[ef_rows], tab.twin[ef_rows]
-    contour = ~np.where(twin >= 0, front[np.maximum(twin, 0)], False)
-    # Straight edges in ideal (undistorted) pixels; distortion is applied to the outline at the end.
     Kc = intr.K
-    uv = V_c[:, :2] / V_c[:, 2:3] * [Kc[0, 0], Kc[1, 1]] + [Kc[0, 2], Kc[1, 2]]
-    C, D = uv[a], uv[b]
-    A, B, sface = C[contour], D[contour], face[contour]
-    nS = len(A)
-    if nS == 0:
+    P0, P1 = _outline_pieces_kernel(V_c, front, tab.a, tab.b, tab.face, tab.twin, len(model.faces),
+                                    float(Kc[0, 0]), float(Kc[1, 1]), float(Kc[0, 2]), float(Kc[1, 2]))
+    if len(P0) == 0:
         return None
-    # Coverage of a contour piece s by the other front faces can only change
-    # where s crosses the boundary of their union: a contour edge of another
-    # face, or an edge of a face bordering s's own face (where that neighbour
-    # ends). Crossings of every s with those edges q, by components (S, 1) x (1, Q').
-    cols = np.flatnonzero(contour | np.isin(twin, sface))
-    cface, ctwin = face[cols], twin[cols]
-    splits = (contour[cols][None, :] & (sface[:, None] != cface[None, :])) | (ctwin[None, :] == sface[:, None])
-    ax, ay = A[:, :1], A[:, 1:]
-    rx, ry = B[:, :1] - ax, B[:, 1:] - ay
-    qx, qy = C[cols, 0], C[cols, 1]
-    ex, ey = D[cols, 0] - qx, D[cols, 1] - qy
-    den = rx * ey - ry * ex
-    wx, wy = qx - ax, qy - ay
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t = (wx * ey - wy * ex) / den
-        u = (wx * ry - wy * rx) / den
-    tol = 1e-9
-    hit = (t > tol) & (t < 1 - tol) & (u >= -tol) & (u <= 1 + tol) & splits
-    si, qi = np.nonzero(hit)
-    seg = np.concatenate([np.arange(nS), np.arange(nS), si])
-    par = np.concatenate([np.zeros(nS), np.ones(nS), t[si, qi]])
-    order = np.lexsort((par, seg))
-    seg, par = seg[order], par[order]
-    same = seg[1:] == seg[:-1]
-    s_i, t0, t1 = seg[:-1][same], par[:-1][same], par[1:][same]
-    r = B - A
-    P0 = A[s_i] + t0[:, None] * r[s_i]
-    P1 = A[s_i] + t1[:, None] * r[s_i]
-    # pieces of (numerically) zero length carry no boundary of their own
-    keep = np.hypot(*(P1 - P0).T) > 1e-9
-    s_i, P0, P1 = s_i[keep], P0[keep], P1[keep]
-    mx, my = 0.5 * (P0[:, :1] + P1[:, :1]), 0.5 * (P0[:, 1:] + P1[:, 1:])
-    # even-odd test of each midpoint against each other front face
-    cx, cy, dy = C[:, 0], C[:, 1], D[:, 1]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        x_at = cx + (my - cy) * ((D[:, 0] - cx) / (dy - cy))
-    cross = ((cy > my) != (dy > my)) & (mx < x_at)
-    counts = cross.astype(float) @ tab.onehot[ef_rows]  # crossings per (midpoint, face): small exact integers
-    inside = np.fmod(counts, 2.0) == 1.0
-    inside[np.arange(len(s_i)), sface[s_i]] = False
-    outline = ~inside.any(axis=1)
-    P0, P1 = P0[outline], P1[outline]
     if densify > 1:
         # The image of a straight outline piece under lens distortion is a
         # curve: cut it into at least ``densify`` pieces of at most
@@ -552,8 +559,233 @@ def _outline_segments(model: Model, T_camera_object: np.ndarray, intr: CameraInt
     return P0, P1
 
 
+@njit
+def _outline_pieces_kernel(V_c, front, ea, eb, eface, etwin, n_faces, fx, fy, cx, cy):
+    """Compiled core of :func:`_outline_segments` (ideal pixels, before any densifying).
+
+    Parameters: camera-frame vertices ``V_c`` (V, 3), per-face front flags (F,), the
+    edge table (``a``, ``b``, ``face``, ``twin``, each (E,)) and the pinhole numbers.
+    Returns the outline pieces ``P0``, ``P1`` (M, 2); M = 0 when there is no outline.
+    The arithmetic is that of the NumPy formulation it replaced, element by element.
+    """
+    nv = V_c.shape[0]
+    uv = np.empty((nv, 2))
+    for i in range(nv):
+        uv[i, 0] = V_c[i, 0] / V_c[i, 2] * fx + cx
+        uv[i, 1] = V_c[i, 1] / V_c[i, 2] * fy + cy
+    # edges of front faces; contour edges: the face across is not front-facing (or there is none)
+    n_all = ea.shape[0]
+    ef = np.empty(n_all, dtype=np.int64)
+    m = 0
+    for e in range(n_all):
+        if front[eface[e]]:
+            ef[m] = e
+            m += 1
+    ef = ef[:m]
+    contour = np.zeros(m, dtype=np.bool_)
+    is_sface = np.zeros(n_faces, dtype=np.bool_)
+    nS = 0
+    for j in range(m):
+        tw = etwin[ef[j]]
+        if not (tw >= 0 and front[tw]):
+            contour[j] = True
+            is_sface[eface[ef[j]]] = True
+            nS += 1
+    C = np.empty((m, 2))
+    D = np.empty((m, 2))
+    for j in range(m):
+        C[j, 0] = uv[ea[ef[j]], 0]
+        C[j, 1] = uv[ea[ef[j]], 1]
+        D[j, 0] = uv[eb[ef[j]], 0]
+        D[j, 1] = uv[eb[ef[j]], 1]
+    # candidate splitting edges: other contour edges, and edges of faces bordering a contour edge's face
+    cols = np.empty(m, dtype=np.int64)
+    ncols = 0
+    for j in range(m):
+        tw = etwin[ef[j]]
+        if contour[j] or (tw >= 0 and is_sface[tw]):
+            cols[ncols] = j
+            ncols += 1
+    tol = 1e-9
+    # pieces of each contour edge between its crossings
+    cap = 4 * nS + 8  # grown when needed
+    P0 = np.empty((cap, 2))
+    P1 = np.empty((cap, 2))
+    psf = np.empty(cap, dtype=np.int64)
+    npc = 0
+    par = np.empty(ncols + 2)
+    for s in range(m):
+        if not contour[s]:
+            continue
+        sf = eface[ef[s]]
+        ax, ay = C[s, 0], C[s, 1]
+        rx, ry = D[s, 0] - ax, D[s, 1] - ay
+        par[0] = 0.0
+        par[1] = 1.0
+        npar = 2
+        for jj in range(ncols):
+            q = cols[jj]
+            qf = eface[ef[q]]
+            if not ((contour[q] and sf != qf) or etwin[ef[q]] == sf):
+                continue
+            qx, qy = C[q, 0], C[q, 1]
+            ex, ey = D[q, 0] - qx, D[q, 1] - qy
+            den = rx * ey - ry * ex
+            wx, wy = qx - ax, qy - ay
+            nt = wx * ey - wy * ex
+            if not ((nt > 0 and den > 0) or (nt < 0 and den < 0)):
+                continue  # t = nt / den would be <= 0, infinite or NaN: no crossing
+            t = nt / den
+            if not (t > tol and t < 1 - tol):
+                continue
+            u = (wx * ry - wy * rx) / den
+            if u >= -tol and u <= 1 + tol:
+                par[npar] = t
+                npar += 1
+        # insertion sort of the parameters (a handful)
+        for i in range(1, npar):
+            v = par[i]
+            j = i - 1
+            while j >= 0 and par[j] > v:
+                par[j + 1] = par[j]
+                j -= 1
+            par[j + 1] = v
+        if npc + npar > cap:
+            cap = 2 * (npc + npar)
+            P0n, P1n, psfn = np.empty((cap, 2)), np.empty((cap, 2)), np.empty(cap, dtype=np.int64)
+            P0n[:npc], P1n[:npc], psfn[:npc] = P0[:npc], P1[:npc], psf[:npc]
+            P0, P1, psf = P0n, P1n, psfn
+        for i in range(npar - 1):
+            t0, t1 = par[i], par[i + 1]
+            x0, y0 = ax + t0 * rx, ay + t0 * ry
+            x1, y1 = ax + t1 * rx, ay + t1 * ry
+            if math.hypot(x1 - x0, y1 - y0) > 1e-9:  # zero-length pieces carry no boundary
+                P0[npc, 0], P0[npc, 1] = x0, y0
+                P1[npc, 0], P1[npc, 1] = x1, y1
+                psf[npc] = sf
+                npc += 1
+    # keep the pieces whose midpoint is inside no other front face (even-odd rule); the
+    # table lists each face's edges together, so a face's crossings are counted over its
+    # own run of edges, and only for faces whose box holds the midpoint: the ray from a
+    # point above or below the box meets no edge, from a point right of it none, from a
+    # point left of it every edge that spans its height, an even number on closed loops
+    # (the 1e-6 px margin covers the rounding of the crossing abscissa)
+    first = np.full(n_faces, -1, dtype=np.int64)
+    last = np.full(n_faces, -1, dtype=np.int64)
+    fbox = np.empty((n_faces, 4))
+    for j in range(m):
+        f = eface[ef[j]]
+        if first[f] < 0:
+            first[f] = j
+            fbox[f, 0] = fbox[f, 2] = C[j, 0]
+            fbox[f, 1] = fbox[f, 3] = C[j, 1]
+        last[f] = j
+        fbox[f, 0] = min(fbox[f, 0], C[j, 0])
+        fbox[f, 1] = min(fbox[f, 1], C[j, 1])
+        fbox[f, 2] = max(fbox[f, 2], C[j, 0])
+        fbox[f, 3] = max(fbox[f, 3], C[j, 1])
+    keep = np.zeros(npc, dtype=np.bool_)
+    nk = 0
+    for p in range(npc):
+        mx = 0.5 * (P0[p, 0] + P1[p, 0])
+        my = 0.5 * (P0[p, 1] + P1[p, 1])
+        inside = False
+        for f in range(n_faces):
+            if f == psf[p] or first[f] < 0:
+                continue
+            if my < fbox[f, 1] or my >= fbox[f, 3] or mx < fbox[f, 0] - 1e-6 or mx > fbox[f, 2] + 1e-6:
+                continue
+            count = 0
+            for j in range(first[f], last[f] + 1):
+                cxj, cyj, dyj = C[j, 0], C[j, 1], D[j, 1]
+                if (cyj > my) != (dyj > my):
+                    x_at = cxj + (my - cyj) * ((D[j, 0] - cxj) / (dyj - cyj))
+                    if mx < x_at:
+                        count += 1
+            if count % 2 == 1:
+                inside = True
+                break
+        if not inside:
+            keep[p] = True
+            nk += 1
+    Q0 = np.empty((nk, 2))
+    Q1 = np.empty((nk, 2))
+    k = 0
+    for p in range(npc):
+        if keep[p]:
+            Q0[k, 0], Q0[k, 1] = P0[p, 0], P0[p, 1]
+            Q1[k, 0], Q1[k, 1] = P1[p, 0], P1[p, 1]
+            k += 1
+    return Q0, Q1
+
+
+@njit
+def _point_segment_distance_kernel(uv, P0, P1):
+    """Compiled :func:`_point_segment_distance` (the same arithmetic, checked bit for bit in the tests), shape (K,)."""
+    K = uv.shape[0]
+    M = P0.shape[0]
+    out = np.empty(K)
+    for i in range(K):
+        best = np.inf
+        for j in range(M):
+            dx = P1[j, 0] - P0[j, 0]
+            dy = P1[j, 1] - P0[j, 1]
+            dd = dx * dx + dy * dy
+            wx = uv[i, 0] - P0[j, 0]
+            wy = uv[i, 1] - P0[j, 1]
+            if dd <= 0:
+                t = 0.0
+            else:
+                t = (wx * dx + wy * dy) / dd
+                if t < 0.0:
+                    t = 0.0
+                elif t > 1.0:
+                    t = 1.0
+            qx = wx - t * dx
+            qy = wy - t * dy
+            d2 = qx * qx + qy * qy
+            if d2 < best:
+                best = d2
+        out[i] = math.sqrt(best)
+    return out
+
+
+@njit
+def _silhouette_kernel(V, T, face_normals, face_offsets, ea, eb, eface, etwin, fx, fy, cx, cy, uv, snap):
+    """:func:`silhouette_distance` without lens distortion, compiled: the vertices in the
+    camera (NaN everywhere when one is at or behind the camera plane), the front faces,
+    the outline (:func:`_outline_pieces_kernel`) and the distances, those below ``snap``
+    reported as 0. The products are summed left to right (NumPy's may round differently)."""
+    K = uv.shape[0]
+    out = np.full(K, np.nan)
+    nv = V.shape[0]
+    V_c = np.empty((nv, 3))
+    for i in range(nv):
+        for r in range(3):
+            V_c[i, r] = T[r, 0] * V[i, 0] + T[r, 1] * V[i, 1] + T[r, 2] * V[i, 2] + T[r, 3]
+        if not V_c[i, 2] > 1e-9:
+            return out
+    c = np.empty(3)  # the camera centre in the object frame, -R^T t
+    for r in range(3):
+        c[r] = -(T[0, r] * T[0, 3] + T[1, r] * T[1, 3] + T[2, r] * T[2, 3])
+    nf = face_normals.shape[0]
+    front = np.empty(nf, dtype=np.bool_)
+    for f in range(nf):
+        front[f] = face_normals[f, 0] * c[0] + face_normals[f, 1] * c[1] + face_normals[f, 2] * c[2] - face_offsets[f] > 0
+    P0, P1 = _outline_pieces_kernel(V_c, front, ea, eb, eface, etwin, nf, fx, fy, cx, cy)
+    if P0.shape[0] == 0 or K == 0:
+        return out
+    d = _point_segment_distance_kernel(uv, P0, P1)
+    for i in range(K):
+        out[i] = 0.0 if d[i] < snap else d[i]
+    return out
+
+
 def _point_segment_distance(uv, P0, P1):
-    """Distance from each point (K, 2) to the nearest segment P0->P1 (M, 2), shape (K,)."""
+    """Distance from each point (K, 2) to the nearest segment P0->P1 (M, 2), shape (K,).
+
+    The NumPy formulation, kept as the reference of :func:`_point_segment_distance_kernel`.
+    """
     dx, dy = P1[:, 0] - P0[:, 0], P1[:, 1] - P0[:, 1]
     dd = dx * dx + dy * dy
     wx, wy = uv[:, :1] - P0[:, 0], uv[:, 1:] - P0[:, 1]
@@ -591,10 +823,16 @@ def silhouette_distance(
     (shapely union of the projected front faces), equal within 1e-6 px.
     """
     uv = np.asarray(uv, dtype=float).reshape(-1, 2)
-    segs = _outline_segments(model, T_camera_object, intr, densify=8 if intr.has_distortion else 1)
+    if not intr.has_distortion:  # straight edges: all of it in one compiled pass
+        tab = _edge_table(model)
+        Kc = intr.K
+        return _silhouette_kernel(model.vertices, np.ascontiguousarray(T_camera_object, dtype=float), model.face_normals,
+                                  model.face_offsets, tab.a, tab.b, tab.face, tab.twin, float(Kc[0, 0]), float(Kc[1, 1]),
+                                  float(Kc[0, 2]), float(Kc[1, 2]), np.ascontiguousarray(uv), SILHOUETTE_SNAP_PX)
+    segs = _outline_segments(model, T_camera_object, intr, densify=8)
     if segs is None or len(segs[0]) == 0 or len(uv) == 0:
         return np.full(len(uv), np.nan)
-    d = _point_segment_distance(uv, *segs)
+    d = _point_segment_distance_kernel(np.ascontiguousarray(uv), *(np.ascontiguousarray(p) for p in segs))
     return np.where(d < SILHOUETTE_SNAP_PX, 0.0, d)
 
 

@@ -213,3 +213,45 @@ def test_quality_index_batch_matches_plain_formulation():
         want = _quality_index_batch_plain(S, wS, C, wC, (640, 480))
         # 1e-12: rounding of sums of <= 9 terms (~1e-16 relative), well above
         np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-15)
+
+
+def _select_quality_numpy(uv, view_angle, silhouette_px, image_size, k, min_separation_px=0.0):
+    """select_quality as first written, a NumPy greedy loop over _quality_index_batch."""
+    w = sel.feature_weights(uv, view_angle, silhouette_px, image_size, min_separation_px=min_separation_px)
+    el = np.flatnonzero(w > 0.0)
+    if el.size <= k:
+        return el[np.argsort(-w[el], kind="stable")]
+    c = uv[el].mean(axis=0)
+    dist = np.linalg.norm(uv[el] - c, axis=1)
+    chosen = [int(el[np.lexsort((-dist, -w[el]))[0]])]
+    remaining = el[el != chosen[0]]
+    while len(chosen) < k:
+        scores = sel._quality_index_batch(uv[chosen], w[chosen], uv[remaining], w[remaining], image_size)
+        best = int(np.argmax(scores))
+        chosen.append(int(remaining[best]))
+        remaining = np.delete(remaining, best)
+    return np.array(chosen)
+
+
+def test_compiled_quality_selection_equals_the_numpy_loop():
+    """The compiled selection picks what the NumPy loop picks, in the same order, on
+    random candidate sets (ties from integer pixels, NaN inputs, separation on), and
+    its weights are feature_weights' bit for bit."""
+    rng = np.random.default_rng(7)
+    for it in range(1500):
+        n = int(rng.integers(1, 50))
+        k = int(rng.choice([3, 6, 8, 12]))
+        uv = rng.uniform([-20, -20], [660, 500], (n, 2))
+        if it % 3 == 0:
+            uv = np.round(uv)
+        va = rng.uniform(0, 1.6, n)
+        va[rng.random(n) < 0.05] = np.nan
+        sil = rng.uniform(0, 20, n)
+        sil[rng.random(n) < 0.05] = np.nan
+        sep = float(rng.choice([0.0, 0.0, 5.0]))
+        want = _select_quality_numpy(uv, va, sil, SIZE, k, sep)
+        got = sel.select_quality(uv, va, sil, SIZE, k=k, min_separation_px=sep)
+        assert np.array_equal(got, want), it
+        w = sel._weights_kernel(uv, va, sil, SIZE[0], SIZE[1], sel.DEFAULT_BORDER_PX, sel.DEFAULT_SIL_REF_PX,
+                                sel.DEFAULT_MAX_VIEW_ANGLE, float(np.cos(sel.DEFAULT_MAX_VIEW_ANGLE)), sep)
+        assert np.array_equal(w, sel.feature_weights(uv, va, sil, SIZE, min_separation_px=sep))

@@ -386,3 +386,15 @@ def test_contour_silhouette_distance_with_distortion_matches_fine_union(bodies):
         np.testing.assert_allclose(got[near], want[near], atol=0.01)
         n_near += int(near.sum())
     assert n_near > 50
+
+
+def test_point_segment_distance_kernel_equals_numpy_bit_for_bit():
+    from vespro.visibility import _point_segment_distance, _point_segment_distance_kernel
+
+    rng = np.random.default_rng(3)
+    for _ in range(200):
+        uv = rng.uniform(0, 640, (int(rng.integers(1, 30)), 2))
+        P0 = rng.uniform(0, 640, (int(rng.integers(1, 40)), 2))
+        P1 = P0 + rng.normal(0, 30, P0.shape)
+        P1[0] = P0[0]  # a zero-length piece
+        assert np.array_equal(_point_segment_distance_kernel(uv, P0, P1), _point_segment_distance(uv, P0, P1))

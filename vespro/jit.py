@@ -1,0 +1,28 @@
+"""Compiled per-frame kernels: numba's ``njit`` with the project's settings.
+
+The tracker's per-frame work is many small array operations (tens of
+segments, a few hundred edges, eight windows per camera), where NumPy's
+per-call overhead, not the arithmetic, sets the time. The kernels that replace
+those chains are plain loops compiled by numba that keep the arithmetic of the
+NumPy code, operation for operation, so most results agree to the last bit.
+Where they cannot (NumPy's SIMD ``arctan2`` and the BLAS/LAPACK order of small
+matrix products and 2x2 solves round differently) they agree to rounding
+(1e-12 px, 1e-15 in the pose); each kernel's docstring or test says which.
+
+``cache=True`` writes the machine code next to the module (``__pycache__``):
+the first process compiles (a few seconds), later ones load it. No
+``fastmath`` (it would reorder sums and contract multiply-adds), and NumPy's
+error model (a float division by zero gives inf or NaN, as in NumPy, instead
+of raising).
+"""
+
+from __future__ import annotations
+
+import numba
+
+__all__ = ["njit"]
+
+
+def njit(fn):
+    """``numba.njit`` with ``cache=True``, strict IEEE arithmetic and NumPy's error model."""
+    return numba.njit(cache=True, nogil=True, error_model="numpy")(fn)
