@@ -412,14 +412,15 @@ class Tracker:
         n = len(uv)
         if n <= self.config.features_per_camera:
             return np.arange(n)
-        S = np.einsum("kij,jl,kml->kim", J, P6, J)
+        S = (J @ P6) @ J.transpose(0, 2, 1)
         r2 = self.sigma_px**2 * self.feature_factor[k, vis.indices]
         S[:, 0, 0] += r2
         S[:, 1, 1] += r2
         half = window_half_sizes(S, n_sigma=self.config.window_sigma)
-        d = np.sqrt(((uv[:, None, :] - uv[None, :, :]) ** 2).sum(-1))
-        np.fill_diagonal(d, np.inf)
-        margin = d.min(axis=1) - (half + 2.0)  # the neighbour must be clear of the window
+        diff = uv[:, None, :] - uv[None, :, :]
+        d2 = np.einsum("ijk,ijk->ij", diff, diff)
+        np.fill_diagonal(d2, np.inf)
+        margin = np.sqrt(d2.min(axis=1)) - (half + 2.0)  # the neighbour must be clear of the window
         n_clear = int((margin > 0).sum())
         order = np.argsort(-margin, kind="stable")
         return np.sort(order[:max(n_clear, self.config.features_per_camera)])
