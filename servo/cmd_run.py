@@ -26,6 +26,10 @@ def add_parser(sub) -> None:
     p.add_argument("--connect", default="socket://127.0.0.1:5555", help="pyserial URL of the pose server")
     p.add_argument("--baud", type=int, default=115200, help="serial lines: baud rate")
     p.add_argument("--standoff", type=float, default=0.15, help="TCP height above the object origin while following, m")
+    p.add_argument("--standoff-frame", choices=["world", "object"], default="world",
+                   help="world: straight above the object (world z), turned with its heading only, so its estimated "
+                        "tilt does not move the stand-off point (parts on a belt or table); object: along the "
+                        "object's own z axis, following its full orientation")
     p.add_argument("--config", type=Path, help="YAML loop configuration (servo.loop.LoopConfig.from_dict keys)")
     p.add_argument("--duration", type=float, help="stop after this many seconds (default: until SIGINT)")
     p.add_argument("--record", type=Path, help="write the time histories (NPZ + CSV) into this folder at the end")
@@ -40,8 +44,11 @@ def add_parser(sub) -> None:
     p.set_defaults(func=run)
 
 
-def follow_task(standoff: float):
+def follow_task(standoff: float, upright: bool = True):
     """TCP ``standoff`` above the object origin, pointing down (z against the object's z).
+
+    ``upright``: above in the world (the object's heading only, see
+    :class:`servo.planner.FollowTask`); otherwise along the object's own z axis.
 
     The approach ends (and following starts) once the reference is within 5 mm,
     3 degrees and 0.02 m/s of the stand-off target: tolerances above the noise of
@@ -52,7 +59,7 @@ def follow_task(standoff: float):
     T = np.diag([1.0, -1.0, -1.0, 1.0])
     T[2, 3] = standoff
     return FollowTask(T_object_tcp=T, standoff_m=0.10, approach_tol_m=0.005, approach_tol_rad=np.deg2rad(3.0),
-                      approach_tol_mps=0.02)
+                      approach_tol_mps=0.02, upright=upright)
 
 
 def write_stats_json(path: Path, stats, receiver, poses_used: int, period_ns: int, sigint: bool) -> dict:
@@ -102,7 +109,7 @@ def run(args) -> int:
         print(f"servo run: {args.config}: {e}", file=sys.stderr)
         return 2
     if cfg.task is None:
-        cfg = LoopConfig(**{**cfg.__dict__, "task": follow_task(args.standoff)})
+        cfg = LoopConfig(**{**cfg.__dict__, "task": follow_task(args.standoff, upright=args.standoff_frame == "world")})
     if args.max_dt_ticks:
         cfg = LoopConfig(**{**cfg.__dict__, "max_dt_ticks": args.max_dt_ticks})
     if args.no_latency_compensation:

@@ -219,6 +219,31 @@ def test_follow_orientation_of_a_rotated_object():
     assert np.linalg.norm(rotvec_error(q_goal, pl.ref.quat)) < 1e-9
 
 
+def test_upright_task_stays_above_a_tilted_object_and_keeps_its_heading():
+    # A 10 degree tilt (an estimate's roll error, say) must not move the stand-off point
+    # (0.15 m lever: 26 mm) nor tilt the TCP; the heading (0.8 rad about z) is followed.
+    pl = make_planner()
+    pl.task = FollowTask(T_DOWN, standoff_m=0.0, upright=True)
+    # Heading 0.8 rad, then tilted 10 degrees about its own x axis (which keeps that heading).
+    q_obj = quat_multiply(quat_from_rotvec([0, 0, 0.8]), quat_from_rotvec([np.deg2rad(10.0), 0, 0]))
+    obj = np.array([0.9, 0.0, 0.5])
+    pl.set_sample(sample(0, obj, q_obj, w=(0.3, -0.2, 0.0)))
+    pl.latency_compensation = False
+    for k in range(1, 3000):
+        pl.step(k * DT_NS, DT)
+    np.testing.assert_allclose(pl.ref.p, obj + [0, 0, 0.15], atol=1e-9)
+    q_goal = quat_multiply(quat_from_rotvec([0, 0, 0.8]), Q_DOWN)
+    assert np.linalg.norm(rotvec_error(q_goal, pl.ref.quat)) < 1e-6
+    # The same sample without upright: the stand-off point swings with the tilt.
+    pl2 = make_planner()
+    pl2.task = FollowTask(T_DOWN, standoff_m=0.0)
+    pl2.latency_compensation = False
+    pl2.set_sample(sample(0, obj, q_obj))
+    for k in range(1, 3000):
+        pl2.step(k * DT_NS, DT)
+    assert np.linalg.norm(pl2.ref.p - (obj + [0, 0, 0.15])) > 0.02
+
+
 def test_stop_step_decelerates_within_limits_then_holds():
     pl = make_planner()
     pl.task = FollowTask(T_DOWN, standoff_m=0.0)
