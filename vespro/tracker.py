@@ -76,6 +76,11 @@ class TrackerConfig:
         Window half-size in predicted innovation std.
     min_accepted : int
         Fewer accepted features than this in a frame counts as a bad frame.
+    min_accepted_fraction : float
+        So does a frame in which the gate accepted fewer than this fraction of
+        the features selected (in the cameras that gave an image): a right pose
+        finds and accepts most of the corners it predicts (70-100% here), a pose
+        that has gone wrong keeps a few chance matches that agree with it.
     max_mean_nis : float
         A mean normalised innovation (2 dof, expected 2) above this is a bad frame.
     lost_after : int
@@ -90,7 +95,13 @@ class TrackerConfig:
         Accepted features a frame needs to count towards confirmation...
     confirm_min_inlier_fraction : float
         ...and the fraction of the corners found that the gate accepted (a wrong
-        pose finds corners that disagree with it).
+        pose finds corners that disagree with it)...
+    confirm_min_selected_fraction : float
+        ...and the fraction of the corners selected that were accepted.
+    refine_window_px : int
+        When a frame's largest search window is at least this half-size (px),
+        the frame is measured a second time after the first update (see
+        ``Tracker._track``).
     confirm_max_pos_std, confirm_max_rot_std : float
         ...and the filter must be confident: largest position std, as a fraction
         of the object's diameter, and orientation std (rad) below these, so a
@@ -132,12 +143,15 @@ class TrackerConfig:
     init_sigma_angvel: float = 1.0
     window_sigma: float = 3.0
     min_accepted: int = 4
+    min_accepted_fraction: float = 0.5
     max_mean_nis: float = 12.0
     lost_after: int = 4
     max_pos_std: float = 0.02
     confirm_frames: int = 2
     confirm_min_accepted: int = 6
     confirm_min_inlier_fraction: float = 0.75
+    confirm_min_selected_fraction: float = 0.6
+    refine_window_px: int = 12
     confirm_max_pos_std: float = 0.04
     confirm_max_rot_std: float = 0.035
     adaptive_noise: bool = True
@@ -433,11 +447,27 @@ class Tracker:
         if dt > 0:
             ekf.predict(dt)
             self._t_ns = fs.t_ns
-        T_pred = ekf.pose
-        P6 = ekf.pose_covariance
-        if not (np.all(np.isfinite(T_pred)) and np.all(np.isfinite(P6))):
+        if not (np.all(np.isfinite(ekf.pose)) and np.all(np.isfinite(ekf.pose_covariance))):
             self._lose()
             return TrackerOutput(fs.index, fs.t_ns, STATUS_LOST)
+        obs, n_found, n_acc, mean_nis, max_half, ok = self._measure(fs, stage)
+        if ok and max_half >= c.refine_window_px:
+            # Large windows (a start, a coast, a jolt): the first pass used the corners with no
+            # neighbour inside their window; its update shrinks the uncertainty, so a second
+            # pass on the same images measures the full set in small windows.
+            obs, n_found, n_acc, mean_nis, max_half, ok = self._measure(fs, stage)
+        return self._status(fs, obs, n_found, n_acc, mean_nis, stage)
+
+    def _measure(self, fs: FrameSet, stage: dict):
+        """Visibility, selection, extraction and update at the filter's current pose.
+
+        Returns (observations, corners found, accepted, mean NIS, largest window half-size,
+        whether the update was applied); adds each stage's time to ``stage``.
+        """
+        c = self.config
+        ekf = self.ekf
+        T_pred = ekf.pose
+        P6 = ekf.pose_covariance
 
         # Visibility and projection per camera.
         t = time.perf_counter()
@@ -455,7 +485,7 @@ class Tracker:
             uv, depth, J = project_with_jacobian(cam.intrinsics, T_wc, T_pred, vis.points)
             per_cam.append((cam, img, T_wc, vis, uv, J))
             cands.append((len(per_cam) - 1, uv, J, vis))
-        stage["visibility"] = time.perf_counter() - t
+        stage["visibility"] += time.perf_counter() - t
 
         # Selection.
         t = time.perf_counter()
@@ -476,12 +506,13 @@ class Tracker:
                         uv[pool], vis.view_angle[pool], vis.silhouette_distance[pool], (intr.width, intr.height),
                         k=c.features_per_camera), dtype=int)
                     chosen[k] = pool[picks]
-        stage["selection"] = time.perf_counter() - t
+        stage["selection"] += time.perf_counter() - t
 
         # Windowed extraction.
         t = time.perf_counter()
         zs, hs, Js, owners, keys = [], [], [], [], []
         obs = []
+        max_half = 0
         for k, entry in enumerate(per_cam):
             cam = self.rig.cameras[k]
             if entry is None:
@@ -497,6 +528,7 @@ class Tracker:
             r2 = self.sigma_px**2 * self.feature_factor[k, fid]
             S = np.einsum("kij,jl,kml->kim", Jk, P6, Jk) + r2[:, None, None] * np.eye(2)
             half = window_half_sizes(S, n_sigma=c.window_sigma)
+            max_half = max(max_half, int(half.max()))
             ext = extract_corners(img, uv[sel], half)
             found = ext.found
             zs.append(ext.uv[found])
@@ -506,11 +538,11 @@ class Tracker:
             owners.append((len(obs), np.flatnonzero(found)))
             obs.append(CameraObservation(cam.name, True, int(vis.indices.size), vis.indices[sel], uv[sel], half,
                                          ext.uv, np.zeros(sel.size, bool)))
-        stage["extraction"] = time.perf_counter() - t
+        stage["extraction"] += time.perf_counter() - t
 
         # Update.
         t = time.perf_counter()
-        n_acc, mean_nis = 0, float("nan")
+        n_acc, mean_nis, updated = 0, float("nan"), False
         if zs:
             z, h, Jp = np.concatenate(zs), np.concatenate(hs), np.concatenate(Js)
         else:
@@ -522,6 +554,7 @@ class Tracker:
             ekf.sigma_px = self.sigma_px * np.sqrt(factor)
             res = ekf.update(z, h, Jp)
             if res.status == EKFStatus.OK:
+                updated = True
                 n_acc = res.n_accepted
                 nis = res.nis[res.accepted]
                 mean_nis = float(np.mean(nis)) if nis.size else float("nan")
@@ -552,17 +585,25 @@ class Tracker:
                     acc[found_idx] = res.accepted[offset:offset + found_idx.size]
                     offset += found_idx.size
                     obs[oi] = CameraObservation(**{**obs[oi].__dict__, "accepted": acc})
-        stage["update"] = time.perf_counter() - t
+        stage["update"] += time.perf_counter() - t
+        return obs, len(z), n_acc, mean_nis, max_half, updated
 
+    def _status(self, fs: FrameSet, obs: list, n_found: int, n_acc: int, mean_nis: float,
+                stage: dict) -> TrackerOutput:
+        """Bad/strong frame bookkeeping, loss and confirmation; the published output."""
+        c = self.config
+        ekf = self.ekf
         # Status.
-        bad = n_acc < c.min_accepted or (np.isfinite(mean_nis) and mean_nis > c.max_mean_nis)
+        n_sel = sum(int(ob.feature_ids.size) for ob in obs)
+        bad = (n_acc < c.min_accepted or n_acc < c.min_accepted_fraction * n_sel
+               or (np.isfinite(mean_nis) and mean_nis > c.max_mean_nis))
         self._bad = self._bad + 1 if bad else 0
-        n_found = len(z)
         P6_now = ekf.pose_covariance
         pos_std = float(np.sqrt(np.max(np.linalg.eigvalsh(P6_now[:3, :3]))))
         rot_std = float(np.sqrt(np.max(np.linalg.eigvalsh(P6_now[3:, 3:]))))
         strong = (not bad and n_acc >= c.confirm_min_accepted
                   and n_acc >= c.confirm_min_inlier_fraction * max(n_found, 1)
+                  and n_acc >= c.confirm_min_selected_fraction * n_sel
                   and pos_std < c.confirm_max_pos_std * self.model.diameter and rot_std < c.confirm_max_rot_std)
         self._good = self._good + 1 if strong else 0
         if not self.confirmed and self._good >= c.confirm_frames:
