@@ -450,24 +450,31 @@ class Tracker:
         if not (np.all(np.isfinite(ekf.pose)) and np.all(np.isfinite(ekf.pose_covariance))):
             self._lose()
             return TrackerOutput(fs.index, fs.t_ns, STATUS_LOST)
+        saved = (ekf.x.copy(), ekf.P.copy(), self.sigma_px, self.feature_factor.copy(), self._noise_updates)
         obs, n_found, n_acc, mean_nis, max_half, ok = self._measure(fs, stage)
         if ok and max_half >= c.refine_window_px:
             # Large windows (a start, a coast, a jolt): the first pass used the corners with no
-            # neighbour inside their window; its update shrinks the uncertainty, so a second
-            # pass on the same images measures the full set in small windows.
-            obs, n_found, n_acc, mean_nis, max_half, ok = self._measure(fs, stage)
+            # neighbour inside their window. Its result only places the windows of a second
+            # pass (small, the full feature set); the filter is then updated once, from its
+            # prediction, with the second pass's corners: each image counts once.
+            assoc = (ekf.pose, ekf.pose_covariance)
+            ekf.x, ekf.P, self.sigma_px, self.feature_factor, self._noise_updates = saved
+            obs, n_found, n_acc, mean_nis, max_half, ok = self._measure(fs, stage, assoc)
         return self._status(fs, obs, n_found, n_acc, mean_nis, stage)
 
-    def _measure(self, fs: FrameSet, stage: dict):
-        """Visibility, selection, extraction and update at the filter's current pose.
+    def _measure(self, fs: FrameSet, stage: dict, assoc: tuple | None = None):
+        """Visibility, selection, extraction and update.
+
+        Features are chosen and searched for around ``assoc`` = (T_world_object,
+        6x6 covariance), by default the filter's prediction; the update is
+        always the filter's, linearised at its own state.
 
         Returns (observations, corners found, accepted, mean NIS, largest window half-size,
         whether the update was applied); adds each stage's time to ``stage``.
         """
         c = self.config
         ekf = self.ekf
-        T_pred = ekf.pose
-        P6 = ekf.pose_covariance
+        T_pred, P6 = (ekf.pose, ekf.pose_covariance) if assoc is None else assoc
 
         # Visibility and projection per camera.
         t = time.perf_counter()
@@ -532,8 +539,16 @@ class Tracker:
             ext = extract_corners(img, uv[sel], half)
             found = ext.found
             zs.append(ext.uv[found])
-            hs.append(uv[sel][found])
-            Js.append(Jk[found])
+            if assoc is None:
+                hs.append(uv[sel][found])
+                Js.append(Jk[found])
+            elif found.any():  # predicted pixels and Jacobians at the filter's own state
+                h_k, _, J_k = project_with_jacobian(cam.intrinsics, T_wc, ekf.pose, vis.points[sel][found])
+                hs.append(h_k)
+                Js.append(J_k)
+            else:
+                hs.append(np.zeros((0, 2)))
+                Js.append(np.zeros((0, 2, 6)))
             keys.append(np.stack([np.full(int(found.sum()), k), fid[found]], axis=1))
             owners.append((len(obs), np.flatnonzero(found)))
             obs.append(CameraObservation(cam.name, True, int(vis.indices.size), vis.indices[sel], uv[sel], half,
