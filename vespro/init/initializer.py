@@ -25,6 +25,9 @@ Method (per call):
    edge samples supported in every camera that sees the part, enough
    supported edges, a clear margin over any different pose. Otherwise None:
    a wrong lock is worse than a late one.
+6. one camera alone: a part with plain faces may pass looser limits when its
+   projected face interiors hold no image edges (``InitOptions.plain_faces``);
+   such a pose is returned only when the next call finds it again.
 """
 
 from __future__ import annotations
@@ -114,6 +117,28 @@ class InitOptions:
         The part is in the common view of the fixed cameras (the spec's
         set-up): a pose that a fixed camera with an image cannot see is
         rejected. Eye-in-hand cameras judge only poses they can see.
+    plain_faces : bool
+        The part's faces are plain (no texture or markings): one camera may
+        then accept a pose under the looser ``plain_*`` limits below when its
+        projected face interiors are free of image edges. A face dark against
+        a dark background leaves its edges unseen, so the true pose of a part
+        seen by one camera often explains only 70-80% of its edges; a copy
+        fitted to clutter, or shifted or flipped over the real part, covers
+        image edges with its faces (the real part's own among them).
+    plain_max_interior_edge_frac : float
+        Most fraction of the face interiors on image edges (image noise at the
+        true pose stays below 0.002 in the simulator).
+    plain_min_inlier_frac, plain_max_mean_dist, plain_max_overrun_frac : float
+    plain_min_supported_edges : int
+        The looser single-camera limits.
+    plain_rival_px_frac : float
+        A pose accepted under the looser limits must explain more edge length
+        than this fraction of any distinct rival whose faces are also clear.
+    confirm_plain : bool
+        A pose accepted under the looser limits is returned only when the
+        next call finds it again (within ``confirm_frac`` of the diameter,
+        ADD-S): one more attempt, a few frames later, instead of a lucky fit.
+    confirm_frac : float
     """
 
     edges: EdgeOptions = field(default_factory=EdgeOptions)
@@ -143,6 +168,15 @@ class InitOptions:
     seed_only: bool = False
     require_fixed_view: bool = True
     subpixel: bool = True
+    plain_faces: bool = True
+    plain_max_interior_edge_frac: float = 0.005
+    plain_min_inlier_frac: float = 0.65
+    plain_max_mean_dist: float = 5.0
+    plain_max_overrun_frac: float = 0.3
+    plain_min_supported_edges: int = 6
+    plain_rival_px_frac: float = 0.8
+    confirm_plain: bool = True
+    confirm_frac: float = 0.05
 
 
 @dataclass(frozen=True)
@@ -182,6 +216,8 @@ class InitReport:
     candidates : tuple
         ``(T_world_object, PoseCheck)`` of every refined candidate, best first
         (diagnostics).
+    plain : bool
+        Accepted under the looser single-camera limits (``plain_*``).
     """
 
     wall_s: float
@@ -195,6 +231,7 @@ class InitReport:
     visible_edges: int = 0
     reason: str = ""
     candidates: tuple = ()
+    plain: bool = False
 
 
 def make_setup(rig: Rig, model: Model, options: InitOptions | None = None, tree=None) -> InitSetup:
@@ -254,18 +291,49 @@ def _accept(chk, opt: InitOptions) -> tuple[bool, str]:
     return True, ""
 
 
+def _accept_plain(chk, opt: InitOptions) -> tuple[bool, str]:
+    """The looser single-camera limits for a part with plain faces (see ``InitOptions.plain_faces``)."""
+    if not opt.plain_faces or chk.n_cameras != 1 or chk.unseen_fixed:
+        return False, "not a single-camera view"
+    if chk.interior_edge_frac > opt.plain_max_interior_edge_frac:
+        return False, f"image edges inside the faces ({chk.interior_edge_frac:.3f})"
+    if chk.inlier_frac < opt.plain_min_inlier_frac:
+        return False, f"inlier fraction {chk.inlier_frac:.2f} < {opt.plain_min_inlier_frac}"
+    if chk.mean_dist > opt.plain_max_mean_dist:
+        return False, f"mean edge distance {chk.mean_dist:.2f} px > {opt.plain_max_mean_dist}"
+    if chk.overrun_frac > opt.plain_max_overrun_frac:
+        return False, f"image edges run on past {chk.overrun_frac:.0%} of the model edge ends"
+    if chk.open_faces < opt.min_open_faces_single:
+        return False, f"accidental view ({chk.open_faces} faces seen openly)"
+    if chk.supported_edges < max(opt.plain_min_supported_edges, opt.min_supported_edge_frac * chk.visible_edges):
+        return False, f"{chk.supported_edges}/{chk.visible_edges} edges supported"
+    if chk.min_size_px < opt.min_size_px_single:
+        return False, f"projected size {chk.min_size_px:.0f} px < {opt.min_size_px_single}"
+    return True, ""
+
+
+def _verdict(chk, opt: InitOptions) -> tuple[bool, bool, str]:
+    """(accepted, under the looser plain-face limits only, why not)."""
+    ok, why = _accept(chk, opt)
+    if ok:
+        return True, False, ""
+    okp, whyp = _accept_plain(chk, opt)
+    return (True, True, "") if okp else (False, False, why)
+
+
 def _adds(mf: ModelFeatures, T1, T2) -> float:
-    """Symmetric average distance (ADD-S) between two poses over the edge samples, m."""
+    """Symmetric average distance (ADD-S) between two poses over the coarse edge samples, m."""
     from scipy.spatial import cKDTree
 
-    P = mf.sample_p
+    P = mf.sample_p[mf.coarse]
     A = P @ T1[:3, :3].T + T1[:3, 3]
     B = P @ T2[:3, :3].T + T2[:3, 3]
     return float(np.mean(cKDTree(B).query(A)[0]))
 
 
 def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.ndarray | None = None,
-               rng: np.random.Generator | None = None) -> tuple[InitResult | None, InitReport]:
+               rng: np.random.Generator | None = None, pending_T_world_object: np.ndarray | None = None
+               ) -> tuple[InitResult | None, InitReport]:
     """Find the part in one frame set: a verified pose or None.
 
     A pure function of its inputs (the set-up is read-only; ``rng`` only
@@ -278,6 +346,10 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
     seed_T_world_object : ndarray, shape (4, 4), optional
         Predicted pose to try first (after a loss).
     rng : numpy Generator, optional
+    pending_T_world_object : ndarray, shape (4, 4), optional
+        A pose the previous call accepted under the looser plain-face limits
+        only (its report's ``plain`` and first candidate): refined from here
+        and found again, it is returned (mode ``"confirm"``).
 
     Returns
     -------
@@ -298,6 +370,16 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
             time.perf_counter() - t0, time.thread_time() - c0, mode, nh, True, chk.inlier_frac, chk.per_camera, chk.supported_edges,
             chk.visible_edges)
 
+    # A plain-face pose from the previous call: found again, it is confirmed.
+    if pending_T_world_object is not None:
+        Tp = np.asarray(pending_T_world_object, float)
+        Tr = refine_pose(Tp, views, mf, setup.tree)
+        if opt.subpixel:
+            Tr = refine_subpixel(Tr, views, mf, setup.tree)
+        chk = check_pose(Tr, views, mf, setup.tree, opt.verify_tol_px, require_fixed=opt.require_fixed_view)
+        if _verdict(chk, opt)[0] and _adds(mf, Tr, Tp) < opt.confirm_frac * mf.diameter:
+            return finish(Tr, chk, "confirm", 1)
+
     # Seeded: refine from the prediction and a few perturbations of it.
     if seed_T_world_object is not None:
         starts = [np.asarray(seed_T_world_object, float)]
@@ -313,7 +395,7 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
             chk = check_pose(Tr, views, mf, setup.tree, opt.verify_tol_px, require_fixed=opt.require_fixed_view)
             if best is None or chk.inlier_frac > best[1].inlier_frac:
                 best = (Tr, chk)
-            if _accept(chk, opt)[0]:
+            if _verdict(chk, opt)[0]:
                 return finish(Tr, chk, "seed", len(starts))
         if opt.seed_only:
             return None, InitReport(time.perf_counter() - t0, time.thread_time() - c0, "none", len(starts), False, best[1].inlier_frac,
@@ -375,38 +457,49 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
     # Candidates that pass every check first, then by the image edge length
     # they explain (a smaller, farther copy fitted to part of the part
     # explains less), then by agreement.
-    refined.sort(key=lambda r: (not _accept(r[1], opt)[0], -r[1].inlier_px, -r[1].inlier_frac))
+    refined.sort(key=lambda r: (not _verdict(r[1], opt)[0], -r[1].inlier_px, -r[1].inlier_frac))
     T_best, chk = refined[0]
-    ok, why = _accept(chk, opt)
+    ok, plain, why = _verdict(chk, opt)
     if ok:
         for T2, c2 in refined[1:]:
+            if c2.unseen_fixed or c2.n_cameras < chk.n_cameras or \
+                    _adds(mf, T_best, T2) <= opt.distinct_frac * mf.diameter:
+                continue
             # A rival need not pass every check (the true pose of an
             # accidental view may fail one): seen by the same cameras, about
             # as good an agreement, about as much edge length explained.
-            if c2.unseen_fixed == 0 and c2.n_cameras >= chk.n_cameras and \
-                    c2.inlier_frac >= chk.inlier_frac - opt.ambiguity_margin and \
-                    c2.inlier_px >= (1 - opt.ambiguity_px_frac) * chk.inlier_px and \
-                    _adds(mf, T_best, T2) > opt.distinct_frac * mf.diameter:
+            if c2.inlier_frac >= chk.inlier_frac - opt.ambiguity_margin and \
+                    c2.inlier_px >= (1 - opt.ambiguity_px_frac) * chk.inlier_px:
                 ok, why = False, f"ambiguous: another pose scores {c2.inlier_frac:.2f} vs {chk.inlier_frac:.2f}"
                 break
+            # Under the looser limits, any clear-faced rival explaining nearly
+            # as much edge length makes the view ambiguous.
+            if plain and c2.interior_edge_frac <= 2 * opt.plain_max_interior_edge_frac and \
+                    c2.inlier_frac >= 0.5 and c2.inlier_px >= opt.plain_rival_px_frac * chk.inlier_px:
+                ok, why = False, f"ambiguous (plain faces): another pose explains {c2.inlier_px:.0f} px vs {chk.inlier_px:.0f}"
+                break
+    if ok and plain and opt.confirm_plain:
+        ok, why = False, "plain faces: to be confirmed on the next call"
     if not ok:
         return None, InitReport(time.perf_counter() - t0, time.thread_time() - c0, "none", nh, False, chk.inlier_frac, chk.per_camera,
-                                chk.supported_edges, chk.visible_edges, why, tuple(refined))
+                                chk.supported_edges, chk.visible_edges, why, tuple(refined), plain)
     res, rep = finish(T_best, chk, "search", nh)
-    return res, replace(rep, candidates=tuple(refined))
+    return res, replace(rep, candidates=tuple(refined), plain=plain)
 
 
 class Initializer:
     """Callable initialiser for the tracker: ``initializer(frameset) -> InitResult | None``.
 
     Holds only the constant set-up, an optional seed (the predicted pose after
-    a loss) and the report of the last call (``last_report``, with its compute
-    time).
+    a loss), a pose awaiting confirmation (accepted by one camera under the
+    plain-face limits, returned only if the next call finds it again) and the
+    report of the last call (``last_report``, with its compute time).
     """
 
     def __init__(self, setup: InitSetup):
         self.setup = setup
         self._seed = None  # (T_world_object, velocity (6,) or None, t_ns)
+        self._pending = None  # T_world_object awaiting confirmation (plain-face limits)
         self.last_report: InitReport | None = None
 
     def reseed(self, T_world_object: np.ndarray, velocity: np.ndarray | None = None, t_ns: int | None = None) -> None:
@@ -429,6 +522,7 @@ class Initializer:
 
     def clear_seed(self) -> None:
         self._seed = None
+        self._pending = None
 
     def predicted_seed(self, t_ns: int) -> np.ndarray | None:
         """The seed pose propagated to ``t_ns`` (None without a seed)."""
@@ -442,8 +536,9 @@ class Initializer:
 
     def __call__(self, frameset: FrameSet) -> InitResult | None:
         seed = self.predicted_seed(frameset.t_ns)
-        result, report = initialize(self.setup, frameset, seed, np.random.default_rng(frameset.index))
+        result, report = initialize(self.setup, frameset, seed, np.random.default_rng(frameset.index), self._pending)
         self.last_report = report
+        self._pending = report.candidates[0][0] if (result is None and report.plain) else None
         if result is not None:
             self._seed = None
         return result

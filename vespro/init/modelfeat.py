@@ -47,6 +47,11 @@ class ModelFeatures:
     face_offsets : ndarray, shape (F,)
     face_centroids : ndarray, shape (F, 3)
     face_areas : ndarray, shape (F,)
+    tri_p : ndarray, shape (T, 3, 3)
+        Mesh triangles (vertex coordinates), for rasterising the projected
+        faces.
+    tri_face : ndarray, shape (T,), int64
+        Planar face of each triangle.
     end_free : ndarray, shape (E, 2), bool
         Whether no other sharp edge continues the edge straight on past its
         first / second end (in a non-convex part, e.g. an L-block, two edges
@@ -70,6 +75,8 @@ class ModelFeatures:
     face_offsets: np.ndarray
     face_centroids: np.ndarray
     face_areas: np.ndarray
+    tri_p: np.ndarray
+    tri_face: np.ndarray
     end_free: np.ndarray
     convex: bool
     diameter: float
@@ -165,7 +172,8 @@ def model_features(model: Model, dense_spacing_frac: float = 1 / 60, coarse_spac
                 if d2 @ d > 1 - 1e-6:
                     end_free[e, side] = False
     out = ModelFeatures(A, B, L, model.edge_faces, model.edge_convex, sp, se, coarse, sparse, paths,
-                        model.face_normals, model.face_offsets, fc, fa, end_free, convex, float(diam))
-    for f in ("edge_a", "edge_b", "edge_len", "sample_p", "sample_edge", "coarse", "sparse", "paths"):
+                        model.face_normals, model.face_offsets, fc, fa, V[model.triangles],
+                        np.asarray(model.triangle_face, np.int64), end_free, convex, float(diam))
+    for f in ("edge_a", "edge_b", "edge_len", "sample_p", "sample_edge", "coarse", "sparse", "paths", "tri_p", "tri_face"):
         getattr(out, f).setflags(write=False)
     return out
