@@ -4,7 +4,8 @@ Each trial: a simulated cell (``vespro.sim.trials``) with the object at a
 random pose in the common view (random orientation, position around
 (0.9, 0, 0.6) m), drifting slowly; the rig is a random subset of the standard
 fixed cameras with perturbed placements (1, 2 or 3 cameras) or the hybrid rig
-(2 random fixed cameras + the eye-in-hand camera on the watching arm). The
+(2 random fixed cameras + the eye-in-hand camera on the watching arm) or the
+hand rig (the eye-in-hand camera alone, the arm watching the work area). The
 initialiser is called on frames 0, stride, 2 stride, ... up to ``--frames``
 (26 frames = 1 s at 26 Hz) until it returns a pose.
 
@@ -23,7 +24,7 @@ without sub-pixel refinement and with only the inlier-fraction check (no
 multi-camera verification, edge count, size or ambiguity tests).
 
 Usage: ``python3 bench/init.py [--trials 10] [--objects box,lblock,bracket]
-[--rigs 1,2,3,hybrid] [--frames 26] [--stride 5] [--seed 0] [--no-baseline]``
+[--rigs 1,2,3,hybrid,hand] [--frames 26] [--stride 5] [--seed 0] [--no-baseline]``
 """
 
 from __future__ import annotations
@@ -59,6 +60,8 @@ def run_trial(obj, model, syms, rig_kind, seed, frames, stride, baseline):
     rng = np.random.default_rng(10_000 + seed)
     if rig_kind == "hybrid":
         rig = random_rig(rng, 2, hand=True)
+    elif rig_kind == "hand":
+        rig = random_rig(rng, 0, hand=True)
     else:
         rig = random_rig(rng, int(rig_kind))
     config, motion, _ = trial_config(obj, rig, seed)

@@ -66,7 +66,12 @@ class InitOptions:
     keep_per_camera : int
         Hypotheses kept per camera after the second ranking pass.
     n_refine : int
-        Hypotheses refined and verified.
+        Hypotheses refined and verified (the best distinct ones) ...
+    n_refine_extra, refine_windows : int
+        ... plus ``n_refine_extra`` from further down the ranking, a different
+        window on each successive call (attempt ``k`` takes distinct ranks
+        ``n_refine + n_refine_extra * (k % refine_windows)`` on): the frames
+        of one second give the search the budget of several calls.
     rank_tol_px : float
         Distance at which a sample's agreement reaches zero in the ranking.
     verify_tol_px : float
@@ -131,6 +136,12 @@ class InitOptions:
     plain_min_inlier_frac, plain_max_mean_dist, plain_max_overrun_frac : float
     plain_min_supported_edges : int
         The looser single-camera limits.
+    plain_min_crease_frac : float
+        Least fraction of the visible creases (edges between two faces that
+        both face the camera) that are supported: a face may match its
+        background, but two faces at an angle seldom share a shade, so a pose
+        putting its creases across a plain image region is wrong (a flipped
+        box over one plain face). Not all: under one light two faces can.
     plain_rival_px_frac : float
         A pose accepted under the looser limits must explain more edge length
         than this fraction of any distinct rival whose faces are also clear.
@@ -146,6 +157,8 @@ class InitOptions:
     keep_after_sparse: int = 2000
     keep_per_camera: int = 60
     n_refine: int = 6
+    n_refine_extra: int = 3
+    refine_windows: int = 5
     rank_tol_px: float = 3.0
     verify_tol_px: float = 2.0
     min_inlier_frac: float = 0.6
@@ -174,6 +187,7 @@ class InitOptions:
     plain_max_mean_dist: float = 5.0
     plain_max_overrun_frac: float = 0.3
     plain_min_supported_edges: int = 6
+    plain_min_crease_frac: float = 0.5
     plain_rival_px_frac: float = 0.8
     confirm_plain: bool = True
     confirm_frac: float = 0.05
@@ -217,7 +231,9 @@ class InitReport:
         ``(T_world_object, PoseCheck)`` of every refined candidate, best first
         (diagnostics).
     plain : bool
-        Accepted under the looser single-camera limits (``plain_*``).
+        The best pose passed every check under the looser single-camera
+        limits (``plain_*``); not yet accepted when ``confirm_plain`` (it is
+        then the first candidate, tried first by the next call).
     """
 
     wall_s: float
@@ -299,6 +315,8 @@ def _accept_plain(chk, opt: InitOptions) -> tuple[bool, str]:
         return False, f"image edges inside the faces ({chk.interior_edge_frac:.3f})"
     if chk.inlier_frac < opt.plain_min_inlier_frac:
         return False, f"inlier fraction {chk.inlier_frac:.2f} < {opt.plain_min_inlier_frac}"
+    if chk.crease_supported < opt.plain_min_crease_frac * chk.crease_edges:
+        return False, f"{chk.crease_supported}/{chk.crease_edges} creases supported"
     if chk.mean_dist > opt.plain_max_mean_dist:
         return False, f"mean edge distance {chk.mean_dist:.2f} px > {opt.plain_max_mean_dist}"
     if chk.overrun_frac > opt.plain_max_overrun_frac:
@@ -317,23 +335,28 @@ def _verdict(chk, opt: InitOptions) -> tuple[bool, bool, str]:
     ok, why = _accept(chk, opt)
     if ok:
         return True, False, ""
-    okp, whyp = _accept_plain(chk, opt)
+    okp, _ = _accept_plain(chk, opt)
     return (True, True, "") if okp else (False, False, why)
 
 
 def _adds(mf: ModelFeatures, T1, T2) -> float:
-    """Symmetric average distance (ADD-S) between two poses over the coarse edge samples, m."""
+    """Symmetric average distance (ADD-S) between two poses, m.
+
+    Over the edge end points and midpoints: a point set the part's symmetries
+    map onto itself, so that equivalent poses are 0 apart, and far smaller
+    than the dense edge samples.
+    """
     from scipy.spatial import cKDTree
 
-    P = mf.sample_p[mf.coarse]
+    P = np.concatenate([mf.edge_a, mf.edge_b, 0.5 * (mf.edge_a + mf.edge_b)])
     A = P @ T1[:3, :3].T + T1[:3, 3]
     B = P @ T2[:3, :3].T + T2[:3, 3]
     return float(np.mean(cKDTree(B).query(A)[0]))
 
 
 def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.ndarray | None = None,
-               rng: np.random.Generator | None = None, pending_T_world_object: np.ndarray | None = None
-               ) -> tuple[InitResult | None, InitReport]:
+               rng: np.random.Generator | None = None, pending_T_world_object: np.ndarray | None = None,
+               attempt: int = 0) -> tuple[InitResult | None, InitReport]:
     """Find the part in one frame set: a verified pose or None.
 
     A pure function of its inputs (the set-up is read-only; ``rng`` only
@@ -350,6 +373,8 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
         A pose the previous call accepted under the looser plain-face limits
         only (its report's ``plain`` and first candidate): refined from here
         and found again, it is returned (mode ``"confirm"``).
+    attempt : int
+        Calls so far without a pose: selects the extra refinement window.
 
     Returns
     -------
@@ -440,13 +465,17 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
     order = np.argsort(-joint)
 
     # Refine the best few distinct candidates and verify.
-    refined, tried = [], []
+    refined, distinct = [], []
+    w0 = opt.n_refine + opt.n_refine_extra * (attempt % max(opt.refine_windows, 1))
+    wanted = set(range(opt.n_refine)) | set(range(w0, w0 + opt.n_refine_extra))
     for k in order:
-        if len(tried) >= opt.n_refine:
+        if len(distinct) > max(wanted):
             break
-        if any(_adds(mf, cand[k], T) < 0.02 * mf.diameter for T in tried):
+        if any(_adds(mf, cand[k], T) < 0.02 * mf.diameter for T in distinct):
             continue
-        tried.append(cand[k])
+        distinct.append(cand[k])
+        if len(distinct) - 1 not in wanted:
+            continue
         Tr = refine_pose(cand[k], views, mf, setup.tree)
         if opt.subpixel:
             Tr = refine_subpixel(Tr, views, mf, setup.tree)
@@ -478,7 +507,8 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
                     c2.inlier_frac >= 0.5 and c2.inlier_px >= opt.plain_rival_px_frac * chk.inlier_px:
                 ok, why = False, f"ambiguous (plain faces): another pose explains {c2.inlier_px:.0f} px vs {chk.inlier_px:.0f}"
                 break
-    if ok and plain and opt.confirm_plain:
+    plain = plain and ok  # passed every check, under the looser limits
+    if plain and opt.confirm_plain:
         ok, why = False, "plain faces: to be confirmed on the next call"
     if not ok:
         return None, InitReport(time.perf_counter() - t0, time.thread_time() - c0, "none", nh, False, chk.inlier_frac, chk.per_camera,
@@ -500,6 +530,7 @@ class Initializer:
         self.setup = setup
         self._seed = None  # (T_world_object, velocity (6,) or None, t_ns)
         self._pending = None  # T_world_object awaiting confirmation (plain-face limits)
+        self._attempt = 0  # calls without a pose since the last one (or the last reseed)
         self.last_report: InitReport | None = None
 
     def reseed(self, T_world_object: np.ndarray, velocity: np.ndarray | None = None, t_ns: int | None = None) -> None:
@@ -519,6 +550,7 @@ class Initializer:
             raise ValueError(f"seed pose must be a finite (4, 4) array, got shape {T.shape}")
         v = None if velocity is None else np.asarray(velocity, float).reshape(6)
         self._seed = (T, v, t_ns)
+        self._attempt = 0
 
     def clear_seed(self) -> None:
         self._seed = None
@@ -536,9 +568,11 @@ class Initializer:
 
     def __call__(self, frameset: FrameSet) -> InitResult | None:
         seed = self.predicted_seed(frameset.t_ns)
-        result, report = initialize(self.setup, frameset, seed, np.random.default_rng(frameset.index), self._pending)
+        result, report = initialize(self.setup, frameset, seed, np.random.default_rng(frameset.index), self._pending,
+                                    self._attempt)
         self.last_report = report
         self._pending = report.candidates[0][0] if (result is None and report.plain) else None
+        self._attempt = 0 if result is not None else self._attempt + 1
         if result is not None:
             self._seed = None
         return result

@@ -572,6 +572,11 @@ class PoseCheck:
     interior_edge_frac : float
         Largest fraction, over the judging cameras, of the projected face
         interiors lying on image edges (:func:`interior_clutter`).
+    crease_edges, crease_supported : int
+        Visible edges between two faces that both face the camera (inside
+        the silhouette), summed over cameras, and how many are supported.
+        Two faces at an angle rarely have the same shade, so a crease shows
+        in the image even where a face matches its background.
     """
 
     inlier_frac: float
@@ -587,6 +592,8 @@ class PoseCheck:
     open_faces: int = 0
     overrun_frac: float = 0.0
     interior_edge_frac: float = 0.0
+    crease_edges: int = 0
+    crease_supported: int = 0
 
 
 def check_pose(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFeatures, tree=None,
@@ -601,6 +608,7 @@ def check_pose(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFea
     big = mf.face_areas >= 0.05 * mf.face_areas.sum()
     n_over, n_ends = 0, 0
     clutter = 0.0
+    cr_e, cr_sup = 0, 0
     cos_open = np.cos(np.deg2rad(open_face_deg))
     for v in views:
         idx, bins = _camera_setup(T_world_object, v, mf, tree)
@@ -653,6 +661,8 @@ def check_pose(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFea
             dq = lookup_dt(v.feat.dt, np.broadcast_to(np.asarray(ebins)[:, None], q.shape[:2]), q, np.inf)
             n_over += int(np.sum(np.mean(dq <= 1.5, axis=1) >= 0.8))
             n_ends += len(ends_uv)
+        front = _front(T_co[None, :3, :3], T_co[None, :3, 3], mf)[0]
+        crease = front[mf.edge_faces[:, 0]] & front[mf.edge_faces[:, 1]]
         for k in np.unique(e):
             if elen[k] < min_edge_px:
                 continue
@@ -660,7 +670,11 @@ def check_pose(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFea
             if m.sum() < 3:
                 continue
             vis_e += 1
-            sup_e += int(inl[m].mean() >= 0.5)
+            s_k = int(inl[m].mean() >= 0.5)
+            sup_e += s_k
+            if crease[k]:
+                cr_e += 1
+                cr_sup += s_k
     return PoseCheck(n_in / n_all if n_all else 0.0, per, n_all, sup_e, vis_e, ncam,
                      dsum / n_all if n_all else float("inf"), unseen, size if np.isfinite(size) else 0.0,
-                     inl_px, open_min if ncam else 0, n_over / n_ends if n_ends else 0.0, clutter)
+                     inl_px, open_min if ncam else 0, n_over / n_ends if n_ends else 0.0, clutter, cr_e, cr_sup)
