@@ -361,8 +361,10 @@ def refine_pose(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFe
             return float(np.sum(np.where(a <= f_scale, 0.5 * a * a, f_scale * (a - 0.5 * f_scale))))
 
         c = cost(r)
+        J = None
         for _ in range(max_nfev):
-            J = resid_jac(x, True)
+            if J is None:  # unchanged after a rejected step
+                J = resid_jac(x, True)
             w = np.where(np.abs(r) <= f_scale, 1.0, f_scale / np.maximum(np.abs(r), 1e-12))
             JW = J * w[:, None]
             A = JW.T @ J
@@ -372,7 +374,7 @@ def refine_pose(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFe
             rn = resid_jac(xn, False)
             cn = cost(rn)
             if cn < c:
-                x, r, c = xn, rn, cn
+                x, r, c, J = xn, rn, cn, None
                 lam = max(lam * 0.3, 1e-6)
                 # 1e-4 rad, 10 um: far below what the sub-pixel stage settles.
                 if np.linalg.norm(step[:3]) < 1e-4 and np.linalg.norm(step[3:]) < 1e-5:
