@@ -123,9 +123,9 @@ class InitOptions:
         set-up): a pose that a fixed camera with an image cannot see is
         rejected. Eye-in-hand cameras judge only poses they can see.
     plain_faces : bool
-        The part's faces are plain (no texture or markings): a rival pose
-        whose faces cover image edges (twice the limit below) does not make
-        a result ambiguous, and one camera may
+        The part's faces are plain (no texture or markings): with one camera,
+        a rival pose whose faces cover image edges (twice the limit below)
+        does not make a result ambiguous, and one camera may
         then accept a pose under the looser ``plain_*`` limits below when its
         projected face interiors are free of image edges. A face dark against
         a dark background leaves its edges unseen, so the true pose of a part
@@ -496,8 +496,11 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
             if c2.unseen_fixed or c2.n_cameras < chk.n_cameras or \
                     _adds(mf, T_best, T2) <= opt.distinct_frac * mf.diameter:
                 continue
-            # A pose whose faces cover image edges is no rival for a plain part.
-            if opt.plain_faces and c2.interior_edge_frac > 2 * opt.plain_max_interior_edge_frac:
+            # A pose whose faces cover image edges is no rival for a plain
+            # part (one camera: with several, a part partly hidden in one
+            # view keeps counting as a rival).
+            if opt.plain_faces and chk.n_cameras == 1 and \
+                    c2.interior_edge_frac > 2 * opt.plain_max_interior_edge_frac:
                 continue
             # A rival need not pass every check (the true pose of an
             # accidental view may fail one): seen by the same cameras, about
