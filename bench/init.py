@@ -13,9 +13,10 @@ initialiser is called on frames 0, stride, 2 stride, ... up to ``--frames``
   below 10% of the object's diameter;
 - wrong lock: a pose returned with ADD >= 10% of the diameter (the trial
   stops there: the tracker would have started from it);
-- compute: wall and CPU time of each call (median, p99), and of the calls
-  up to the first pose (the time-to-first-pose a background thread would
-  need);
+- compute: wall and CPU time of each call (median, p99; on a machine shared
+  with other work the CPU time of the calling thread is the steadier
+  figure), and the wall time of the calls up to the first pose (the
+  time-to-first-pose a background thread would need);
 - position / rotation error of the successful poses (median, max).
 
 The baseline runs in the same process on the same frames: the same corner-path
@@ -130,6 +131,9 @@ def main(argv=None):
                 med, p99 = stats_ms(calls) if calls else (float("nan"), float("nan"))
                 row += [len(ok) / a.trials, len(wrong), med, p99]
                 if m == "ours":
+                    cpu = [c for r in res for c in r[m]["cpu"]]
+                    row += list(stats_ms(cpu)) if cpu else [float("nan"), float("nan")]
+                if m == "ours":
                     ep = [r["err_p"] * 1e3 for r in ok]
                     er = [np.rad2deg(r["err_r"]) for r in ok]
                     row += [float(np.median(ep)) if ep else float("nan"), float(np.max(ep)) if ep else float("nan"),
@@ -144,7 +148,8 @@ def main(argv=None):
                               f"{[round(c, 2) for c in r[m]['calls']]}", flush=True)
             rows.append(row)
             print(f"done {obj} {rk} ({time.perf_counter() - t_start:.0f} s)", flush=True)
-    headers = ["object", "rig", "n", "success", "wrong", "call ms med", "call ms p99", "dp mm med", "dp mm max",
+    headers = ["object", "rig", "n", "success", "wrong", "call ms med", "call ms p99", "cpu ms med", "cpu ms p99",
+               "dp mm med", "dp mm max",
                "dR deg med", "dR deg max", "to-pose ms med"]
     if not a.no_baseline:
         headers += ["base succ", "base wrong", "base ms med", "base ms p99"]
