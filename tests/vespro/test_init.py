@@ -211,13 +211,13 @@ def test_only_a_plain_pose_that_passed_every_check_is_tried_again(monkeypatch):
               (None, mod.InitReport(0.1, 0.1, "none", 5, False, reason="x"))]
     seen = []
 
-    def fake(setup, frameset, seed, rng, pending, attempt):
-        seen.append((pending, attempt))
+    def fake(setup, frameset, seed, rng, pending, attempt, age_s):
+        seen.append((pending, attempt, age_s))
         return script[len(seen) - 1]
 
     monkeypatch.setattr(mod, "initialize", fake)
     ini = mod.Initializer(setup=None)
     for i in range(3):
         assert ini(FrameSet(i, i, {})) is None
-    assert seen[0] == (None, 0) and seen[1] == (None, 1)
-    assert seen[2][0] is T_b and seen[2][1] == 2
+    assert seen[0] == (None, 0, 0.0) and seen[1] == (None, 1, 0.0)
+    assert seen[2][0] is T_b and seen[2][1] == 2 and seen[2][2] == 1e-9  # stamps 1 ns apart

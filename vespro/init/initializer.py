@@ -151,7 +151,10 @@ class InitOptions:
         A pose accepted under the looser limits is returned only when the
         next call finds it again (within ``confirm_frac`` of the diameter,
         ADD-S): one more attempt, a few frames later, instead of a lucky fit.
-    confirm_frac : float
+    confirm_frac, confirm_speed : float
+        Found again means within ``confirm_frac`` of the diameter plus
+        ``confirm_speed`` (m/s) times the time since the previous call
+        (ADD-S): a part on a conveyor moves between two calls.
     """
 
     edges: EdgeOptions = field(default_factory=EdgeOptions)
@@ -193,6 +196,7 @@ class InitOptions:
     plain_rival_px_frac: float = 0.8
     confirm_plain: bool = True
     confirm_frac: float = 0.05
+    confirm_speed: float = 0.3
 
 
 @dataclass(frozen=True)
@@ -358,7 +362,7 @@ def _adds(mf: ModelFeatures, T1, T2) -> float:
 
 def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.ndarray | None = None,
                rng: np.random.Generator | None = None, pending_T_world_object: np.ndarray | None = None,
-               attempt: int = 0) -> tuple[InitResult | None, InitReport]:
+               attempt: int = 0, pending_age_s: float = 0.0) -> tuple[InitResult | None, InitReport]:
     """Find the part in one frame set: a verified pose or None.
 
     A pure function of its inputs (the set-up is read-only; ``rng`` only
@@ -373,10 +377,13 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
     rng : numpy Generator, optional
     pending_T_world_object : ndarray, shape (4, 4), optional
         A pose the previous call accepted under the looser plain-face limits
-        only (its report's ``plain`` and first candidate): refined from here
-        and found again, it is returned (mode ``"confirm"``).
+        only (its report's ``plain`` and first candidate): found again,
+        refined from here or by the search, the pose is returned (mode
+        ``"confirm"``).
     attempt : int
         Calls so far without a pose: selects the extra refinement window.
+    pending_age_s : float
+        Time from the pending pose's frame set to this one, s.
 
     Returns
     -------
@@ -398,13 +405,15 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
             chk.visible_edges)
 
     # A plain-face pose from the previous call: found again, it is confirmed.
+    Tp = None
     if pending_T_world_object is not None:
         Tp = np.asarray(pending_T_world_object, float)
+        near = (opt.confirm_frac * mf.diameter + opt.confirm_speed * max(pending_age_s, 0.0))
         Tr = refine_pose(Tp, views, mf, setup.tree)
         if opt.subpixel:
             Tr = refine_subpixel(Tr, views, mf, setup.tree)
         chk = check_pose(Tr, views, mf, setup.tree, opt.verify_tol_px, require_fixed=opt.require_fixed_view)
-        if _verdict(chk, opt)[0] and _adds(mf, Tr, Tp) < opt.confirm_frac * mf.diameter:
+        if _verdict(chk, opt)[0] and _adds(mf, Tr, Tp) < near:
             return finish(Tr, chk, "confirm", 1)
 
     # Seeded: refine from the prediction and a few perturbations of it.
@@ -516,12 +525,12 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
                 ok, why = False, f"ambiguous (plain faces): another pose explains {c2.inlier_px:.0f} px vs {chk.inlier_px:.0f}"
                 break
     plain = plain and ok  # passed every check, under the looser limits
-    if plain and opt.confirm_plain:
+    if plain and opt.confirm_plain and not (Tp is not None and _adds(mf, T_best, Tp) < near):
         ok, why = False, "plain faces: to be confirmed on the next call"
     if not ok:
         return None, InitReport(time.perf_counter() - t0, time.thread_time() - c0, "none", nh, False, chk.inlier_frac, chk.per_camera,
                                 chk.supported_edges, chk.visible_edges, why, tuple(refined), plain)
-    res, rep = finish(T_best, chk, "search", nh)
+    res, rep = finish(T_best, chk, "confirm" if plain and opt.confirm_plain else "search", nh)
     return res, replace(rep, candidates=tuple(refined), plain=plain)
 
 
@@ -537,7 +546,7 @@ class Initializer:
     def __init__(self, setup: InitSetup):
         self.setup = setup
         self._seed = None  # (T_world_object, velocity (6,) or None, t_ns)
-        self._pending = None  # T_world_object awaiting confirmation (plain-face limits)
+        self._pending = None  # (T_world_object, t_ns) awaiting confirmation (plain-face limits)
         self._attempt = 0  # calls without a pose since the last one (or the last reseed)
         self.last_report: InitReport | None = None
 
@@ -576,10 +585,12 @@ class Initializer:
 
     def __call__(self, frameset: FrameSet) -> InitResult | None:
         seed = self.predicted_seed(frameset.t_ns)
-        result, report = initialize(self.setup, frameset, seed, np.random.default_rng(frameset.index), self._pending,
-                                    self._attempt)
+        pend, age = (None, 0.0) if self._pending is None else (self._pending[0],
+                                                               (frameset.t_ns - self._pending[1]) * 1e-9)
+        result, report = initialize(self.setup, frameset, seed, np.random.default_rng(frameset.index), pend,
+                                    self._attempt, age)
         self.last_report = report
-        self._pending = report.candidates[0][0] if (result is None and report.plain) else None
+        self._pending = (report.candidates[0][0], frameset.t_ns) if (result is None and report.plain) else None
         self._attempt = 0 if result is not None else self._attempt + 1
         if result is not None:
             self._seed = None
