@@ -223,7 +223,8 @@ class InitReport:
         CPU time of the calling thread, s (what the work costs on an idle
         core; the wall time includes waiting for a busy machine).
     mode : str
-        ``"seed"`` (accepted near the seed), ``"search"``, or ``"none"``.
+        ``"seed"`` (accepted near the seed), ``"search"``, ``"confirm"`` (a plain-face
+        pose of the previous call found again) or ``"none"``.
     n_hypotheses : int
         P3P poses generated.
     accepted : bool
