@@ -68,10 +68,11 @@ class InitOptions:
     n_refine : int
         Hypotheses refined and verified (the best distinct ones) ...
     n_refine_extra, refine_windows : int
-        ... plus ``n_refine_extra`` from further down the ranking, a different
-        window on each successive call (attempt ``k`` takes distinct ranks
-        ``n_refine + n_refine_extra * (k % refine_windows)`` on): the frames
-        of one second give the search the budget of several calls.
+        ... plus, after a call without a pose, ``n_refine_extra`` from further
+        down the ranking, a different window on each successive call (attempt
+        ``k >= 1`` takes distinct ranks ``n_refine + n_refine_extra * ((k - 1)
+        % refine_windows)`` on): the frames of one second give the search the
+        budget of several calls, and a first call that succeeds costs no more.
     rank_tol_px : float
         Distance at which a sample's agreement reaches zero in the ranking.
     verify_tol_px : float
@@ -478,8 +479,10 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
 
     # Refine the best few distinct candidates and verify.
     refined, distinct = [], []
-    w0 = opt.n_refine + opt.n_refine_extra * (attempt % max(opt.refine_windows, 1))
-    wanted = set(range(opt.n_refine)) | set(range(w0, w0 + opt.n_refine_extra))
+    wanted = set(range(opt.n_refine))
+    if attempt > 0:  # a first call that succeeds needs no more
+        w0 = opt.n_refine + opt.n_refine_extra * ((attempt - 1) % max(opt.refine_windows, 1))
+        wanted |= set(range(w0, w0 + opt.n_refine_extra))
     for k in order:
         if len(distinct) > max(wanted):
             break
