@@ -140,8 +140,8 @@ class InitOptions:
     plain_min_supported_edges : int
         The looser single-camera limits.
     plain_min_crease_frac : float
-        Least fraction of the visible creases (edges between two faces that
-        both face the camera) that are supported: a face may match its
+        More than this fraction of the visible creases (edges between two
+        faces that both face the camera) must be supported: a face may match its
         background, but two faces at an angle seldom share a shade, so a pose
         putting its creases across a plain image region is wrong (a flipped
         box over one plain face). Not all: under one light two faces can.
@@ -323,7 +323,7 @@ def _accept_plain(chk, opt: InitOptions) -> tuple[bool, str]:
         return False, f"image edges inside the faces ({chk.interior_edge_frac:.3f})"
     if chk.inlier_frac < opt.plain_min_inlier_frac:
         return False, f"inlier fraction {chk.inlier_frac:.2f} < {opt.plain_min_inlier_frac}"
-    if chk.crease_supported < opt.plain_min_crease_frac * chk.crease_edges:
+    if chk.crease_edges and chk.crease_supported <= opt.plain_min_crease_frac * chk.crease_edges:
         return False, f"{chk.crease_supported}/{chk.crease_edges} creases supported"
     if chk.mean_dist > opt.plain_max_mean_dist:
         return False, f"mean edge distance {chk.mean_dist:.2f} px > {opt.plain_max_mean_dist}"
@@ -348,18 +348,15 @@ def _verdict(chk, opt: InitOptions) -> tuple[bool, bool, str]:
 
 
 def _adds(mf: ModelFeatures, T1, T2) -> float:
-    """Symmetric average distance (ADD-S) between two poses, m.
+    """Distance between two poses: ADD over the model vertices, least over the part's symmetries, m.
 
-    Over the edge end points and midpoints: a point set the part's symmetries
-    map onto itself, so that equivalent poses are 0 apart, and far smaller
-    than the dense edge samples.
+    Not ADD-S (nearest point): a part that is nearly symmetric, an L-block
+    turned over, lies close to itself point for point, so a distinct pose of it
+    could pass for the same one (a rival overlooked, a wrong lock).
     """
-    from scipy.spatial import cKDTree
-
-    P = np.concatenate([mf.edge_a, mf.edge_b, 0.5 * (mf.edge_a + mf.edge_b)])
-    A = P @ T1[:3, :3].T + T1[:3, 3]
-    B = P @ T2[:3, :3].T + T2[:3, 3]
-    return float(np.mean(cKDTree(B).query(A)[0]))
+    A = mf.vertices @ T1[:3, :3].T + T1[:3, 3]
+    return float(min(np.mean(np.linalg.norm(A - (mf.vertices @ (T2 @ S)[:3, :3].T + (T2 @ S)[:3, 3]), axis=1))
+                     for S in mf.symmetries))
 
 
 def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.ndarray | None = None,

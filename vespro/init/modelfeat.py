@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import ConvexHull
 
+from ..metrics import discrete_symmetries
 from ..model import Model
 
 __all__ = ["ModelFeatures", "model_features"]
@@ -52,6 +53,12 @@ class ModelFeatures:
         faces.
     tri_face : ndarray, shape (T,), int64
         Planar face of each triangle.
+    vertices : ndarray, shape (V, 3)
+        Model vertices.
+    symmetries : tuple of ndarray, shape (4, 4)
+        Object-frame transforms ``S`` with the part looking the same at
+        ``T @ S`` as at ``T`` (identity first; axis-aligned ones,
+        :func:`vespro.metrics.discrete_symmetries`).
     end_free : ndarray, shape (E, 2), bool
         Whether no other sharp edge continues the edge straight on past its
         first / second end (in a non-convex part, e.g. an L-block, two edges
@@ -77,6 +84,8 @@ class ModelFeatures:
     face_areas: np.ndarray
     tri_p: np.ndarray
     tri_face: np.ndarray
+    vertices: np.ndarray
+    symmetries: tuple
     end_free: np.ndarray
     convex: bool
     diameter: float
@@ -173,7 +182,8 @@ def model_features(model: Model, dense_spacing_frac: float = 1 / 60, coarse_spac
                     end_free[e, side] = False
     out = ModelFeatures(A, B, L, model.edge_faces, model.edge_convex, sp, se, coarse, sparse, paths,
                         model.face_normals, model.face_offsets, fc, fa, V[model.triangles],
-                        np.asarray(model.triangle_face, np.int64), end_free, convex, float(diam))
-    for f in ("edge_a", "edge_b", "edge_len", "sample_p", "sample_edge", "coarse", "sparse", "paths", "tri_p", "tri_face"):
+                        np.asarray(model.triangle_face, np.int64), np.asarray(V, float),
+                        tuple(discrete_symmetries(V)), end_free, convex, float(diam))
+    for f in ("edge_a", "edge_b", "edge_len", "sample_p", "sample_edge", "coarse", "sparse", "paths", "tri_p", "tri_face", "vertices"):
         getattr(out, f).setflags(write=False)
     return out
