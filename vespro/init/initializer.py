@@ -111,6 +111,10 @@ class InitOptions:
         A different pose (ADD-S above ``distinct_frac`` of the diameter) whose
         inlier fraction comes within this of the best makes the result
         ambiguous (None).
+    ambiguity_margin_single : float
+        The same when one camera judges: one view lets a wrong pose (an
+        L-block turned over) fit its edges nearly as well as the true one
+        (0.067 below it on a held-out trial).
     ambiguity_px_frac : float
         ... and whose explained edge length is within this fraction of the
         best's (a pose explaining far less of the image is no rival).
@@ -148,6 +152,16 @@ class InitOptions:
     plain_rival_px_frac : float
         A pose accepted under the looser limits must explain more edge length
         than this fraction of any distinct rival whose faces are also clear.
+    probe_single : bool
+        With one judging camera, an accepted pose is refined again from
+        turns of itself (``probe_deg`` both ways and half turns about the two
+        image axes through the part, a half turn about the line of sight): a
+        restart settling on a distinct pose (``distinct_frac``) that scores
+        about as well (the ambiguity margins) makes the result ambiguous. The
+        search's own candidates need not hold that rival (an L-block turned
+        over once locked wrong for want of it).
+    probe_deg : float
+        Tilt of those restarts, deg.
     confirm_plain : bool
         A pose accepted under the looser limits is returned only when the
         next call finds it again (within ``confirm_frac`` of the diameter,
@@ -180,6 +194,7 @@ class InitOptions:
     max_overrun_frac_single: float = 0.25
     min_supported_edge_frac: float = 0.6
     ambiguity_margin: float = 0.05
+    ambiguity_margin_single: float = 0.08
     ambiguity_px_frac: float = 0.2
     distinct_frac: float = 0.1
     seed_perturb_rad: float = 0.1
@@ -195,6 +210,8 @@ class InitOptions:
     plain_min_supported_edges: int = 6
     plain_min_crease_frac: float = 0.5
     plain_rival_px_frac: float = 0.8
+    probe_single: bool = True
+    probe_deg: float = 25.0
     confirm_plain: bool = True
     confirm_frac: float = 0.05
     confirm_speed: float = 0.3
@@ -345,6 +362,41 @@ def _verdict(chk, opt: InitOptions) -> tuple[bool, bool, str]:
         return True, False, ""
     okp, _ = _accept_plain(chk, opt)
     return (True, True, "") if okp else (False, False, why)
+
+
+def _margin(chk, opt: InitOptions) -> float:
+    return opt.ambiguity_margin if chk.n_cameras > 1 else opt.ambiguity_margin_single
+
+
+def _probe(T_world_object: np.ndarray, chk, views, setup: InitSetup) -> tuple[bool, str]:
+    """Refine again from turns of a single-camera pose: (no rival found, why not); see ``InitOptions.probe_single``."""
+    opt, mf = setup.options, setup.mf
+    v = next((v for v in views if np.isfinite(chk.per_camera.get(v.feat.name, np.nan))), None)
+    if v is None:
+        return True, ""
+    c_w = T_world_object[:3, :3] @ (0.5 * (mf.vertices.min(0) + mf.vertices.max(0))) + T_world_object[:3, 3]
+    ray = c_w - v.T_world_camera[:3, 3]
+    ray /= np.linalg.norm(ray)
+    a1 = np.cross(ray, v.T_world_camera[:3, 1])
+    a1 /= np.linalg.norm(a1)
+    a2 = np.cross(ray, a1)
+    tilt = np.deg2rad(opt.probe_deg)
+    turns = [a * ang for a in (a1, a2) for ang in (tilt, -tilt, np.pi)] + [ray * np.pi]
+    for w in turns:
+        dR = exp_so3(w)
+        T0 = transform_from_rt(dR @ T_world_object[:3, :3], c_w + dR @ (T_world_object[:3, 3] - c_w))
+        Tr = refine_pose(T0, views, mf, setup.tree)
+        if _adds(mf, Tr, T_world_object) <= opt.distinct_frac * mf.diameter:
+            continue
+        if opt.subpixel:
+            Tr = refine_subpixel(Tr, views, mf, setup.tree)
+        c2 = check_pose(Tr, views, mf, setup.tree, opt.verify_tol_px, require_fixed=opt.require_fixed_view)
+        if c2.n_cameras and _adds(mf, Tr, T_world_object) > opt.distinct_frac * mf.diameter and \
+                c2.inlier_frac >= chk.inlier_frac - _margin(chk, opt) and \
+                c2.inlier_px >= (1 - opt.ambiguity_px_frac) * chk.inlier_px and \
+                not (opt.plain_faces and c2.interior_edge_frac > 2 * opt.plain_max_interior_edge_frac):
+            return False, f"ambiguous: a restart settles on a pose scoring {c2.inlier_frac:.2f} vs {chk.inlier_frac:.2f}"
+    return True, ""
 
 
 def _adds(mf: ModelFeatures, T1, T2) -> float:
@@ -515,7 +567,7 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
             # A rival need not pass every check (the true pose of an
             # accidental view may fail one): seen by the same cameras, about
             # as good an agreement, about as much edge length explained.
-            if c2.inlier_frac >= chk.inlier_frac - opt.ambiguity_margin and \
+            if c2.inlier_frac >= chk.inlier_frac - _margin(chk, opt) and \
                     c2.inlier_px >= (1 - opt.ambiguity_px_frac) * chk.inlier_px:
                 ok, why = False, f"ambiguous: another pose scores {c2.inlier_frac:.2f} vs {chk.inlier_frac:.2f}"
                 break
@@ -525,6 +577,8 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
                     c2.inlier_frac >= 0.5 and c2.inlier_px >= opt.plain_rival_px_frac * chk.inlier_px:
                 ok, why = False, f"ambiguous (plain faces): another pose explains {c2.inlier_px:.0f} px vs {chk.inlier_px:.0f}"
                 break
+    if ok and opt.probe_single and chk.n_cameras == 1:
+        ok, why = _probe(T_best, chk, views, setup)
     plain = plain and ok  # passed every check, under the looser limits
     if plain and opt.confirm_plain and not (Tp is not None and _adds(mf, T_best, Tp) < near):
         ok, why = False, "plain faces: to be confirmed on the next call"
