@@ -4,7 +4,8 @@ Each trial: a simulated cell (``vespro.sim.trials``) with the object at a
 random pose in the common view (random orientation, position around
 (0.9, 0, 0.6) m), drifting slowly; the rig is a random subset of the standard
 fixed cameras with perturbed placements (1, 2 or 3 cameras) or the hybrid rig
-(2 random fixed cameras + the eye-in-hand camera on the watching arm). The
+(2 random fixed cameras + the eye-in-hand camera on the watching arm) or the
+hand rig (the eye-in-hand camera alone, the arm watching the work area). The
 initialiser is called on frames 0, stride, 2 stride, ... up to ``--frames``
 (26 frames = 1 s at 26 Hz) until it returns a pose.
 
@@ -12,9 +13,10 @@ initialiser is called on frames 0, stride, 2 stride, ... up to ``--frames``
   below 10% of the object's diameter;
 - wrong lock: a pose returned with ADD >= 10% of the diameter (the trial
   stops there: the tracker would have started from it);
-- compute: wall and CPU time of each call (median, p99), and of the calls
-  up to the first pose (the time-to-first-pose a background thread would
-  need);
+- compute: wall and CPU time of each call (median, p99; on a machine shared
+  with other work the CPU time of the calling thread is the steadier
+  figure), and the wall time of the calls up to the first pose (the
+  time-to-first-pose a background thread would need);
 - position / rotation error of the successful poses (median, max).
 
 The baseline runs in the same process on the same frames: the same corner-path
@@ -23,7 +25,7 @@ without sub-pixel refinement and with only the inlier-fraction check (no
 multi-camera verification, edge count, size or ambiguity tests).
 
 Usage: ``python3 bench/init.py [--trials 10] [--objects box,lblock,bracket]
-[--rigs 1,2,3,hybrid] [--frames 26] [--stride 5] [--seed 0] [--no-baseline]``
+[--rigs 1,2,3,hybrid,hand] [--frames 26] [--stride 5] [--seed 0] [--no-baseline]``
 """
 
 from __future__ import annotations
@@ -59,6 +61,8 @@ def run_trial(obj, model, syms, rig_kind, seed, frames, stride, baseline):
     rng = np.random.default_rng(10_000 + seed)
     if rig_kind == "hybrid":
         rig = random_rig(rng, 2, hand=True)
+    elif rig_kind == "hand":
+        rig = random_rig(rng, 0, hand=True)
     else:
         rig = random_rig(rng, int(rig_kind))
     config, motion, _ = trial_config(obj, rig, seed)
@@ -127,6 +131,9 @@ def main(argv=None):
                 med, p99 = stats_ms(calls) if calls else (float("nan"), float("nan"))
                 row += [len(ok) / a.trials, len(wrong), med, p99]
                 if m == "ours":
+                    cpu = [c for r in res for c in r[m]["cpu"]]
+                    row += list(stats_ms(cpu)) if cpu else [float("nan"), float("nan")]
+                if m == "ours":
                     ep = [r["err_p"] * 1e3 for r in ok]
                     er = [np.rad2deg(r["err_r"]) for r in ok]
                     row += [float(np.median(ep)) if ep else float("nan"), float(np.max(ep)) if ep else float("nan"),
@@ -141,7 +148,8 @@ def main(argv=None):
                               f"{[round(c, 2) for c in r[m]['calls']]}", flush=True)
             rows.append(row)
             print(f"done {obj} {rk} ({time.perf_counter() - t_start:.0f} s)", flush=True)
-    headers = ["object", "rig", "n", "success", "wrong", "call ms med", "call ms p99", "dp mm med", "dp mm max",
+    headers = ["object", "rig", "n", "success", "wrong", "call ms med", "call ms p99", "cpu ms med", "cpu ms p99",
+               "dp mm med", "dp mm max",
                "dR deg med", "dR deg max", "to-pose ms med"]
     if not a.no_baseline:
         headers += ["base succ", "base wrong", "base ms med", "base ms p99"]

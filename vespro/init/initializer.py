@@ -25,6 +25,9 @@ Method (per call):
    edge samples supported in every camera that sees the part, enough
    supported edges, a clear margin over any different pose. Otherwise None:
    a wrong lock is worse than a late one.
+6. one camera alone: a part with plain faces may pass looser limits when its
+   projected face interiors hold no image edges (``InitOptions.plain_faces``);
+   such a pose is returned only when the next call finds it again.
 """
 
 from __future__ import annotations
@@ -63,7 +66,13 @@ class InitOptions:
     keep_per_camera : int
         Hypotheses kept per camera after the second ranking pass.
     n_refine : int
-        Hypotheses refined and verified.
+        Hypotheses refined and verified (the best distinct ones) ...
+    n_refine_extra, refine_windows : int
+        ... plus, after a call without a pose, ``n_refine_extra`` from further
+        down the ranking, a different window on each successive call (attempt
+        ``k >= 1`` takes distinct ranks ``n_refine + n_refine_extra * ((k - 1)
+        % refine_windows)`` on): the frames of one second give the search the
+        budget of several calls, and a first call that succeeds costs no more.
     rank_tol_px : float
         Distance at which a sample's agreement reaches zero in the ranking.
     verify_tol_px : float
@@ -102,6 +111,10 @@ class InitOptions:
         A different pose (ADD-S above ``distinct_frac`` of the diameter) whose
         inlier fraction comes within this of the best makes the result
         ambiguous (None).
+    ambiguity_margin_single : float
+        The same when one camera judges: one view lets a wrong pose (an
+        L-block turned over) fit its edges nearly as well as the true one
+        (0.067 below it on a held-out trial).
     ambiguity_px_frac : float
         ... and whose explained edge length is within this fraction of the
         best's (a pose explaining far less of the image is no rival).
@@ -114,6 +127,49 @@ class InitOptions:
         The part is in the common view of the fixed cameras (the spec's
         set-up): a pose that a fixed camera with an image cannot see is
         rejected. Eye-in-hand cameras judge only poses they can see.
+    plain_faces : bool
+        The part's faces are plain (no texture or markings): with one camera,
+        a rival pose whose faces cover image edges (twice the limit below)
+        does not make a result ambiguous, and one camera may
+        then accept a pose under the looser ``plain_*`` limits below when its
+        projected face interiors are free of image edges. A face dark against
+        a dark background leaves its edges unseen, so the true pose of a part
+        seen by one camera often explains only 70-80% of its edges; a copy
+        fitted to clutter, or shifted or flipped over the real part, covers
+        image edges with its faces (the real part's own among them).
+    plain_max_interior_edge_frac : float
+        Most fraction of the face interiors on image edges (image noise at the
+        true pose stays below 0.002 in the simulator).
+    plain_min_inlier_frac, plain_max_mean_dist, plain_max_overrun_frac : float
+    plain_min_supported_edges : int
+        The looser single-camera limits.
+    plain_min_crease_frac : float
+        More than this fraction of the visible creases (edges between two
+        faces that both face the camera) must be supported: a face may match its
+        background, but two faces at an angle seldom share a shade, so a pose
+        putting its creases across a plain image region is wrong (a flipped
+        box over one plain face). Not all: under one light two faces can.
+    plain_rival_px_frac : float
+        A pose accepted under the looser limits must explain more edge length
+        than this fraction of any distinct rival whose faces are also clear.
+    probe_single : bool
+        With one judging camera, an accepted pose is refined again from
+        turns of itself (``probe_deg`` both ways and half turns about the two
+        image axes through the part, a half turn about the line of sight): a
+        restart settling on a distinct pose (``distinct_frac``) that scores
+        about as well (the ambiguity margins) makes the result ambiguous. The
+        search's own candidates need not hold that rival (an L-block turned
+        over once locked wrong for want of it).
+    probe_deg : float
+        Tilt of those restarts, deg.
+    confirm_plain : bool
+        A pose accepted under the looser limits is returned only when the
+        next call finds it again (within ``confirm_frac`` of the diameter,
+        ADD-S): one more attempt, a few frames later, instead of a lucky fit.
+    confirm_frac, confirm_speed : float
+        Found again means within ``confirm_frac`` of the diameter plus
+        ``confirm_speed`` (m/s) times the time since the previous call
+        (ADD-S): a part on a conveyor moves between two calls.
     """
 
     edges: EdgeOptions = field(default_factory=EdgeOptions)
@@ -121,6 +177,8 @@ class InitOptions:
     keep_after_sparse: int = 2000
     keep_per_camera: int = 60
     n_refine: int = 6
+    n_refine_extra: int = 3
+    refine_windows: int = 5
     rank_tol_px: float = 3.0
     verify_tol_px: float = 2.0
     min_inlier_frac: float = 0.6
@@ -136,6 +194,7 @@ class InitOptions:
     max_overrun_frac_single: float = 0.25
     min_supported_edge_frac: float = 0.6
     ambiguity_margin: float = 0.05
+    ambiguity_margin_single: float = 0.08
     ambiguity_px_frac: float = 0.2
     distinct_frac: float = 0.1
     seed_perturb_rad: float = 0.1
@@ -143,6 +202,19 @@ class InitOptions:
     seed_only: bool = False
     require_fixed_view: bool = True
     subpixel: bool = True
+    plain_faces: bool = True
+    plain_max_interior_edge_frac: float = 0.005
+    plain_min_inlier_frac: float = 0.65
+    plain_max_mean_dist: float = 5.0
+    plain_max_overrun_frac: float = 0.3
+    plain_min_supported_edges: int = 6
+    plain_min_crease_frac: float = 0.5
+    plain_rival_px_frac: float = 0.8
+    probe_single: bool = True
+    probe_deg: float = 25.0
+    confirm_plain: bool = True
+    confirm_frac: float = 0.05
+    confirm_speed: float = 0.3
 
 
 @dataclass(frozen=True)
@@ -169,7 +241,8 @@ class InitReport:
         CPU time of the calling thread, s (what the work costs on an idle
         core; the wall time includes waiting for a busy machine).
     mode : str
-        ``"seed"`` (accepted near the seed), ``"search"``, or ``"none"``.
+        ``"seed"`` (accepted near the seed), ``"search"``, ``"confirm"`` (a plain-face
+        pose of the previous call found again) or ``"none"``.
     n_hypotheses : int
         P3P poses generated.
     accepted : bool
@@ -182,6 +255,10 @@ class InitReport:
     candidates : tuple
         ``(T_world_object, PoseCheck)`` of every refined candidate, best first
         (diagnostics).
+    plain : bool
+        The best pose passed every check under the looser single-camera
+        limits (``plain_*``); not yet accepted when ``confirm_plain`` (it is
+        then the first candidate, tried first by the next call).
     """
 
     wall_s: float
@@ -195,6 +272,7 @@ class InitReport:
     visible_edges: int = 0
     reason: str = ""
     candidates: tuple = ()
+    plain: bool = False
 
 
 def make_setup(rig: Rig, model: Model, options: InitOptions | None = None, tree=None) -> InitSetup:
@@ -254,18 +332,88 @@ def _accept(chk, opt: InitOptions) -> tuple[bool, str]:
     return True, ""
 
 
-def _adds(mf: ModelFeatures, T1, T2) -> float:
-    """Symmetric average distance (ADD-S) between two poses over the edge samples, m."""
-    from scipy.spatial import cKDTree
+def _accept_plain(chk, opt: InitOptions) -> tuple[bool, str]:
+    """The looser single-camera limits for a part with plain faces (see ``InitOptions.plain_faces``)."""
+    if not opt.plain_faces or chk.n_cameras != 1 or chk.unseen_fixed:
+        return False, "not a single-camera view"
+    if chk.interior_edge_frac > opt.plain_max_interior_edge_frac:
+        return False, f"image edges inside the faces ({chk.interior_edge_frac:.3f})"
+    if chk.inlier_frac < opt.plain_min_inlier_frac:
+        return False, f"inlier fraction {chk.inlier_frac:.2f} < {opt.plain_min_inlier_frac}"
+    if chk.crease_edges and chk.crease_supported <= opt.plain_min_crease_frac * chk.crease_edges:
+        return False, f"{chk.crease_supported}/{chk.crease_edges} creases supported"
+    if chk.mean_dist > opt.plain_max_mean_dist:
+        return False, f"mean edge distance {chk.mean_dist:.2f} px > {opt.plain_max_mean_dist}"
+    if chk.overrun_frac > opt.plain_max_overrun_frac:
+        return False, f"image edges run on past {chk.overrun_frac:.0%} of the model edge ends"
+    if chk.open_faces < opt.min_open_faces_single:
+        return False, f"accidental view ({chk.open_faces} faces seen openly)"
+    if chk.supported_edges < max(opt.plain_min_supported_edges, opt.min_supported_edge_frac * chk.visible_edges):
+        return False, f"{chk.supported_edges}/{chk.visible_edges} edges supported"
+    if chk.min_size_px < opt.min_size_px_single:
+        return False, f"projected size {chk.min_size_px:.0f} px < {opt.min_size_px_single}"
+    return True, ""
 
-    P = mf.sample_p
-    A = P @ T1[:3, :3].T + T1[:3, 3]
-    B = P @ T2[:3, :3].T + T2[:3, 3]
-    return float(np.mean(cKDTree(B).query(A)[0]))
+
+def _verdict(chk, opt: InitOptions) -> tuple[bool, bool, str]:
+    """(accepted, under the looser plain-face limits only, why not)."""
+    ok, why = _accept(chk, opt)
+    if ok:
+        return True, False, ""
+    okp, _ = _accept_plain(chk, opt)
+    return (True, True, "") if okp else (False, False, why)
+
+
+def _margin(chk, opt: InitOptions) -> float:
+    return opt.ambiguity_margin if chk.n_cameras > 1 else opt.ambiguity_margin_single
+
+
+def _probe(T_world_object: np.ndarray, chk, views, setup: InitSetup) -> tuple[bool, str]:
+    """Refine again from turns of a single-camera pose: (no rival found, why not); see ``InitOptions.probe_single``."""
+    opt, mf = setup.options, setup.mf
+    v = next((v for v in views if np.isfinite(chk.per_camera.get(v.feat.name, np.nan))), None)
+    if v is None:
+        return True, ""
+    c_w = T_world_object[:3, :3] @ (0.5 * (mf.vertices.min(0) + mf.vertices.max(0))) + T_world_object[:3, 3]
+    ray = c_w - v.T_world_camera[:3, 3]
+    ray /= np.linalg.norm(ray)
+    a1 = np.cross(ray, v.T_world_camera[:3, 1])
+    a1 /= np.linalg.norm(a1)
+    a2 = np.cross(ray, a1)
+    tilt = np.deg2rad(opt.probe_deg)
+    turns = [a * ang for a in (a1, a2) for ang in (tilt, -tilt, np.pi)] + [ray * np.pi]
+    for w in turns:
+        dR = exp_so3(w)
+        T0 = transform_from_rt(dR @ T_world_object[:3, :3], c_w + dR @ (T_world_object[:3, 3] - c_w))
+        Tr = refine_pose(T0, views, mf, setup.tree)
+        if _adds(mf, Tr, T_world_object) <= opt.distinct_frac * mf.diameter:
+            continue
+        if opt.subpixel:
+            Tr = refine_subpixel(Tr, views, mf, setup.tree)
+        c2 = check_pose(Tr, views, mf, setup.tree, opt.verify_tol_px, require_fixed=opt.require_fixed_view)
+        if c2.n_cameras and _adds(mf, Tr, T_world_object) > opt.distinct_frac * mf.diameter and \
+                c2.inlier_frac >= chk.inlier_frac - _margin(chk, opt) and \
+                c2.inlier_px >= (1 - opt.ambiguity_px_frac) * chk.inlier_px and \
+                not (opt.plain_faces and c2.interior_edge_frac > 2 * opt.plain_max_interior_edge_frac):
+            return False, f"ambiguous: a restart settles on a pose scoring {c2.inlier_frac:.2f} vs {chk.inlier_frac:.2f}"
+    return True, ""
+
+
+def _adds(mf: ModelFeatures, T1, T2) -> float:
+    """Distance between two poses: ADD over the model vertices, least over the part's symmetries, m.
+
+    Not ADD-S (nearest point): a part that is nearly symmetric, an L-block
+    turned over, lies close to itself point for point, so a distinct pose of it
+    could pass for the same one (a rival overlooked, a wrong lock).
+    """
+    A = mf.vertices @ T1[:3, :3].T + T1[:3, 3]
+    return float(min(np.mean(np.linalg.norm(A - (mf.vertices @ (T2 @ S)[:3, :3].T + (T2 @ S)[:3, 3]), axis=1))
+                     for S in mf.symmetries))
 
 
 def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.ndarray | None = None,
-               rng: np.random.Generator | None = None) -> tuple[InitResult | None, InitReport]:
+               rng: np.random.Generator | None = None, pending_T_world_object: np.ndarray | None = None,
+               attempt: int = 0, pending_age_s: float = 0.0) -> tuple[InitResult | None, InitReport]:
     """Find the part in one frame set: a verified pose or None.
 
     A pure function of its inputs (the set-up is read-only; ``rng`` only
@@ -278,6 +426,15 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
     seed_T_world_object : ndarray, shape (4, 4), optional
         Predicted pose to try first (after a loss).
     rng : numpy Generator, optional
+    pending_T_world_object : ndarray, shape (4, 4), optional
+        A pose the previous call accepted under the looser plain-face limits
+        only (its report's ``plain`` and first candidate): found again,
+        refined from here or by the search, the pose is returned (mode
+        ``"confirm"``).
+    attempt : int
+        Calls so far without a pose: selects the extra refinement window.
+    pending_age_s : float
+        Time from the pending pose's frame set to this one, s.
 
     Returns
     -------
@@ -298,6 +455,18 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
             time.perf_counter() - t0, time.thread_time() - c0, mode, nh, True, chk.inlier_frac, chk.per_camera, chk.supported_edges,
             chk.visible_edges)
 
+    # A plain-face pose from the previous call: found again, it is confirmed.
+    Tp = None
+    if pending_T_world_object is not None:
+        Tp = np.asarray(pending_T_world_object, float)
+        near = (opt.confirm_frac * mf.diameter + opt.confirm_speed * max(pending_age_s, 0.0))
+        Tr = refine_pose(Tp, views, mf, setup.tree)
+        if opt.subpixel:
+            Tr = refine_subpixel(Tr, views, mf, setup.tree)
+        chk = check_pose(Tr, views, mf, setup.tree, opt.verify_tol_px, require_fixed=opt.require_fixed_view)
+        if _verdict(chk, opt)[0] and _adds(mf, Tr, Tp) < near:
+            return finish(Tr, chk, "confirm", 1)
+
     # Seeded: refine from the prediction and a few perturbations of it.
     if seed_T_world_object is not None:
         starts = [np.asarray(seed_T_world_object, float)]
@@ -313,7 +482,7 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
             chk = check_pose(Tr, views, mf, setup.tree, opt.verify_tol_px, require_fixed=opt.require_fixed_view)
             if best is None or chk.inlier_frac > best[1].inlier_frac:
                 best = (Tr, chk)
-            if _accept(chk, opt)[0]:
+            if _verdict(chk, opt)[0]:
                 return finish(Tr, chk, "seed", len(starts))
         if opt.seed_only:
             return None, InitReport(time.perf_counter() - t0, time.thread_time() - c0, "none", len(starts), False, best[1].inlier_frac,
@@ -358,13 +527,19 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
     order = np.argsort(-joint)
 
     # Refine the best few distinct candidates and verify.
-    refined, tried = [], []
+    refined, distinct = [], []
+    wanted = set(range(opt.n_refine))
+    if attempt > 0:  # a first call that succeeds needs no more
+        w0 = opt.n_refine + opt.n_refine_extra * ((attempt - 1) % max(opt.refine_windows, 1))
+        wanted |= set(range(w0, w0 + opt.n_refine_extra))
     for k in order:
-        if len(tried) >= opt.n_refine:
+        if len(distinct) > max(wanted):
             break
-        if any(_adds(mf, cand[k], T) < 0.02 * mf.diameter for T in tried):
+        if any(_adds(mf, cand[k], T) < 0.02 * mf.diameter for T in distinct):
             continue
-        tried.append(cand[k])
+        distinct.append(cand[k])
+        if len(distinct) - 1 not in wanted:
+            continue
         Tr = refine_pose(cand[k], views, mf, setup.tree)
         if opt.subpixel:
             Tr = refine_subpixel(Tr, views, mf, setup.tree)
@@ -375,38 +550,59 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
     # Candidates that pass every check first, then by the image edge length
     # they explain (a smaller, farther copy fitted to part of the part
     # explains less), then by agreement.
-    refined.sort(key=lambda r: (not _accept(r[1], opt)[0], -r[1].inlier_px, -r[1].inlier_frac))
+    refined.sort(key=lambda r: (not _verdict(r[1], opt)[0], -r[1].inlier_px, -r[1].inlier_frac))
     T_best, chk = refined[0]
-    ok, why = _accept(chk, opt)
+    ok, plain, why = _verdict(chk, opt)
     if ok:
         for T2, c2 in refined[1:]:
+            if c2.unseen_fixed or c2.n_cameras < chk.n_cameras or \
+                    _adds(mf, T_best, T2) <= opt.distinct_frac * mf.diameter:
+                continue
+            # A pose whose faces cover image edges is no rival for a plain
+            # part (one camera: with several, a part partly hidden in one
+            # view keeps counting as a rival).
+            if opt.plain_faces and chk.n_cameras == 1 and \
+                    c2.interior_edge_frac > 2 * opt.plain_max_interior_edge_frac:
+                continue
             # A rival need not pass every check (the true pose of an
             # accidental view may fail one): seen by the same cameras, about
             # as good an agreement, about as much edge length explained.
-            if c2.unseen_fixed == 0 and c2.n_cameras >= chk.n_cameras and \
-                    c2.inlier_frac >= chk.inlier_frac - opt.ambiguity_margin and \
-                    c2.inlier_px >= (1 - opt.ambiguity_px_frac) * chk.inlier_px and \
-                    _adds(mf, T_best, T2) > opt.distinct_frac * mf.diameter:
+            if c2.inlier_frac >= chk.inlier_frac - _margin(chk, opt) and \
+                    c2.inlier_px >= (1 - opt.ambiguity_px_frac) * chk.inlier_px:
                 ok, why = False, f"ambiguous: another pose scores {c2.inlier_frac:.2f} vs {chk.inlier_frac:.2f}"
                 break
+            # Under the looser limits, any clear-faced rival explaining nearly
+            # as much edge length makes the view ambiguous.
+            if plain and c2.interior_edge_frac <= 2 * opt.plain_max_interior_edge_frac and \
+                    c2.inlier_frac >= 0.5 and c2.inlier_px >= opt.plain_rival_px_frac * chk.inlier_px:
+                ok, why = False, f"ambiguous (plain faces): another pose explains {c2.inlier_px:.0f} px vs {chk.inlier_px:.0f}"
+                break
+    if ok and opt.probe_single and chk.n_cameras == 1:
+        ok, why = _probe(T_best, chk, views, setup)
+    plain = plain and ok  # passed every check, under the looser limits
+    if plain and opt.confirm_plain and not (Tp is not None and _adds(mf, T_best, Tp) < near):
+        ok, why = False, "plain faces: to be confirmed on the next call"
     if not ok:
         return None, InitReport(time.perf_counter() - t0, time.thread_time() - c0, "none", nh, False, chk.inlier_frac, chk.per_camera,
-                                chk.supported_edges, chk.visible_edges, why, tuple(refined))
-    res, rep = finish(T_best, chk, "search", nh)
-    return res, replace(rep, candidates=tuple(refined))
+                                chk.supported_edges, chk.visible_edges, why, tuple(refined), plain)
+    res, rep = finish(T_best, chk, "confirm" if plain and opt.confirm_plain else "search", nh)
+    return res, replace(rep, candidates=tuple(refined), plain=plain)
 
 
 class Initializer:
     """Callable initialiser for the tracker: ``initializer(frameset) -> InitResult | None``.
 
     Holds only the constant set-up, an optional seed (the predicted pose after
-    a loss) and the report of the last call (``last_report``, with its compute
-    time).
+    a loss), a pose awaiting confirmation (accepted by one camera under the
+    plain-face limits, returned only if the next call finds it again) and the
+    report of the last call (``last_report``, with its compute time).
     """
 
     def __init__(self, setup: InitSetup):
         self.setup = setup
         self._seed = None  # (T_world_object, velocity (6,) or None, t_ns)
+        self._pending = None  # (T_world_object, t_ns) awaiting confirmation (plain-face limits)
+        self._attempt = 0  # calls without a pose since the last one (or the last reseed)
         self.last_report: InitReport | None = None
 
     def reseed(self, T_world_object: np.ndarray, velocity: np.ndarray | None = None, t_ns: int | None = None) -> None:
@@ -426,9 +622,11 @@ class Initializer:
             raise ValueError(f"seed pose must be a finite (4, 4) array, got shape {T.shape}")
         v = None if velocity is None else np.asarray(velocity, float).reshape(6)
         self._seed = (T, v, t_ns)
+        self._attempt = 0
 
     def clear_seed(self) -> None:
         self._seed = None
+        self._pending = None
 
     def predicted_seed(self, t_ns: int) -> np.ndarray | None:
         """The seed pose propagated to ``t_ns`` (None without a seed)."""
@@ -442,8 +640,13 @@ class Initializer:
 
     def __call__(self, frameset: FrameSet) -> InitResult | None:
         seed = self.predicted_seed(frameset.t_ns)
-        result, report = initialize(self.setup, frameset, seed, np.random.default_rng(frameset.index))
+        pend, age = (None, 0.0) if self._pending is None else (self._pending[0],
+                                                               (frameset.t_ns - self._pending[1]) * 1e-9)
+        result, report = initialize(self.setup, frameset, seed, np.random.default_rng(frameset.index), pend,
+                                    self._attempt, age)
         self.last_report = report
+        self._pending = (report.candidates[0][0], frameset.t_ns) if (result is None and report.plain) else None
+        self._attempt = 0 if result is not None else self._attempt + 1
         if result is not None:
             self._seed = None
         return result

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import ConvexHull
 
+from ..metrics import discrete_symmetries
 from ..model import Model
 
 __all__ = ["ModelFeatures", "model_features"]
@@ -47,6 +48,17 @@ class ModelFeatures:
     face_offsets : ndarray, shape (F,)
     face_centroids : ndarray, shape (F, 3)
     face_areas : ndarray, shape (F,)
+    tri_p : ndarray, shape (T, 3, 3)
+        Mesh triangles (vertex coordinates), for rasterising the projected
+        faces.
+    tri_face : ndarray, shape (T,), int64
+        Planar face of each triangle.
+    vertices : ndarray, shape (V, 3)
+        Model vertices.
+    symmetries : tuple of ndarray, shape (4, 4)
+        Object-frame transforms ``S`` with the part looking the same at
+        ``T @ S`` as at ``T`` (identity first; axis-aligned ones,
+        :func:`vespro.metrics.discrete_symmetries`).
     end_free : ndarray, shape (E, 2), bool
         Whether no other sharp edge continues the edge straight on past its
         first / second end (in a non-convex part, e.g. an L-block, two edges
@@ -70,6 +82,10 @@ class ModelFeatures:
     face_offsets: np.ndarray
     face_centroids: np.ndarray
     face_areas: np.ndarray
+    tri_p: np.ndarray
+    tri_face: np.ndarray
+    vertices: np.ndarray
+    symmetries: tuple
     end_free: np.ndarray
     convex: bool
     diameter: float
@@ -165,7 +181,9 @@ def model_features(model: Model, dense_spacing_frac: float = 1 / 60, coarse_spac
                 if d2 @ d > 1 - 1e-6:
                     end_free[e, side] = False
     out = ModelFeatures(A, B, L, model.edge_faces, model.edge_convex, sp, se, coarse, sparse, paths,
-                        model.face_normals, model.face_offsets, fc, fa, end_free, convex, float(diam))
-    for f in ("edge_a", "edge_b", "edge_len", "sample_p", "sample_edge", "coarse", "sparse", "paths"):
+                        model.face_normals, model.face_offsets, fc, fa, V[model.triangles],
+                        np.asarray(model.triangle_face, np.int64), np.asarray(V, float),
+                        tuple(discrete_symmetries(V)), end_free, convex, float(diam))
+    for f in ("edge_a", "edge_b", "edge_len", "sample_p", "sample_edge", "coarse", "sparse", "paths", "tri_p", "tri_face", "vertices"):
         getattr(out, f).setflags(write=False)
     return out

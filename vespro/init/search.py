@@ -12,15 +12,16 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
-from ..se3 import exp_so3, invert_transform, transform_from_rt
+from ..se3 import invert_transform, transform_from_rt
 from .features import CameraFeatures, lookup_dt, normal_bins
 from .modelfeat import ModelFeatures
 from .p3p import p3p_grunert
 
 __all__ = ["image_paths", "p3p_hypotheses", "rank_in_camera", "CameraView", "visible_samples",
-           "refine_pose", "refine_subpixel", "edge_residuals", "PoseCheck", "check_pose"]
+           "refine_pose", "refine_subpixel", "edge_residuals", "interior_clutter", "PoseCheck", "check_pose"]
 
 
 # -- hypothesis generation ---------------------------------------------------
@@ -264,8 +265,17 @@ def _camera_setup(T_world_object, view: CameraView, mf, tree):
     return idx, bins
 
 
+def _rodrigues(w):
+    """``exp_so3`` in closed form (SciPy's Rotation costs more than the rest of a residual)."""
+    th = float(np.sqrt(w @ w))
+    Kx = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+    if th < 1e-8:
+        return np.eye(3) + Kx
+    return np.eye(3) + np.sin(th) / th * Kx + (1.0 - np.cos(th)) / th ** 2 * (Kx @ Kx)
+
+
 def _perturbed(T0, x):
-    return transform_from_rt(T0[:3, :3] @ exp_so3(x[:3]), T0[:3, 3] + x[3:])
+    return transform_from_rt(T0[:3, :3] @ _rodrigues(x[:3]), T0[:3, 3] + x[3:])
 
 
 def edge_residuals(x: np.ndarray, T0: np.ndarray, setups: list, want_jac: bool, dmax: float = 20.0) -> np.ndarray:
@@ -351,8 +361,10 @@ def refine_pose(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFe
             return float(np.sum(np.where(a <= f_scale, 0.5 * a * a, f_scale * (a - 0.5 * f_scale))))
 
         c = cost(r)
+        J = None
         for _ in range(max_nfev):
-            J = resid_jac(x, True)
+            if J is None:  # unchanged after a rejected step
+                J = resid_jac(x, True)
             w = np.where(np.abs(r) <= f_scale, 1.0, f_scale / np.maximum(np.abs(r), 1e-12))
             JW = J * w[:, None]
             A = JW.T @ J
@@ -362,9 +374,10 @@ def refine_pose(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFe
             rn = resid_jac(xn, False)
             cn = cost(rn)
             if cn < c:
-                x, r, c = xn, rn, cn
+                x, r, c, J = xn, rn, cn, None
                 lam = max(lam * 0.3, 1e-6)
-                if np.linalg.norm(step[:3]) < 1e-5 and np.linalg.norm(step[3:]) < 1e-6:
+                # 1e-4 rad, 10 um: far below what the sub-pixel stage settles.
+                if np.linalg.norm(step[:3]) < 1e-4 and np.linalg.norm(step[3:]) < 1e-5:
                     break
             else:
                 lam *= 10.0
@@ -455,6 +468,69 @@ def refine_subpixel(T_world_object: np.ndarray, views: list[CameraView], mf: Mod
     return T
 
 
+def interior_clutter(T_camera_object: np.ndarray, feat: CameraFeatures, mf: ModelFeatures,
+                     margin_px: float = 3.0) -> tuple[float, int]:
+    """Edge pixels inside the projected faces of a pose (an untextured part has none).
+
+    The front-facing mesh triangles are painted far to near into a face-label
+    image (painter's order by triangle depth: enough for these parts); pixels
+    more than ``margin_px`` from any face or silhouette boundary are the face
+    interiors. At the true pose of a part with plain faces they hold only
+    image noise; a pose fitted to clutter, or a shifted or flipped copy of the
+    part, covers image edges (the real part's own edges among them).
+
+    Parameters
+    ----------
+    T_camera_object : ndarray, shape (4, 4)
+    feat : CameraFeatures
+    mf : ModelFeatures
+    margin_px : float
+
+    Returns
+    -------
+    frac : float
+        Fraction of the interior pixels on Canny edges (NaN when the part is
+        behind the camera, off the image or has no interior).
+    n_interior : int
+        Interior pixels.
+    """
+    R, t = T_camera_object[:3, :3], T_camera_object[:3, 3]
+    front = _front(R[None], t[None], mf)[0]
+    keep = front[mf.tri_face]
+    X = mf.tri_p[keep] @ R.T + t  # (T, 3, 3)
+    if len(X) == 0 or np.any(X[..., 2] <= 1e-6):
+        return float("nan"), 0
+    K = feat.K
+    uv = X[..., :2] / X[..., 2:3] * K[[0, 1], [0, 1]] + K[:2, 2]
+    lo = np.floor(uv.reshape(-1, 2).min(0)).astype(int) - 2
+    hi = np.ceil(uv.reshape(-1, 2).max(0)).astype(int) + 3
+    lo = np.maximum(lo, 0)
+    hi = np.minimum(hi, [feat.width, feat.height])
+    if np.any(hi - lo < 3):
+        return float("nan"), 0
+    w, h = hi - lo
+    label = np.zeros((h, w), np.int32)
+    order = np.argsort(-X[..., 2].mean(1))
+    faces = mf.tri_face[keep]
+    pts = np.rint((uv - lo) * 4).astype(np.int32)  # 2 bits of sub-pixel precision
+    for k in order:
+        cv2.fillPoly(label, [pts[k]], int(faces[k]) + 1, lineType=cv2.LINE_8, shift=2)
+    bnd = np.zeros((h, w), bool)
+    bnd[:, 1:] |= label[:, 1:] != label[:, :-1]
+    bnd[:, :-1] |= label[:, 1:] != label[:, :-1]
+    bnd[1:, :] |= label[1:, :] != label[:-1, :]
+    bnd[:-1, :] |= label[1:, :] != label[:-1, :]
+    bnd[0, :] = bnd[-1, :] = True
+    bnd[:, 0] = bnd[:, -1] = True
+    dist = cv2.distanceTransform(np.where(bnd, 0, 255).astype(np.uint8), cv2.DIST_L2, 3)
+    interior = (label > 0) & (dist > margin_px)
+    n = int(interior.sum())
+    if n == 0:
+        return float("nan"), 0
+    e = feat.edges[lo[1]:hi[1], lo[0]:hi[0]] > 0
+    return float(np.count_nonzero(e & interior)) / n, n
+
+
 @dataclass(frozen=True)
 class PoseCheck:
     """How well a world pose explains every camera's image.
@@ -495,6 +571,14 @@ class PoseCheck:
         the part's area) seen within ``open_face_deg`` of their normal: a view
         along a face (an accidental viewpoint) collapses it to a line and
         lets a part match flat clutter.
+    interior_edge_frac : float
+        Largest fraction, over the judging cameras, of the projected face
+        interiors lying on image edges (:func:`interior_clutter`).
+    crease_edges, crease_supported : int
+        Visible edges between two faces that both face the camera (inside
+        the silhouette), summed over cameras, and how many are supported.
+        Two faces at an angle rarely have the same shade, so a crease shows
+        in the image even where a face matches its background.
     """
 
     inlier_frac: float
@@ -509,6 +593,9 @@ class PoseCheck:
     inlier_px: float = 0.0
     open_faces: int = 0
     overrun_frac: float = 0.0
+    interior_edge_frac: float = 0.0
+    crease_edges: int = 0
+    crease_supported: int = 0
 
 
 def check_pose(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFeatures, tree=None,
@@ -522,6 +609,8 @@ def check_pose(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFea
     open_min = 10 ** 9
     big = mf.face_areas >= 0.05 * mf.face_areas.sum()
     n_over, n_ends = 0, 0
+    clutter = 0.0
+    cr_e, cr_sup = 0, 0
     cos_open = np.cos(np.deg2rad(open_face_deg))
     for v in views:
         idx, bins = _camera_setup(T_world_object, v, mf, tree)
@@ -549,6 +638,8 @@ def check_pose(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFea
         nc = mf.face_normals @ T_co[:3, :3].T
         cosv = -np.sum(nc * Xf, 1) / np.linalg.norm(Xf, axis=1)
         open_min = min(open_min, int(np.sum(big & (cosv >= cos_open))))
+        cf, _ = interior_clutter(T_co, v.feat, mf)
+        clutter = max(clutter, cf if np.isfinite(cf) else 1.0)
         e = mf.sample_edge[idx]
         ue, _ = _project(v.feat.K, T_co, mf.edge_a)
         ub, _ = _project(v.feat.K, T_co, mf.edge_b)
@@ -572,6 +663,8 @@ def check_pose(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFea
             dq = lookup_dt(v.feat.dt, np.broadcast_to(np.asarray(ebins)[:, None], q.shape[:2]), q, np.inf)
             n_over += int(np.sum(np.mean(dq <= 1.5, axis=1) >= 0.8))
             n_ends += len(ends_uv)
+        front = _front(T_co[None, :3, :3], T_co[None, :3, 3], mf)[0]
+        crease = front[mf.edge_faces[:, 0]] & front[mf.edge_faces[:, 1]]
         for k in np.unique(e):
             if elen[k] < min_edge_px:
                 continue
@@ -579,7 +672,11 @@ def check_pose(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFea
             if m.sum() < 3:
                 continue
             vis_e += 1
-            sup_e += int(inl[m].mean() >= 0.5)
+            s_k = int(inl[m].mean() >= 0.5)
+            sup_e += s_k
+            if crease[k]:
+                cr_e += 1
+                cr_sup += s_k
     return PoseCheck(n_in / n_all if n_all else 0.0, per, n_all, sup_e, vis_e, ncam,
                      dsum / n_all if n_all else float("inf"), unseen, size if np.isfinite(size) else 0.0,
-                     inl_px, open_min if ncam else 0, n_over / n_ends if n_ends else 0.0)
+                     inl_px, open_min if ncam else 0, n_over / n_ends if n_ends else 0.0, clutter, cr_e, cr_sup)
