@@ -18,7 +18,6 @@ latency (capture to send), status and link statistics.
 
 from __future__ import annotations
 
-import os
 import threading
 from concurrent.futures import Future, ProcessPoolExecutor, ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -37,20 +36,21 @@ __all__ = ["PoseServer", "ServerStats", "pose_message"]
 _WORKER_INIT = None
 
 
-#: Niceness of the initialisation worker: the live loop (capture, tracking, publishing at the
-#: camera rate) must keep its rate while a search that takes seconds runs beside it; the
-#: worker takes the CPU time the loop leaves (on a 2-core cell, most of the servo's core).
-WORKER_NICE = 10
-
-
 def _worker_setup(factory) -> None:
-    """In the initialisation worker process: lower its priority, build the initialiser once."""
+    """In the initialisation worker process: build the initialiser once.
+
+    It runs at the live loop's priority: the loop has nothing to track while the
+    worker searches (it only captures and publishes ``initializing``), so the
+    sooner the search ends the better; a niced worker took 5-7 s a call beside
+    the rendering in the real-time demo, longer than the catch-up backlog.
+    """
     global _WORKER_INIT
-    try:
-        os.nice(WORKER_NICE)
-    except OSError:  # not permitted: run at the normal priority
-        pass
     _WORKER_INIT = factory()
+
+
+def _worker_ping() -> None:
+    """A no-op job: starts the worker process (and builds its initialiser) ahead of the first frame."""
+    return None
 
 
 def _worker_run(fs: FrameSet, seed=None):
@@ -145,6 +145,9 @@ class PoseServer:
             if initializer_factory is None:
                 raise ValueError("background_init='process' needs an initializer_factory")
             self._pool = ProcessPoolExecutor(max_workers=1, initializer=_worker_setup, initargs=(initializer_factory,))
+            # Start the worker now: started by the first real job, its launch stalled the live loop
+            # for long enough that the frames after that job's were missing and its pose was discarded.
+            self._pool.submit(_worker_ping)
             self._submit = lambda fs, seed: self._pool.submit(_worker_run, fs, seed)
         elif background_init:
             self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="vespro-init")
@@ -162,7 +165,7 @@ class PoseServer:
         from collections import deque
 
         self._rate = float(getattr(source, "rate_hz", 26.0))
-        self._backlog: deque = deque(maxlen=max(8, int(6 * self._rate)))
+        self._backlog: deque = deque(maxlen=max(8, int(10 * self._rate)))
         self.caught_up_frames = 0
         self.stale_inits = 0
 
@@ -196,6 +199,9 @@ class PoseServer:
                     self.log(f"initialiser failed: {e!r}")
             job_t = self._job_t_ns
             self._job = None
+            if self.log:
+                waited = (fs.t_ns - job_t) * 1e-9
+                self.log(f"initialisation on the frame of {waited:.1f} s ago: {'a pose' if res is not None else 'no pose'}")
             newer = [old for old in self._backlog if old.t_ns > job_t]
             first_after = newer[0].t_ns if newer else fs.t_ns  # this frame, when none came between
             max_gap_ns = max(2.5e9 / self._rate, 0.25e9)  # a skipped capture or two, not seconds
@@ -204,6 +210,8 @@ class PoseServer:
                 # gap could lock onto the wrong corners. Start over on a current frame.
                 self.stale_inits += 1
                 res = None
+                if self.log:
+                    self.log("  discarded: the frames right after it are gone (no catch-up across the gap)")
             if res is not None:
                 self.stats.init_successes += 1
                 self.tracker.start(res, job_t)
