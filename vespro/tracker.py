@@ -412,6 +412,15 @@ class Tracker:
             return cam.T_world_camera
         return fs.T_world_camera.get(name)
 
+    def _window_half_sizes(self, k: int, J: np.ndarray, corner_ids: np.ndarray, P6: np.ndarray) -> np.ndarray:
+        """Search-window half-sizes (px) of camera ``k``'s corners: ``window_sigma`` std of
+        their innovation ``J P6 J^T + sigma^2 f`` (f: each corner's learnt noise factor)."""
+        S = (J @ P6) @ J.transpose(0, 2, 1)
+        r2 = self.sigma_px**2 * self.feature_factor[k, corner_ids]
+        S[:, 0, 0] += r2
+        S[:, 1, 1] += r2
+        return window_half_sizes(S, n_sigma=self.config.window_sigma)
+
     def _unambiguous(self, k: int, uv: np.ndarray, J: np.ndarray, vis: "_Candidates", P6: np.ndarray) -> np.ndarray:
         """Candidates whose search window holds no other predicted corner, as a pool to select from.
 
@@ -426,11 +435,7 @@ class Tracker:
         n = len(uv)
         if n <= self.config.features_per_camera:
             return np.arange(n)
-        S = (J @ P6) @ J.transpose(0, 2, 1)
-        r2 = self.sigma_px**2 * self.feature_factor[k, vis.indices]
-        S[:, 0, 0] += r2
-        S[:, 1, 1] += r2
-        half = window_half_sizes(S, n_sigma=self.config.window_sigma)
+        half = self._window_half_sizes(k, J, vis.indices, P6)
         diff = uv[:, None, :] - uv[None, :, :]
         d2 = np.einsum("ijk,ijk->ij", diff, diff)
         np.fill_diagonal(d2, np.inf)
@@ -532,9 +537,7 @@ class Tracker:
                 continue
             Jk = J[sel]
             fid = vis.indices[sel]
-            r2 = self.sigma_px**2 * self.feature_factor[k, fid]
-            S = np.einsum("kij,jl,kml->kim", Jk, P6, Jk) + r2[:, None, None] * np.eye(2)
-            half = window_half_sizes(S, n_sigma=c.window_sigma)
+            half = self._window_half_sizes(k, Jk, fid, P6)
             max_half = max(max_half, int(half.max()))
             ext = extract_corners(img, uv[sel], half)
             found = ext.found
