@@ -278,6 +278,8 @@ class RecordingWriter:
         save_rig(rig, self.path / "cameras.yaml")
         for c in rig:
             (self.path / "frames" / c.name).mkdir(parents=True, exist_ok=True)
+            if self._spool is not None:
+                (self._spool / c.name).mkdir(parents=True, exist_ok=True)
         self._eih = [c.name for c in rig.eye_in_hand]
         self._frames = open(self.path / "frames.csv", "w", newline="")
         self._csv = csv.writer(self._frames, lineterminator="\n")
@@ -295,9 +297,7 @@ class RecordingWriter:
             img = fs.images.get(c.name)
             if img is not None:
                 if self._spool is not None:
-                    d = self._spool / c.name
-                    d.mkdir(parents=True, exist_ok=True)
-                    np.save(d / f"{fs.index:06d}.npy", img)
+                    np.save(self._spool / c.name / f"{fs.index:06d}.npy", img)
                 elif not cv2.imwrite(str(self.path / "frames" / c.name / f"{fs.index:06d}.png"), img, self._png):
                     raise OSError(f"could not write image of camera {c.name} at index {fs.index}")
         row = [str(fs.index), _fmt((fs.t_ns - self._t0_ns) * 1e-9)]
