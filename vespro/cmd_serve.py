@@ -44,9 +44,55 @@ def add_parser(sub) -> None:
     p.add_argument("--baud", type=int, default=115200, help="serial: baud rate")
     p.add_argument("--frames", type=int, help="stop after this many frames")
     p.add_argument("--quiet", action="store_true", help="no once-a-second status line")
+    p.add_argument("--cpu", type=int, metavar="N",
+                   help="pin the live loop (capture, rendering, tracking) to core N; the initialisation worker "
+                        "stays free to use every core")
+    p.add_argument("--nice", type=int, default=0,
+                   help="scheduling niceness of the live loop (negative = ahead of other work; needs root)")
+    p.add_argument("--fifo", type=int, default=0, metavar="PRIO",
+                   help="run the live loop SCHED_FIFO at this priority (1-99; 0 = normal scheduling), as on a "
+                        "dedicated vision PC: other work on its core waits; the initialisation worker is not")
     add_scenario_options(p)
     add_tracker_options(p)
     p.set_defaults(func=run)
+
+
+def _realtime_setup(cpu: int | None, nice: int, fifo: int = 0) -> list[str]:
+    """Pin this process to ``cpu``, set its niceness and SCHED_FIFO priority; returns what could not be done.
+
+    Threads started afterwards (the renderer's, the recording writer's) inherit all three.
+    """
+    import os
+
+    msgs = []
+    if cpu is not None:
+        try:
+            os.sched_setaffinity(0, {cpu})
+        except (OSError, AttributeError, ValueError) as e:
+            msgs.append(f"could not pin to CPU {cpu}: {e}")
+    if nice:
+        try:
+            os.setpriority(os.PRIO_PROCESS, 0, nice)
+        except (OSError, AttributeError) as e:
+            msgs.append(f"could not set niceness {nice}: {e}")
+    if fifo:
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(fifo))
+        except (OSError, AttributeError, ValueError) as e:
+            msgs.append(f"SCHED_FIFO {fifo} refused ({e}); normal scheduling")
+    return msgs
+
+
+def _realtime_leave() -> None:
+    """Back to normal scheduling on every core (this thread, and the threads it starts later)."""
+    import os
+
+    try:
+        if os.sched_getscheduler(0) != os.SCHED_OTHER:
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+        os.sched_setaffinity(0, range(os.cpu_count() or 1))
+    except (OSError, AttributeError):
+        pass
 
 
 def run(args) -> int:
@@ -63,6 +109,8 @@ def run(args) -> int:
     from .cmd_track import tracker_config
 
     clock = SimClock() if args.lockstep else WallClock()
+    for msg in _realtime_setup(args.cpu, args.nice, args.fifo):  # before any renderer or worker starts its threads
+        print(f"vespro serve: {msg}", file=sys.stderr)
     try:
         if args.source == "replay":
             if not args.recording:
@@ -166,6 +214,8 @@ def run(args) -> int:
         publisher.close()
         source.close()
         if writer is not None:
+            if args.cpu is not None or args.fifo:  # the saving (PNG encoding) is not live work
+                _realtime_leave()
             _save_run(args.record, writer, outputs, server.stats, link_stats, source)
         for s, h in old.items():  # restored last: a late signal must not interrupt the saving
             signal.signal(s, h)

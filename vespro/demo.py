@@ -141,10 +141,22 @@ class SerialBridge:
                 pass
 
 
-def _spawn(cmd: list[str], log: Path) -> subprocess.Popen:
+def _spawn(cmd: list[str], log: Path, cpu: int | None = None, fifo: int = 0, **env_extra) -> subprocess.Popen:
+    """Start a cell process in its own session; ``cpu`` pins it, ``fifo`` makes it SCHED_FIFO (best effort)."""
     f = open(log, "w")
-    env = dict(os.environ, PYTHONUNBUFFERED="1", MUJOCO_GL=os.environ.get("MUJOCO_GL", "egl"))
-    return subprocess.Popen(cmd, stdout=f, stderr=subprocess.STDOUT, env=env, start_new_session=True)
+    env = dict(os.environ, PYTHONUNBUFFERED="1", MUJOCO_GL=os.environ.get("MUJOCO_GL", "egl"), **env_extra)
+
+    def setup():  # in the child, before exec
+        try:
+            if cpu is not None and cpu < (os.cpu_count() or 1):
+                os.sched_setaffinity(0, {cpu})
+            if fifo:
+                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(fifo))
+        except OSError:
+            pass  # not permitted here: the cell still runs, less isolated
+
+    return subprocess.Popen(cmd, stdout=f, stderr=subprocess.STDOUT, env=env, start_new_session=True,
+                            preexec_fn=setup)
 
 
 def _warm_up(cfg: DemoConfig, rig_name: str, log) -> None:
@@ -189,15 +201,22 @@ def run_demo(cfg: DemoConfig, log=print) -> dict:
         procs["plant"] = _spawn([py, "-m", "vespro.sim.plant", "--robot-shm", robot.name, "--world-shm", world.name,
                                  "--object", cfg.object, "--duration", str(cfg.duration), "--speed", str(cfg.speed),
                                  "--y0", str(cfg.y0), "--stop-time", str(cfg.stop_time),
-                                 "--log", str(out / "plant.npz")], out / "plant.log")
+                                 "--log", str(out / "plant.npz")], out / "plant.log",
+                                # The world keeps real time whatever else the machine runs: on the
+                                # servo's core (the servo sleeps most of each tick; it has priority 80).
+                                cpu=1, fifo=20)
         link_args = ["--serial", bridge.path_a, "--baud", str(cfg.baud)] if bridge else ["--tcp", str(port)]
         procs["vision"] = _spawn([py, "-m", "vespro", "serve", "--source", "world", "--world-shm", world.name,
                                   "--object", cfg.object, "--rig", rig, "--noise", str(cfg.noise_px),
                                   # Real time on 2 cores: no multisampling (46 -> 21 ms for three cameras),
                                   # a 0.6 px blur for the pixel integration it provided (0.84 -> 0.96 mm).
                                   "--render-samples", "0", "--blur", "0.6", "--mono",
-                                  "--record", str(out / "vision"), "--record-defer-png", *link_args],
-                                 out / "vision.log")
+                                  "--record", str(out / "vision"), "--record-defer-png", *link_args,
+                                  # The vision PC's live loop owns a core (other work on it waits), the
+                                  # software renderer's thread with it (spread over both cores it
+                                  # stalled on the servo's: 30 ms wall for 15 ms of work).
+                                  "--cpu", "0", "--fifo", "10"],
+                                 out / "vision.log", LP_NUM_THREADS="1")
         url = bridge.path_b if bridge else f"socket://127.0.0.1:{port}"
         procs["servo"] = _spawn([py, "-m", "servo", "run", "--connect", url, "--baud", str(cfg.baud),
                                  "--robot", f"shm:{robot.name}", "--standoff", str(STANDOFF),

@@ -18,6 +18,7 @@ latency (capture to send), status and link statistics.
 
 from __future__ import annotations
 
+import os
 import threading
 from concurrent.futures import Future, ProcessPoolExecutor, ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -45,6 +46,12 @@ def _worker_setup(factory) -> None:
     the rendering in the real-time demo, longer than the catch-up backlog.
     """
     global _WORKER_INIT
+    try:  # free of the live loop's core and real-time class, if it had them
+        os.sched_setaffinity(0, range(os.cpu_count() or 1))
+        if os.sched_getscheduler(0) != os.SCHED_OTHER:
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    except (OSError, AttributeError):
+        pass
     _WORKER_INIT = factory()
 
 

@@ -146,3 +146,32 @@ def test_a_slow_initialiser_is_caught_up_through_the_frames_it_missed(rec_path):
     assert tracking and tracking[0].index > calls[0] + 1  # the answer came late...
     for o in tracking:  # ...but the filter was caught up: no stale pose published
         assert np.linalg.norm(o.T_world_object[:3, 3] - T[o.index][:3, 3]) < 3e-3
+
+
+def test_live_loop_core_and_priority_and_the_worker_left_free():
+    """``serve --cpu/--fifo``: the loop is pinned and SCHED_FIFO, the initialisation worker and the
+    end-of-run saving are not (checked in a child process: the test process keeps its own scheduling)."""
+    code = """
+import os
+from vespro.cmd_serve import _realtime_setup, _realtime_leave
+from vespro import server
+msgs = _realtime_setup(0, 0, 5)
+if msgs:
+    print("SKIP", msgs); raise SystemExit(0)
+assert os.sched_getaffinity(0) == {0}, os.sched_getaffinity(0)
+assert os.sched_getscheduler(0) == os.SCHED_FIFO
+server._worker_setup(lambda: "init")          # what the worker process runs first
+assert server._WORKER_INIT == "init"
+assert os.sched_getaffinity(0) == set(range(os.cpu_count())), os.sched_getaffinity(0)
+assert os.sched_getscheduler(0) == os.SCHED_OTHER
+_realtime_setup(0, 0, 5)
+_realtime_leave()
+assert os.sched_getaffinity(0) == set(range(os.cpu_count()))
+assert os.sched_getscheduler(0) == os.SCHED_OTHER
+print("OK")
+"""
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    if out.stdout.startswith("SKIP"):
+        pytest.skip(f"real-time scheduling not permitted here: {out.stdout.strip()}")
+    assert out.stdout.strip() == "OK"

@@ -161,3 +161,34 @@ def test_bad_config_is_rejected():
         CellConfig(BOX, rig, occluders=(OccluderSweep("nope", 0.0),))
     with pytest.raises(ValueError, match="mesh not found"):
         SimCell(CellConfig(Path("/nonexistent.stl"), rig), HIDDEN)
+
+
+def test_floor_tiles_draw_the_texture_checker():
+    """The geometric floor (the default, cheaper to rasterise) looks like the textured one it replaces."""
+    import mujoco
+
+    from vespro.sim.scene import SceneSpec, build_cell
+
+    rig = load_rig(CAMERAS_DIR / "fixed2.yaml")
+    images = {}
+    for tiles in (False, True):
+        model, info = build_cell(SceneSpec(MODELS_DIR / "objects" / "box.stl", rig, render_samples=0,
+                                           floor_tiles=tiles))
+        data = mujoco.MjData(model)
+        mujoco.mj_forward(model, data)
+        r = mujoco.Renderer(model, 480, 640)
+        r.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = False
+        views = []
+        for cam in rig:
+            r.update_scene(data, camera=info["render"][cam.name][1])
+            views.append(r.render().astype(int))
+        r.close()
+        images[tiles] = np.stack(views)
+        floor_tex = model.mat_texid[model.material("floor_mat").id]
+        assert (floor_tex < 0).all() == tiles  # no texture sampled with tiles
+    diff = np.abs(images[True] - images[False]).max(axis=-1)
+    assert diff.mean() < 1.0
+    assert (diff > 8).mean() < 0.01  # only along the checks' edges (texture filtering vs geometry)
+    # ...and the checker is there: the floor is not one flat grey.
+    floor = images[True][0][300:, :].reshape(-1, 3)
+    assert len(np.unique(floor // 8, axis=0)) > 2
