@@ -159,6 +159,16 @@ def _spawn(cmd: list[str], log: Path, cpu: int | None = None, fifo: int = 0, **e
                             preexec_fn=setup)
 
 
+def _wait_ready(proc: subprocess.Popen, log: Path, line: str, timeout_s: float) -> bool:
+    """Wait until ``log`` holds ``line`` (the process is ready), it exits, or ``timeout_s``."""
+    t_end = time.monotonic() + timeout_s
+    while time.monotonic() < t_end and proc.poll() is None:
+        if log.exists() and line in log.read_text(errors="replace"):
+            return True
+        time.sleep(0.05)
+    return False
+
+
 def _warm_up(cfg: DemoConfig, rig_name: str, log) -> None:
     """Compile (first run after an install) or load the tracker's kernels and the BSP once here.
 
@@ -198,13 +208,6 @@ def run_demo(cfg: DemoConfig, log=print) -> dict:
     t_start = time.monotonic()
     events = []
     try:
-        procs["plant"] = _spawn([py, "-m", "vespro.sim.plant", "--robot-shm", robot.name, "--world-shm", world.name,
-                                 "--object", cfg.object, "--duration", str(cfg.duration), "--speed", str(cfg.speed),
-                                 "--y0", str(cfg.y0), "--stop-time", str(cfg.stop_time),
-                                 "--log", str(out / "plant.npz")], out / "plant.log",
-                                # The world keeps real time whatever else the machine runs: on the
-                                # servo's core (the servo sleeps most of each tick; it has priority 80).
-                                cpu=1, fifo=20)
         link_args = ["--serial", bridge.path_a, "--baud", str(cfg.baud)] if bridge else ["--tcp", str(port)]
         procs["vision"] = _spawn([py, "-m", "vespro", "serve", "--source", "world", "--world-shm", world.name,
                                   "--object", cfg.object, "--rig", rig, "--noise", str(cfg.noise_px),
@@ -217,6 +220,17 @@ def run_demo(cfg: DemoConfig, log=print) -> dict:
                                   # stalled on the servo's: 30 ms wall for 15 ms of work).
                                   "--cpu", "0", "--fifo", "10"],
                                  out / "vision.log", LP_NUM_THREADS="1")
+        # The plant (the world's clock) starts once the pose server is ready to capture: it
+        # builds its tracker, initialiser and worker first (a second or two), and the cell's
+        # first seconds would go by unseen.
+        _wait_ready(procs["vision"], out / "vision.log", "vespro serve: world source", timeout_s=120.0)
+        procs["plant"] = _spawn([py, "-m", "vespro.sim.plant", "--robot-shm", robot.name, "--world-shm", world.name,
+                                 "--object", cfg.object, "--duration", str(cfg.duration), "--speed", str(cfg.speed),
+                                 "--y0", str(cfg.y0), "--stop-time", str(cfg.stop_time),
+                                 "--log", str(out / "plant.npz")], out / "plant.log",
+                                # The world keeps real time whatever else the machine runs: on the
+                                # servo's core (the servo sleeps most of each tick; it has priority 80).
+                                cpu=1, fifo=20)
         url = bridge.path_b if bridge else f"socket://127.0.0.1:{port}"
         procs["servo"] = _spawn([py, "-m", "servo", "run", "--connect", url, "--baud", str(cfg.baud),
                                  "--robot", f"shm:{robot.name}", "--standoff", str(STANDOFF),

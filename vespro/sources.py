@@ -12,6 +12,8 @@ each stamped at capture on the server's clock, and None when it has no more.
 
 from __future__ import annotations
 
+import sys
+
 from typing import Protocol
 
 import numpy as np
@@ -189,13 +191,24 @@ class WorldSource:
         self.clock = clock
         self.missed = 0
         self._k = 0
-        t_end = clock.now_ns() + int(wait_start_s * 1e9)
-        while self.world.t0_ns == 0 and clock.now_ns() < t_end:
-            clock.sleep_until(clock.now_ns() + 5_000_000)
-        if self.world.t0_ns == 0:
-            raise TimeoutError("the plant did not start")
+        self._wait_start_s = float(wait_start_s)
+        # One throwaway render now: the first one builds the imaging pipeline's noise banks
+        # (~0.2 s for three cameras), which on the first live capture stalled the loop for
+        # the next five captures.
+        self.cell.render_frameset(0, 0, 0.0)
+
+    def wait_start(self) -> bool:
+        """Wait (up to ``wait_start_s``) for the plant to start; False if it did not."""
+        t_end = self.clock.now_ns() + int(self._wait_start_s * 1e9)
+        while self.world.t0_ns == 0 and self.clock.now_ns() < t_end:
+            self.clock.sleep_until(self.clock.now_ns() + 5_000_000)
+        return self.world.t0_ns != 0
 
     def next(self) -> FrameSet | None:
+        """The next capture (waits for the plant's start first); None once the plant has stopped."""
+        if self.world.t0_ns == 0 and not self.wait_start():
+            print(f"world source: the plant did not start within {self._wait_start_s:.0f} s", file=sys.stderr)
+            return None
         period = 1e9 / self.rate_hz
         t0 = self.world.t0_ns
         while True:

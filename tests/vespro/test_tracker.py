@@ -238,3 +238,34 @@ def test_fast_start_is_measured_twice_and_a_wrong_track_never_published(tmp_path
     # Measured (130 frames): every frame after the first tracked, 0.91 mm RMSE.
     assert s["tracked_fraction"] >= 0.9, s["tracked_fraction"]
     assert s["position_rmse_mm"] < 2.0, s
+
+
+def test_confirmation_needs_every_camera_to_agree(recs):
+    """A pose one camera supports and another rejects is not confirmed, whatever the totals.
+
+    Seen in the real-time demo after a 0.6 s gap: right camera 8 of 8 accepted, left 2 of 8,
+    10 of 16 in all (above the 60% total), the pose 15 mm off along the right camera's ray.
+    """
+    from vespro.tracker import CameraObservation, InitResult
+
+    rec = Recording(recs["box_conveyor"])
+    _, _, T = read_groundtruth(recs["box_conveyor"])
+    fs = rec.frameset(0)
+
+    def frames(accepted_left, n=6):
+        tr = make_tracker(rec)
+        tr.start(InitResult(T[0], cov6=np.diag([1e-6] * 3 + [1e-6] * 3)), fs.t_ns)
+        ids = np.arange(8)
+
+        def ob(name, n_acc):
+            acc = np.zeros(8, bool)
+            acc[:n_acc] = True
+            return CameraObservation(name, True, 12, ids, np.zeros((8, 2)), np.full(8, 3.0), np.zeros((8, 2)), acc)
+
+        obs = [ob("cam_left", accepted_left), ob("cam_right", 8)]
+        n_acc = accepted_left + 8
+        # 12 corners found of 16 selected: totals pass the inlier (10/12) and selected (10/16) fractions.
+        return [tr._status(fs, obs, 12, n_acc, 2.0, {"visibility": 0.0}).status for _ in range(n)]
+
+    assert "tracking" not in frames(accepted_left=2)  # 10 of 16 accepted, one camera rejecting
+    assert frames(accepted_left=6)[-1] == "tracking"  # both cameras agree: confirmed
