@@ -57,44 +57,6 @@ def add_parser(sub) -> None:
     p.set_defaults(func=run)
 
 
-def _realtime_setup(cpu: int | None, nice: int, fifo: int = 0) -> list[str]:
-    """Pin this process to ``cpu``, set its niceness and SCHED_FIFO priority; returns what could not be done.
-
-    Threads started afterwards (the renderer's, the recording writer's) inherit all three.
-    """
-    import os
-
-    msgs = []
-    if cpu is not None:
-        try:
-            os.sched_setaffinity(0, {cpu})
-        except (OSError, AttributeError, ValueError) as e:
-            msgs.append(f"could not pin to CPU {cpu}: {e}")
-    if nice:
-        try:
-            os.setpriority(os.PRIO_PROCESS, 0, nice)
-        except (OSError, AttributeError) as e:
-            msgs.append(f"could not set niceness {nice}: {e}")
-    if fifo:
-        try:
-            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(fifo))
-        except (OSError, AttributeError, ValueError) as e:
-            msgs.append(f"SCHED_FIFO {fifo} refused ({e}); normal scheduling")
-    return msgs
-
-
-def _realtime_leave() -> None:
-    """Back to normal scheduling on every core (this thread, and the threads it starts later)."""
-    import os
-
-    try:
-        if os.sched_getscheduler(0) != os.SCHED_OTHER:
-            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
-        os.sched_setaffinity(0, range(os.cpu_count() or 1))
-    except (OSError, AttributeError):
-        pass
-
-
 def run(args) -> int:
     from .clock import SimClock, WallClock
     from .link import PosePublisher
@@ -109,7 +71,9 @@ def run(args) -> int:
     from .cmd_track import tracker_config
 
     clock = SimClock() if args.lockstep else WallClock()
-    for msg in _realtime_setup(args.cpu, args.nice, args.fifo):  # before any renderer or worker starts its threads
+    from .realtime import enter_realtime, leave_realtime
+
+    for msg in enter_realtime(args.cpu, args.nice, args.fifo):  # before any renderer or worker starts a thread
         print(f"vespro serve: {msg}", file=sys.stderr)
     try:
         if args.source == "replay":
@@ -215,7 +179,7 @@ def run(args) -> int:
         source.close()
         if writer is not None:
             if args.cpu is not None or args.fifo:  # the saving (PNG encoding) is not live work
-                _realtime_leave()
+                leave_realtime()
             _save_run(args.record, writer, outputs, server.stats, link_stats, source)
         for s, h in old.items():  # restored last: a late signal must not interrupt the saving
             signal.signal(s, h)

@@ -141,22 +141,11 @@ class SerialBridge:
                 pass
 
 
-def _spawn(cmd: list[str], log: Path, cpu: int | None = None, fifo: int = 0, **env_extra) -> subprocess.Popen:
-    """Start a cell process in its own session; ``cpu`` pins it, ``fifo`` makes it SCHED_FIFO (best effort)."""
+def _spawn(cmd: list[str], log: Path, **env_extra) -> subprocess.Popen:
+    """Start a cell process in its own session, output to ``log``."""
     f = open(log, "w")
     env = dict(os.environ, PYTHONUNBUFFERED="1", MUJOCO_GL=os.environ.get("MUJOCO_GL", "egl"), **env_extra)
-
-    def setup():  # in the child, before exec
-        try:
-            if cpu is not None and cpu < (os.cpu_count() or 1):
-                os.sched_setaffinity(0, {cpu})
-            if fifo:
-                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(fifo))
-        except OSError:
-            pass  # not permitted here: the cell still runs, less isolated
-
-    return subprocess.Popen(cmd, stdout=f, stderr=subprocess.STDOUT, env=env, start_new_session=True,
-                            preexec_fn=setup)
+    return subprocess.Popen(cmd, stdout=f, stderr=subprocess.STDOUT, env=env, start_new_session=True)
 
 
 def _wait_ready(proc: subprocess.Popen, log: Path, line: str, timeout_s: float) -> bool:
@@ -227,10 +216,10 @@ def run_demo(cfg: DemoConfig, log=print) -> dict:
         procs["plant"] = _spawn([py, "-m", "vespro.sim.plant", "--robot-shm", robot.name, "--world-shm", world.name,
                                  "--object", cfg.object, "--duration", str(cfg.duration), "--speed", str(cfg.speed),
                                  "--y0", str(cfg.y0), "--stop-time", str(cfg.stop_time),
-                                 "--log", str(out / "plant.npz")], out / "plant.log",
-                                # The world keeps real time whatever else the machine runs: on the
-                                # servo's core (the servo sleeps most of each tick; it has priority 80).
-                                cpu=1, fifo=20)
+                                 "--log", str(out / "plant.npz"),
+                                 # The world keeps real time whatever else the machine runs: on the
+                                 # servo's core (the servo sleeps most of each tick; it has priority 80).
+                                 "--cpu", "1", "--fifo", "20"], out / "plant.log")
         url = bridge.path_b if bridge else f"socket://127.0.0.1:{port}"
         procs["servo"] = _spawn([py, "-m", "servo", "run", "--connect", url, "--baud", str(cfg.baud),
                                  "--robot", f"shm:{robot.name}", "--standoff", str(STANDOFF),

@@ -46,6 +46,11 @@ class Why(enum.IntEnum):
     INVALID = 6       #: non-finite prediction / window size, or OpenCV failed
 
 
+# Plain ints for the per-frame code: an IntEnum member costs an attribute lookup through
+# EnumType and a slow path in NumPy comparisons (1-2% of a frame).
+_FOUND, _OUTSIDE = int(Why.FOUND), int(Why.OUTSIDE)
+
+
 @dataclass(frozen=True)
 class ExtractionResult:
     """Measured corners of K features.
@@ -715,8 +720,8 @@ def extract_corners(
     # one compiled candidate search per window (a patch of its own: the response at the
     # window's edge depends on the patch border, so patches are not merged).
     geo, r_int = _window_geometry(uv_pred, r_all, W, H, pad)
-    why[geo[:, 0] == Why.OUTSIDE] = Why.OUTSIDE
-    go = np.flatnonzero(geo[:, 0] == Why.FOUND)
+    why[geo[:, 0] == _OUTSIDE] = _OUTSIDE
+    go = np.flatnonzero(geo[:, 0] == _FOUND)
     uv32 = uv_pred.astype(np.float32)  # NumPy 2 computes with the float32 response in float32
     params = (float(min_eig), np.float32(rel_quality), np.float32(min_isotropy), np.float32(ambiguity_ratio),
               int(nms_radius))
@@ -729,7 +734,7 @@ def extract_corners(
             continue
         code, n, cx, cy = _window_candidate(ev, iy0, iy1, ix0, ix1, px0, py0, uv32[i, 0], uv32[i, 1], *params)
         ncand[i] = n
-        if code != Why.FOUND:
+        if code != _FOUND:
             why[i] = code
             continue
         picked.append(i)
@@ -766,5 +771,5 @@ def extract_corners(
             P = np.full((len(ii), 2), np.nan)
         _take_refined(uv_out, ii, P, uv_pred, r_int)
     _mark_shared(uv_out, why, float(shared_px))
-    found = why == Why.FOUND
+    found = why == _FOUND
     return ExtractionResult(uv_out, found, why, ncand)

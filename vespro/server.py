@@ -18,7 +18,6 @@ latency (capture to send), status and link statistics.
 
 from __future__ import annotations
 
-import os
 import threading
 from concurrent.futures import Future, ProcessPoolExecutor, ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -28,6 +27,7 @@ import numpy as np
 
 from .clock import Clock
 from .frames import FrameSet
+from .realtime import leave_realtime
 from .se3 import quat_from_matrix
 from .tracker import Tracker, TrackerOutput
 from .wire import PoseMsg, PoseStatus
@@ -46,12 +46,7 @@ def _worker_setup(factory) -> None:
     the rendering in the real-time demo, longer than the catch-up backlog.
     """
     global _WORKER_INIT
-    try:  # free of the live loop's core and real-time class, if it had them
-        os.sched_setaffinity(0, range(os.cpu_count() or 1))
-        if os.sched_getscheduler(0) != os.SCHED_OTHER:
-            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
-    except (OSError, AttributeError):
-        pass
+    leave_realtime()  # free of the live loop's core and real-time class, if it had them
     _WORKER_INIT = factory()
 
 

@@ -231,7 +231,13 @@ def main(argv=None) -> int:
     p.add_argument("--stop-time", type=float, default=12.0, help="the belt starts stopping at this time, s")
     p.add_argument("--log", type=Path, required=True)
     p.add_argument("--lockstep", action="store_true", help="as fast as possible (no real-time pacing)")
+    p.add_argument("--cpu", type=int, metavar="N", help="pin the plant to core N")
+    p.add_argument("--fifo", type=int, default=0, metavar="PRIO", help="run SCHED_FIFO at this priority (0: normal)")
     args = p.parse_args(argv)
+    from ..realtime import enter_realtime
+
+    for msg in enter_realtime(args.cpu, 0, args.fifo):
+        print(f"plant: {msg}", file=sys.stderr, flush=True)
     motion = Conveyor(speed=args.speed, y0=args.y0, stop_time=args.stop_time)
     stats = run_plant(args.robot_shm, args.world_shm, object_mesh_path(args.object), motion, args.duration,
                       args.log, realtime=not args.lockstep)

@@ -1,0 +1,46 @@
+"""Real-time placement of a live process: a pinned core, niceness, SCHED_FIFO, and back.
+
+Used by the pose server's live loop (``vespro serve --cpu --fifo --nice``) and by the
+demo's plant. Each step is best effort: what the system refuses is returned as a
+message and the process runs on, less isolated.
+"""
+
+from __future__ import annotations
+
+import os
+
+__all__ = ["enter_realtime", "leave_realtime"]
+
+
+def enter_realtime(cpu: int | None, nice: int, fifo: int = 0) -> list[str]:
+    """Pin this process to ``cpu``, set its niceness and SCHED_FIFO priority; returns what could not be done.
+
+    Threads started afterwards (the renderer's, the recording writer's) inherit all three.
+    """
+    msgs = []
+    if cpu is not None:
+        try:
+            os.sched_setaffinity(0, {cpu})
+        except (OSError, AttributeError, ValueError) as e:
+            msgs.append(f"could not pin to CPU {cpu}: {e}")
+    if nice:
+        try:
+            os.setpriority(os.PRIO_PROCESS, 0, nice)
+        except (OSError, AttributeError) as e:
+            msgs.append(f"could not set niceness {nice}: {e}")
+    if fifo:
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(fifo))
+        except (OSError, AttributeError, ValueError) as e:
+            msgs.append(f"SCHED_FIFO {fifo} refused ({e}); normal scheduling")
+    return msgs
+
+
+def leave_realtime() -> None:
+    """Back to normal scheduling on every core (this thread, and the threads it starts later)."""
+    try:
+        if os.sched_getscheduler(0) != os.SCHED_OTHER:
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+        os.sched_setaffinity(0, range(os.cpu_count() or 1))
+    except (OSError, AttributeError):
+        pass
