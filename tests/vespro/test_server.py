@@ -175,3 +175,50 @@ print("OK")
     if out.stdout.startswith("SKIP"):
         pytest.skip(f"real-time scheduling not permitted here: {out.stdout.strip()}")
     assert out.stdout.strip() == "OK"
+
+
+def test_catch_up_after_a_late_initialisation_keeps_the_live_rate(rec_path):
+    """The frames queued while the initialiser worked are tracked a few per live frame, in
+    order, with the live frames joining the queue: no capture is skipped for the catch-up."""
+    from collections import deque
+
+    rec = Recording(rec_path)
+    _, _, T = read_groundtruth(rec_path)
+    frames = [rec.frameset(i) for i in range(len(rec))]
+
+    class StepClock:  # each tracked frame set costs 10 ms of this clock
+        t = 0
+
+        def now_ns(self):
+            return self.t
+
+    clock = StepClock()
+    tracker = Tracker(rec.rig, load_model(rec.model_path))
+    order = []
+    process = tracker.process
+
+    def timed(fs):
+        order.append(fs.index)
+        clock.t += 10_000_000
+        return process(fs)
+
+    tracker.process = timed
+    server = PoseServer(ReplaySource(rec, SimClock()), tracker, None, clock, lambda fs: None,
+                        background_init="thread", log=None)
+    tracker.start(InitResult(T[0]), frames[0].t_ns)
+    server._catching = deque(frames[1:11])  # what the initialiser's answer for frame 0 leaves
+    outs = []
+    k = 11
+    while server._catching is not None or k == 11:
+        before = len(order)
+        outs.append(server.step(frames[k]))
+        assert len(order) - before <= 3  # 15 ms of a 38 ms period: two at 10 ms each (+ the live one)
+        k += 1
+    assert order == list(range(1, k))  # every frame set once, oldest first, none skipped
+    assert all(o.status == "initializing" for o in outs[:-1])
+    assert outs[-1].index == k - 1 and server.caught_up_frames == k - 2
+    outs += [server.step(frames[j]) for j in range(k, min(k + 4, len(frames)))]
+    tracking = [o for o in outs if o.status == "tracking"]
+    assert tracking  # confirmed again on the live frames
+    for o in tracking:
+        assert np.linalg.norm(o.T_world_object[:3, 3] - T[o.index][:3, 3]) < 3e-3
