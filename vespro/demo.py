@@ -148,6 +148,33 @@ def _spawn(cmd: list[str], log: Path, **env_extra) -> subprocess.Popen:
     return subprocess.Popen(cmd, stdout=f, stderr=subprocess.STDOUT, env=env, start_new_session=True)
 
 
+# Where an eye-in-hand-only cell waits for the part: the tool 0.3 m above the belt and behind
+# the entry area, looking back at it (belt centre line x = 0.90 m, top z = 0.50 m). From the
+# home pose the hand camera sees the floor; straight above the belt it would see the part
+# face-on, the view a single camera settles worst (see issue 5's notes).
+SEARCH_TCP_AT = (0.90, 0.15, 0.80)
+SEARCH_LOOK_AT = (0.90, -0.15, 0.50)
+
+
+def search_q0(cameras: str) -> np.ndarray | None:
+    """Starting joints for a camera set whose only camera is on the arm (None: the home pose)."""
+    if cameras != "eye-in-hand":
+        return None
+    from servo.kinematics import ArmKinematics, solve_ik
+
+    from .se3 import transform_from_rt
+
+    z = np.subtract(SEARCH_LOOK_AT, SEARCH_TCP_AT)
+    z /= np.linalg.norm(z)
+    x = np.array([1.0, 0.0, 0.0]) - z * z[0]
+    x /= np.linalg.norm(x)
+    T = transform_from_rt(np.column_stack([x, np.cross(z, x), z]), np.asarray(SEARCH_TCP_AT, float))
+    q, ok = solve_ik(ArmKinematics(), T, np.array([0.0, -0.6, 0.9, 0.0, 1.2, 0.0]))
+    if not ok:
+        raise RuntimeError("demo: no arm configuration reaches the search pose")
+    return q
+
+
 def _wait_ready(proc: subprocess.Popen, log: Path, line: str, timeout_s: float) -> bool:
     """Wait until ``log`` holds ``line`` (the process is ready), it exits, or ``timeout_s``."""
     t_end = time.monotonic() + timeout_s
@@ -187,6 +214,7 @@ def run_demo(cfg: DemoConfig, log=print) -> dict:
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     rig = CAMERA_SETS[cfg.cameras]
+    q0 = search_q0(cfg.cameras)
     _warm_up(cfg, rig, log)
     robot = RobotShm(None)
     world = WorldShm(None)
@@ -217,6 +245,7 @@ def run_demo(cfg: DemoConfig, log=print) -> dict:
                                  "--object", cfg.object, "--duration", str(cfg.duration), "--speed", str(cfg.speed),
                                  "--y0", str(cfg.y0), "--stop-time", str(cfg.stop_time),
                                  "--log", str(out / "plant.npz"),
+                                 *(["--q0", ",".join(f"{v:.9f}" for v in q0)] if q0 is not None else []),
                                  # The world keeps real time whatever else the machine runs: on the
                                  # servo's core (the servo sleeps most of each tick; it has priority 80).
                                  "--cpu", "1", "--fifo", "20"], out / "plant.log")
@@ -354,7 +383,7 @@ def run_demo_lockstep(cfg: DemoConfig, log=print) -> dict:
     robot_shm, world_shm = RobotShm(None), WorldShm(None)
     clock = SimClock(t0_ns=1_000_000_000)  # t0 = 0 would read as "not started"
     plant = Plant(robot_shm.name, world_shm.name, mesh, Conveyor(speed=cfg.speed, y0=cfg.y0, stop_time=cfg.stop_time),
-                  cfg.duration)
+                  cfg.duration, q0=search_q0(cfg.cameras))
     plant.start(clock.now_ns())
     rig = load_rig(CAMERAS_DIR / f"{CAMERA_SETS[cfg.cameras]}.yaml")
     cell_cfg = CellConfig(mesh, rig, effects=ImageEffects(noise_px=cfg.noise_px), mono=True)  # the cell's cameras are monochrome

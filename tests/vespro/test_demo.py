@@ -63,3 +63,44 @@ def test_real_time_demo_survives_a_killed_pose_server(tmp_path):
         assert sv["controlled_stops"] >= 1
         assert kill_t - 0.5 <= sv["first_stop_s"] <= kill_t + WATCHDOG_S + 0.5, (kill_t, sv["first_stop_s"])
     assert (tmp_path / "summary.json").exists()
+
+
+def test_eye_in_hand_cell_waits_where_its_camera_sees_the_belt_entry():
+    """With only the arm's camera, the arm starts at a search pose: the part entering on the belt
+    is in view, seen obliquely (from home the camera looks at the floor)."""
+    import numpy as np
+
+    from vespro.camera import project_points
+    from vespro.demo import search_q0
+    from vespro.rig import load_rig
+    from vespro.sim.rigs import CAMERAS_DIR
+
+    assert search_q0("hybrid") is None and search_q0("fixed") is None
+    q0 = search_q0("eye-in-hand")
+    cam = load_rig(CAMERAS_DIR / "hand.yaml").cameras[0]
+
+    def view(q):
+        import mujoco
+
+        from vespro.sim.scene import CELL_XML
+
+        m = mujoco.MjModel.from_xml_path(str(CELL_XML))
+        d = mujoco.MjData(m)
+        d.qpos[:6] = q
+        mujoco.mj_forward(m, d)
+        b = m.body(cam.link).id
+        T_wl = np.eye(4)
+        T_wl[:3, :3] = d.xmat[b].reshape(3, 3)
+        T_wl[:3, 3] = d.xpos[b]
+        return T_wl @ cam.T_link_camera
+
+    for q, seen in ((q0, True), (np.array([0.0, -0.6, 0.9, 0.0, 1.2, 0.0]), False)):
+        T_wc = view(q)
+        parts = np.array([[0.90, y, 0.52] for y in (-0.30, -0.15, 0.0)])  # the part's path into the cell
+        T_cw = np.linalg.inv(T_wc)
+        pc = parts @ T_cw[:3, :3].T + T_cw[:3, 3]
+        uv, _ = project_points(cam.intrinsics, T_cw, parts)
+        inside = (pc[:, 2] > 0) & (uv[:, 0] > 0) & (uv[:, 0] < 640) & (uv[:, 1] > 0) & (uv[:, 1] < 480)
+        assert inside.all() == seen
+    tilt = np.degrees(np.arccos(-view(q0)[2, 2]))  # optical axis from straight down
+    assert 20 < tilt < 70

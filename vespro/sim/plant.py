@@ -94,7 +94,8 @@ class Plant:
         Sizes the preallocated ground-truth log.
     """
 
-    def __init__(self, robot_shm: str, world_shm: str, object_mesh: Path, motion, duration_s: float):
+    def __init__(self, robot_shm: str, world_shm: str, object_mesh: Path, motion, duration_s: float,
+                 q0: np.ndarray | None = None):
         from servo.robot import MujocoArm
         from servo.shm_robot import RobotShm
 
@@ -103,7 +104,8 @@ class Plant:
 
         model, _ = build_cell(SceneSpec(Path(object_mesh), Rig(())))
         self.model = model
-        self.arm = MujocoArm(model, q0=np.array(model.key("home").qpos[:6]))
+        # The arm starts at rest at q0 (the cell's "home" keyframe unless given).
+        self.arm = MujocoArm(model, q0=np.array(model.key("home").qpos[:6] if q0 is None else q0, dtype=float))
         self.data = self.arm.data
         self.motion = motion
         self._obj = model.body("object").mocapid[0]
@@ -184,11 +186,11 @@ class Plant:
 
 
 def run_plant(robot_shm: str, world_shm: str, object_mesh: Path, motion, duration_s: float, log_path: Path,
-              realtime: bool = True) -> dict:
+              realtime: bool = True, q0: np.ndarray | None = None) -> dict:
     """Step the cell in real time until ``duration_s`` (or SIGTERM/SIGINT); returns timing statistics."""
     from ..clock import WallClock
 
-    plant = Plant(robot_shm, world_shm, object_mesh, motion, duration_s)
+    plant = Plant(robot_shm, world_shm, object_mesh, motion, duration_s, q0=q0)
     n_steps = int(round(duration_s * 1e9 / plant.dt_ns))
     stop = {"now": False}
 
@@ -231,6 +233,7 @@ def main(argv=None) -> int:
     p.add_argument("--stop-time", type=float, default=12.0, help="the belt starts stopping at this time, s")
     p.add_argument("--log", type=Path, required=True)
     p.add_argument("--lockstep", action="store_true", help="as fast as possible (no real-time pacing)")
+    p.add_argument("--q0", help="the arm's starting joints, six comma-separated angles (rad); default: home")
     p.add_argument("--cpu", type=int, metavar="N", help="pin the plant to core N")
     p.add_argument("--fifo", type=int, default=0, metavar="PRIO", help="run SCHED_FIFO at this priority (0: normal)")
     args = p.parse_args(argv)
@@ -239,8 +242,16 @@ def main(argv=None) -> int:
     for msg in enter_realtime(args.cpu, 0, args.fifo):
         print(f"plant: {msg}", file=sys.stderr, flush=True)
     motion = Conveyor(speed=args.speed, y0=args.y0, stop_time=args.stop_time)
+    q0 = None
+    if args.q0:
+        try:
+            q0 = np.array([float(v) for v in args.q0.split(",")])
+        except ValueError:
+            q0 = np.zeros(0)
+        if q0.shape != (6,) or not np.all(np.isfinite(q0)):
+            p.error(f"--q0: six finite angles expected, got {args.q0!r}")
     stats = run_plant(args.robot_shm, args.world_shm, object_mesh_path(args.object), motion, args.duration,
-                      args.log, realtime=not args.lockstep)
+                      args.log, realtime=not args.lockstep, q0=q0)
     print(f"plant: {stats['steps']} steps, wake-up lateness median {stats['late_us_median']:.1f} us "
           f"p99 {stats['late_us_p99']:.1f} us", flush=True)
     return 0
