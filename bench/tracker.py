@@ -8,7 +8,10 @@ per-frame baseline run in this process on the same detections (OpenCV
 solvePnP per camera, no filter), and the ratio. Accuracy (position RMSE) is
 printed too, so speed is never read without it.
 
-Usage: ``python bench/tracker.py [--frames 78] [--object bracket] [--cache DIR]``
+With ``--mono`` the cameras are monochrome (8-bit grey, as in the demo's cell and most
+industrial cameras): the tracker then has no colour conversion to do.
+
+Usage: ``python bench/tracker.py [--frames 78] [--object bracket] [--cache DIR] [--mono]``
 """
 
 from __future__ import annotations
@@ -41,13 +44,14 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=78)
     ap.add_argument("--object", default="bracket")
     ap.add_argument("--cache", type=Path, default=Path("out/bench_tracker"))
+    ap.add_argument("--mono", action="store_true", help="monochrome cameras (grey images)")
     args = ap.parse_args()
     rows = []
     for rig_name in ("fixed1", "fixed2", "fixed3"):
-        path = args.cache / f"{args.object}_{rig_name}_{args.frames}"
+        path = args.cache / f"{args.object}_{rig_name}_{args.frames}{'_mono' if args.mono else ''}"
         if not (path / "groundtruth.csv").exists():
             cfg = CellConfig(MODELS_DIR / "objects" / f"{args.object}.stl", load_rig(CAMERAS_DIR / f"{rig_name}.yaml"),
-                             effects=ImageEffects(noise_px=0.5))
+                             effects=ImageEffects(noise_px=0.5), mono=args.mono)
             record(path, cfg, Conveyor(speed=0.1, y0=-0.2), args.frames, args.object, overwrite=True)
         rec = Recording(path)
         _, _, T = read_groundtruth(path)
@@ -72,7 +76,8 @@ def main() -> None:
                      f"{np.median(tot) / b_med:.1f}x"])
         _ = t0
     print_table(["rig", "stage", "median ms", "p99 ms", "pos RMSE mm", "frame/baseline"], rows,
-                title=f"Tracker time per frame set ({args.object}, {args.frames} frames, 640x480, 0.5 px noise)")
+                title=f"Tracker time per frame set ({args.object}, {args.frames} frames, 640x480 "
+                      f"{'grey' if args.mono else 'colour'}, 0.5 px noise)")
 
 
 if __name__ == "__main__":
