@@ -12,7 +12,9 @@ Captures (``capture_intrinsics``, ``capture_extrinsics``, ``capture_handeye``)
 move the board (mocap) or the arm (:meth:`SimCell.solve_ik`, joints set
 directly, no dynamics) through well-spread poses, render through the usual
 imaging pipeline (the rig's lens distortion is applied, and optional
-:class:`~vespro.sim.imaging.ImageEffects` noise) and write image folders in the layouts that ``vespro calibrate`` reads from real cameras.
+:class:`~vespro.sim.imaging.ImageEffects` noise; 2x2 samples per pixel,
+averaged: :data:`CAPTURE_SUPERSAMPLE`) and write image folders in the layouts
+that ``vespro calibrate`` reads from real cameras.
 """
 
 from __future__ import annotations
@@ -288,6 +290,13 @@ def capture_intrinsics(rig: Rig, camera: str, spec: BoardSpec, out_dir: Path, n_
     """Render the board in ``n_views`` poses before one camera (the arm holds
     an eye-in-hand camera level at ``INTRINSICS_HAND_EYE_POINT``, looking
     along world +x into free air).
+
+    The poses come from :func:`intrinsics_board_poses`, as a careful user
+    would take them: covering the image, tilted, and reaching into the image
+    corners (``corner_weight``). A ChArUco board may run off the image (35% of
+    its corners inside); its corners then count where the calibration can read
+    them (``reach`` 0.85 squares, :func:`vespro.calib.refine.extend_corners`),
+    not only where the detector decodes both neighbouring markers.
 
     Writes ``out_dir/<index:06d>.png``. Returns the true ``T_camera_board``
     of each view (for tests; the calibration reads only the images).
