@@ -248,7 +248,7 @@ def run_intrinsics(args) -> int:
     gaps = ", ".join(f"{g:.0f}" for g in res.coverage.corner_gap_px)
     print(f"coverage {100 * res.coverage.fraction:.0f}% of the image, nearest board corner to the image corners "
           f"(TL, TR, BL, BR) {gaps} px, map in {png}")
-    for w in res.coverage.warnings:
+    for w in res.coverage.warnings + ((res.refine_note,) if res.refine_note else ()):
         print(f"warning: {w}", file=sys.stderr)
     update_rig_camera(args.rig, args.camera, intrinsics=intr)
     print(f"wrote camera {args.camera!r} intrinsics to {args.rig}")

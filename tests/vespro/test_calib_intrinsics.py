@@ -98,6 +98,19 @@ def test_detector_corners_alone_extrapolate_badly(captured):
     assert np.sqrt(np.mean(d ** 2)) < 0.1
 
 
+def test_unreadable_images_keep_the_detector_calibration(captured):
+    """Images where no corner reads (here: blank) stop the reading with a note
+    instead of failing the calibration; the detector's corners are used."""
+    _, dets, images, _ = captured
+    blank = {n: np.full_like(img, 128) for n, img in images.items()}
+    plain = calibrate_intrinsics(dets, SPEC, (640, 480))
+    res = calibrate_intrinsics(dets, SPEC, (640, 480), images=blank)
+    assert res.refine_rounds == 0 and "stopped before round 1" in res.refine_note, res.refine_note
+    np.testing.assert_allclose(res.intrinsics.K, plain.intrinsics.K, atol=1e-6)  # OpenCV: ~1e-8 run to run
+    assert res.rejected == plain.rejected
+    assert plain.refine_note == ""
+
+
 def test_outlier_view_is_rejected(captured):
     _, dets, _, _ = captured
     rng = np.random.default_rng(0)
@@ -207,11 +220,16 @@ def test_eye_in_hand_camera_intrinsics(tmp_path):
     cam = RigCamera("hand", CameraIntrinsics(640, 480, h.intrinsics.K, DIST), "eye_in_hand", link=h.link,
                     T_link_camera=h.T_link_camera)
     capture_intrinsics(Rig((cam,)), "hand", SPEC, tmp_path, n_views=30, seed=0)
-    dets = {n: detect_board(img, SPEC) for n, img in load_images(list_images(tmp_path)).items()}
-    res = calibrate_intrinsics(dets, SPEC, (640, 480))
+    images = load_images(list_images(tmp_path))
+    dets = {n: detect_board(img, SPEC) for n, img in images.items()}
+    res = calibrate_intrinsics(dets, SPEC, (640, 480), images=images)
     est, true = res.intrinsics, cam.intrinsics
     rel = np.abs([est.fx / true.fx - 1, est.fy / true.fy - 1, est.cx / true.cx - 1, est.cy / true.cy - 1])
     # 60 deg field of view: the image corners reach twice cam_left's normalised
-    # radius, where k1..k3 bend hardest; 0.3% rather than cam_left's 0.2%.
-    assert rel.max() < 3e-3, rel
+    # radius, where k1..k3 bend hardest. Measured (seeds 0, 1): 0.015% / 0.028%,
+    # undistortion max 0.031 / 0.045 px (the detector's corners alone: 0.23% and
+    # 0.67 px / 0.20% and 1.1 px).
+    assert rel.max() < 2e-3, rel
+    mx, rms = undistortion_error(est, true)
+    assert mx < 0.1, (mx, rms)
     assert res.coverage.fraction == 1.0, res.coverage.warnings

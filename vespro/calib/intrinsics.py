@@ -89,7 +89,9 @@ class IntrinsicsResult:
     rms_px_detected : float
         Reprojection RMS of the first calibration, from the detector's corners, px.
     refine_rounds : int
-        Refinement rounds run (0: no images given).
+        Refinement rounds run (0: no images given, or none could be used).
+    refine_note : str
+        Why the refinement stopped early (empty when it ran every round asked).
     """
 
     intrinsics: CameraIntrinsics
@@ -104,6 +106,7 @@ class IntrinsicsResult:
     detections: dict = field(default=None)
     rms_px_detected: float = float("nan")
     refine_rounds: int = 0
+    refine_note: str = ""
 
 
 def reprojection_rms(intr: CameraIntrinsics, T_camera_board: np.ndarray, det: BoardDetection,
@@ -184,31 +187,37 @@ def calibrate_intrinsics(detections: dict, spec: BoardSpec, image_size: tuple, m
                                                             outlier_floor_px, max_rounds, rejected)
     rms_detected = _total_rms(dets, view_rms)
     rounds = 0
+    note = ""
     if images is not None:
         missing = [n for n in dets if n not in images]
         if missing:
             raise ValueError(f"no image for view(s) {', '.join(missing)}")
-        for rounds in range(1, refine_rounds + 1):
-            refined = {}
+        for r in range(1, refine_rounds + 1):
+            refined, unread = {}, {}
             for n, d in dets.items():
-                r = refine_corners(images[n], d, spec, intr, poses[n], drop_failed=True)
+                rd = refine_corners(images[n], d, spec, intr, poses[n], drop_failed=True)
                 if extend:
-                    r = extend_corners(images[n], r, spec, intr, poses[n])
-                if len(r) >= min_corners_read:
-                    refined[n] = r
+                    rd = extend_corners(images[n], rd, spec, intr, poses[n])
+                if len(rd) >= min_corners_read:
+                    refined[n] = rd
                 else:
-                    rejected[n] = float("nan")  # too few corners read cleanly
+                    unread[n] = float("nan")  # too few corners read cleanly
             if len(refined) < min_views:
-                raise CalibrationError(f"only {len(refined)} view(s) with at least {min_corners_read} corners read "
-                                       f"through the calibration, need {min_views}; refine_rounds=0 skips the reading")
-            dets = refined
-            dets, intr, poses, view_rms, std = _calibrate_rejecting(dets, spec, tuple(image_size), min_views,
+                # Images the reading cannot use (blurred past the markers' margin, low
+                # contrast): keep the calibration from the previous round's corners.
+                note = (f"corner reading stopped before round {r}: only {len(refined)} view(s) with at least "
+                        f"{min_corners_read} corners read cleanly, need {min_views}; the "
+                        + ("detector's corners are used" if r == 1 else f"corners of round {r - 1} are used"))
+                break
+            rejected.update(unread)
+            dets, intr, poses, view_rms, std = _calibrate_rejecting(refined, spec, tuple(image_size), min_views,
                                                                     outlier_factor, outlier_floor_px, max_rounds,
                                                                     rejected)
+            rounds = r
     # Read corners (~0.005 px) extrapolate much further than the detector's (~0.08 px).
     cov = coverage(list(dets.values()), tuple(image_size), max_corner_gap=0.06 if rounds else 0.04)
     return IntrinsicsResult(intr, _total_rms(dets, view_rms), view_rms, poses, tuple(dets), failed, rejected, std, cov,
-                            dict(dets), rms_detected, rounds)
+                            dict(dets), rms_detected, rounds, note)
 
 
 def _total_rms(dets: dict, view_rms: dict) -> float:
