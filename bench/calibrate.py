@@ -5,7 +5,13 @@ Three tables:
 - intrinsics of cam_left (640x480, plumb_bob k1=-0.22 k2=0.09 p1=0.0006
   p2=-0.0004 k3=-0.015): plain chessboard (whole board in view) vs ChArUco
   (may run off the image), same board geometry and pose generator; and
-  ChArUco with 0.3 px geometric pixel noise + 2 grey levels of sensor noise;
+  ChArUco with 2 grey levels of sensor noise, and with 0.3 px geometric pixel
+  noise (a displacement field, so the corners really move) + the sensor noise.
+  Each capture calibrated twice: from the detector's corners ("detector",
+  ``refine_rounds=0``) and with the corners re-located on the board plane
+  through the calibration ("read", the default: 2 rounds, ChArUco corners the
+  detector lost at the border added); ``--seeds N`` runs only these, over
+  seeds 0..N-1;
 - extrinsics of the three fixed cameras (fixed3, same distortion, true
   intrinsics): PnP from the best single view (baseline) vs the joint refinement
   over four known placements;
@@ -19,11 +25,11 @@ distance from an image corner pixel to the nearest detected board corner (how
 far the model is extrapolated there).
 
 The last row of the extrinsics and hand-eye tables runs the chain a user runs:
-intrinsics calibrated first (from the simulated images), then the pose stage
-with them instead of the true intrinsics.
+intrinsics calibrated first (from the simulated images, "read"), then the pose
+stage with them instead of the true intrinsics.
 
 Times are wall-clock seconds per stage on this machine (capture = MuJoCo render
-+ imaging + PNG write). Usage: ``python bench/calibrate.py [--views N] [--seed S]``.
++ imaging + PNG write). Usage: ``python bench/calibrate.py [--views N] [--seed S] [--seeds N]``.
 """
 
 from __future__ import annotations
@@ -68,31 +74,67 @@ def _timed(fn, *a, **k):
     return out, time.perf_counter() - t
 
 
-def bench_intrinsics(tmp: Path, views: int, seed: int):
+def _intrinsics_rows(tmp: Path, kind: str, noise: float, views: int, seed: int, grey_noise: float = 2.0):
+    """Capture once, calibrate from the detector's corners and with the reading
+    rounds; one table row each. Returns the rows and the read calibration.
+    ``noise``: geometric pixel noise (px); with it or with ``noise`` < 0 (sensor
+    noise only), ``grey_noise`` grey levels of sensor noise."""
     rig = _with_dist(load_rig(CAMERAS_DIR / "fixed1.yaml"))
     true = rig["cam_left"].intrinsics
+    spec = BoardSpec(kind, 11, 8, 0.028, 0.021 if kind == "charuco" else None)
+    folder = tmp / f"intr_{kind}_{noise}_{seed}"
+    effects = ImageEffects(noise_px=max(noise, 0.0), intensity_noise=grey_noise) if noise else None
+    _, t_cap = _timed(capture_intrinsics, rig, "cam_left", spec, folder, views, seed, effects)
+    images = load_images(list_images(folder))
+    dets, t_det = _timed(lambda: {n: detect_board(i, spec) for n, i in images.items()})
     rows = []
-    charuco = None
-    for kind, noise in (("chessboard", 0.0), ("charuco", 0.0), ("charuco", 0.3)):
-        spec = BoardSpec(kind, 11, 8, 0.028, 0.021 if kind == "charuco" else None)
-        folder = tmp / f"intr_{kind}_{noise}"
-        effects = ImageEffects(noise_px=noise, intensity_noise=2.0) if noise else None
-        _, t_cap = _timed(capture_intrinsics, rig, "cam_left", spec, folder, views, seed, effects)
-        images = load_images(list_images(folder))
-        dets, t_det = _timed(lambda: {n: detect_board(i, spec) for n, i in images.items()})
-        res, t_cal = _timed(calibrate_intrinsics, dets, spec, (true.width, true.height))
+    for rounds in (0, 2):
+        res, t_cal = _timed(calibrate_intrinsics, dets, spec, (true.width, true.height), images=images,
+                            refine_rounds=rounds)
         e = res.intrinsics
         mx, rms = undistortion_error(e, true, step_px=4)
         rel = 100 * np.array([e.fx / true.fx - 1, e.fy / true.fy - 1, e.cx / true.cx - 1, e.cy / true.cy - 1])
-        rows.append([kind + (f" +{noise} px noise" if noise else ""), f"{len(res.used)}/{views}", t_cap, t_det, t_cal, res.rms_px, *np.round(rel, 3).tolist(),
-                     rms, mx, 100 * res.coverage.fraction, float(res.coverage.corner_gap_px.max())])
+        name = kind + _noise_name(noise, grey_noise) + (", read" if rounds else ", detector")
+        rows.append([name, seed, f"{len(res.used)}/{views}", t_cap, t_det, t_cal, res.rms_px, *np.round(rel, 3).tolist(),
+                     rms, mx, float(res.coverage.corner_gap_px.max())])
+    return rows, res
+
+
+def _noise_name(noise: float, grey_noise: float = 2.0) -> str:
+    if noise > 0:
+        return f" +{noise} px, {grey_noise:g} grey noise"
+    return f" +{grey_noise:g} grey noise" if noise < 0 else ""
+
+
+INTR_HEADER = ["board, corners", "seed", "views", "capture s", "detect s", "calib s", "RMS px", "fx %", "fy %", "cx %",
+               "cy %", "undist RMS px", "undist max px", "corner gap px"]
+
+
+def bench_intrinsics(tmp: Path, views: int, seed: int):
+    rows = []
+    charuco = None
+    for kind, noise in (("chessboard", 0.0), ("charuco", 0.0), ("charuco", -1.0), ("charuco", 0.3)):
+        r, res = _intrinsics_rows(tmp, kind, noise, views, seed)
+        rows += r
         if kind == "charuco" and charuco is None:
             charuco = res
-    print_table(["board", "views", "capture s", "detect s", "calib s", "RMS px", "fx %", "fy %", "cx %", "cy %",
-                 "undist RMS px", "undist max px", "cover %", "corner gap px"], rows,
-                title=f"Intrinsics, cam_left 640x480 with distortion ({views} views, seed {seed}); errors vs truth")
+    print_table(INTR_HEADER, rows,
+                title=f"Intrinsics, cam_left 640x480 with distortion ({views} views, seed {seed}); errors vs truth. "
+                      "'detector': OpenCV's corners; 'read': re-located on the board plane through the "
+                      "calibration, 2 rounds")
     print()
     return charuco.intrinsics
+
+
+def bench_intrinsics_seeds(tmp: Path, views: int, seeds) -> None:
+    for kind, noise in (("charuco", 0.0), ("chessboard", 0.0), ("charuco", -1.0), ("charuco", 0.3)):
+        rows = []
+        for seed in seeds:
+            rows += _intrinsics_rows(tmp, kind, noise, views, seed)[0]
+        rows.sort(key=lambda r: (r[0], r[1]))
+        print_table(INTR_HEADER, rows, title=f"Intrinsics over seeds, {kind}{_noise_name(noise)}, "
+                    f"cam_left 640x480, {views} views")
+        print()
 
 
 def bench_extrinsics(tmp: Path, cam_left_calibrated=None) -> None:
@@ -149,8 +191,9 @@ def bench_hand_eye(tmp: Path, seed: int) -> None:
     # holds it still while the board moves), then hand-eye with them.
     ifolder = tmp / "hand_intr"
     capture_intrinsics(rig, "hand", spec, ifolder, 30, seed)
-    idets = {n: detect_board(i, spec) for n, i in load_images(list_images(ifolder)).items()}
-    intr = calibrate_intrinsics(idets, spec, (640, 480)).intrinsics
+    iimages = load_images(list_images(ifolder))
+    idets = {n: detect_board(i, spec) for n, i in iimages.items()}
+    intr = calibrate_intrinsics(idets, spec, (640, 480), images=iimages).intrinsics
     res2 = calibrate_hand_eye({n: lookup_pose(poses, n) for n in images}, dets, intr, spec)
     c = res2.best
     dp, da = pose_error(c.T_link_camera, cam.T_link_camera)
@@ -165,9 +208,14 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--views", type=int, default=30, help="intrinsics views")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--seeds", type=int, default=0,
+                    help="only the intrinsics rows, for seeds 0..N-1 (how much they vary with the capture)")
     args = ap.parse_args()
     with tempfile.TemporaryDirectory() as d:
         tmp = Path(d)
+        if args.seeds:
+            bench_intrinsics_seeds(tmp, args.views, range(args.seeds))
+            return
         cam_left = bench_intrinsics(tmp, args.views, args.seed)
         bench_extrinsics(tmp, cam_left)
         bench_hand_eye(tmp, args.seed)

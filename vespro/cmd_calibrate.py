@@ -89,6 +89,9 @@ def add_parser(sub) -> None:
     pi.add_argument("--camera", required=True, help="camera name in the rig file")
     pi.add_argument("--min-views", type=int, default=6, help="fewest usable views")
     pi.add_argument("--coverage-png", type=Path, help="coverage map to write (default: <rig>_<camera>_coverage.png beside the rig file)")
+    pi.add_argument("--refine-rounds", type=int, default=2,
+                    help="rounds of re-locating the corners on the board plane through the calibration, each "
+                         "followed by a new calibration (0: the detector's corners only)")
     _add_board(pi, "intrinsics")
     _add_sim(pi, "fixed1", 30)
     pi.set_defaults(func=run_intrinsics)
@@ -219,26 +222,33 @@ def run_intrinsics(args) -> int:
     images = load_images(list_images(args.images))
     size = next(iter(images.values())).shape[1::-1]
     dets, t_det = _detect_all(images, spec)
-    res = calibrate_intrinsics(dets, spec, size, min_views=args.min_views)
+    res = calibrate_intrinsics(dets, spec, size, min_views=args.min_views, images=images,
+                               refine_rounds=args.refine_rounds)
     intr = res.intrinsics
     print(f"board: {spec.describe()}; {len(images)} images {size[0]}x{size[1]}, detection {t_det:.2f} s")
     for n in images:
         if n in res.view_rms_px:
-            print(f"  {n}: {len(dets[n]):3d} corners, RMS {res.view_rms_px[n]:.3f} px")
+            print(f"  {n}: {len(res.detections[n]):3d} corners, RMS {res.view_rms_px[n]:.4f} px")
+        elif n in res.rejected and np.isnan(res.rejected[n]):
+            print(f"  {n}: rejected, too few corners read through the calibration")
         elif n in res.rejected:
             print(f"  {n}: rejected as outlier (RMS {res.rejected[n]:.3f} px)")
         else:
             print(f"  {n}: board not found")
-    print(f"reprojection RMS {res.rms_px:.3f} px over {len(res.used)} views")
+    if res.refine_rounds:
+        print(f"reprojection RMS {res.rms_px:.4f} px over {len(res.used)} views after {res.refine_rounds} rounds of "
+              f"corner refinement on the board plane ({res.rms_px_detected:.3f} px from the detector's corners)")
+    else:
+        print(f"reprojection RMS {res.rms_px:.3f} px over {len(res.used)} views")
     print(f"fx {intr.fx:.3f}  fy {intr.fy:.3f}  cx {intr.cx:.3f}  cy {intr.cy:.3f} px "
           f"(std {res.std[0]:.3f} {res.std[1]:.3f} {res.std[2]:.3f} {res.std[3]:.3f})")
     print("distortion k1 k2 p1 p2 k3: " + " ".join(f"{v:.6f}" for v in intr.dist))
     png = args.coverage_png or args.rig.with_name(f"{args.rig.stem}_{args.camera}_coverage.png")
-    cv2.imwrite(str(png), coverage_image(res.coverage, [dets[n] for n in res.used], size))
+    cv2.imwrite(str(png), coverage_image(res.coverage, [res.detections[n] for n in res.used], size))
     gaps = ", ".join(f"{g:.0f}" for g in res.coverage.corner_gap_px)
     print(f"coverage {100 * res.coverage.fraction:.0f}% of the image, nearest board corner to the image corners "
           f"(TL, TR, BL, BR) {gaps} px, map in {png}")
-    for w in res.coverage.warnings:
+    for w in res.coverage.warnings + ((res.refine_note,) if res.refine_note else ()):
         print(f"warning: {w}", file=sys.stderr)
     update_rig_camera(args.rig, args.camera, intrinsics=intr)
     print(f"wrote camera {args.camera!r} intrinsics to {args.rig}")

@@ -64,3 +64,43 @@ def test_mono_camera_gives_the_grey_of_the_colour_image():
     # Noise works on one channel too.
     noisy = ImagePipeline(dist, intr, ImageEffects(noise_px=0.5, intensity_noise=2.0), mono=True)
     assert noisy.apply(rgb, np.random.default_rng(0)).shape == (480, 640)
+
+
+@pytest.mark.parametrize("n", [2, 3])
+def test_supersampled_pixel_is_the_mean_over_its_area(n):
+    """With ``supersample`` n each pixel averages n x n render samples spread over
+    its area. A render that is a quadratic function of the ray gives, per pixel,
+    the function's mean over the pixel's footprint; independently computed here
+    by integrating (dense midpoint rule) through vespro.camera's model."""
+    from vespro.camera import undistort_pixels
+    from vespro.sim.scene import render_intrinsics
+
+    intr = CameraIntrinsics(160, 120, [[150.0, 0, 81.0], [0, 151.0, 58.5], [0, 0, 1]], [-0.2, 0.08, 0.0005, -0.0003, -0.01])
+    render, _ = render_intrinsics(intr, supersample=n)
+    assert render.fx == pytest.approx(n * max(intr.fx, intr.fy))
+    # Grey level as a function of the normalised ray: curved enough that a sample
+    # offset by a fraction of a pixel, or a missing average, changes the pixel.
+    def grey(xn, yn):
+        return 100.0 + 50.0 * xn - 30.0 * yn + 120.0 * xn * xn + 80.0 * xn * yn  # 40-195 over the image
+
+    v, u = np.mgrid[0:render.height, 0:render.width].astype(float)
+    img = grey((u - render.cx) / render.fx, (v - render.cy) / render.fy)
+    pipe = ImagePipeline(intr, render, supersample=n)
+    out = pipe.map_x.shape
+    assert out == (n * 120, n * 160)
+    res = cv2.remap(img.astype(np.float32), pipe.map_x, pipe.map_y, cv2.INTER_LINEAR)
+    res = cv2.resize(res, (160, 120), interpolation=cv2.INTER_AREA)
+    # Reference: the mean of grey over each pixel area, 8x8 midpoints.
+    m = 8
+    off = (np.arange(m) + 0.5) / m - 0.5
+    us, vs = np.meshgrid((np.arange(160)[:, None] + off).ravel(), (np.arange(120)[:, None] + off).ravel())
+    ideal = undistort_pixels(intr, np.stack([us.ravel(), vs.ravel()], 1))
+    g = grey((ideal[:, 0] - intr.cx) / intr.fx, (ideal[:, 1] - intr.cy) / intr.fy).reshape(120 * m, 160 * m)
+    ref = cv2.resize(g.astype(np.float32), (160, 120), interpolation=cv2.INTER_AREA)
+    # Bilinear render lookup of a quadratic (~1e-3 levels) and n x n vs 8 x 8 midpoints
+    # of a quadratic (< 0.01 levels here); a quarter-pixel sample offset gives ~0.1 levels.
+    assert np.abs(res - ref).max() < 0.02, np.abs(res - ref).max()
+    # The pipeline itself (8-bit) gives the same up to rounding (input and output, 0.5 each).
+    rgb = np.clip(np.round(img), 0, 255).astype(np.uint8)
+    got = pipe.apply(np.dstack([rgb] * 3))
+    assert np.abs(got[..., 1].astype(float) - ref).max() < 1.1

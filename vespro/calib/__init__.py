@@ -3,7 +3,8 @@
 Pure functions on detections and poses live in :mod:`.intrinsics`,
 :mod:`.extrinsics` and :mod:`.handeye` (with the AX = XB solvers in
 :mod:`.axxb` and single-view board pose in :mod:`.pose`); board definitions and
-detection in :mod:`.board`; reading image folders, pose files and updating rig
+detection in :mod:`.board`; corners re-located on the board plane through a
+calibration (and ChArUco corners the detector missed) in :mod:`.refine`; reading image folders, pose files and updating rig
 files in :mod:`.io`. ``vespro calibrate`` (:mod:`vespro.cmd_calibrate`) is the thin
 command-line layer over them.
 

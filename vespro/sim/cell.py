@@ -88,6 +88,9 @@ class CellConfig:
         Passed to :class:`~vespro.sim.scene.SceneSpec` ``extras``.
     render_samples : int
         Render multisampling (see :class:`~vespro.sim.scene.SceneSpec`).
+    supersample : int
+        Render samples per pixel and axis, averaged into each pixel (see
+        :class:`~vespro.sim.scene.SceneSpec`); render time grows with its square.
     mono : bool
         Monochrome cameras: 8-bit grey images instead of BGR.
     """
@@ -104,6 +107,7 @@ class CellConfig:
     seed: int = 0
     scene_extras: tuple = ()
     render_samples: int = 4
+    supersample: int = 1
     mono: bool = False
 
     def __post_init__(self):
@@ -137,7 +141,8 @@ class SimCell:
         self.clock = clock or SimClock()
         self.model, info = build_cell(SceneSpec(Path(config.object_mesh), config.rig, markers=config.markers,
                                                 extras=tuple(config.scene_extras),
-                                                render_samples=config.render_samples))
+                                                render_samples=config.render_samples,
+                                                supersample=config.supersample))
         self.data = mujoco.MjData(self.model)
         home = self.model.key("home").id
         mujoco.mj_resetDataKeyframe(self.model, self.data, home)
@@ -150,7 +155,8 @@ class SimCell:
         self._pipelines = {}
         for cam in config.rig:
             rintr, mj_name = self._render_info[cam.name]
-            self._pipelines[cam.name] = ImagePipeline(cam.intrinsics, rintr, config.effects, mono=config.mono)
+            self._pipelines[cam.name] = ImagePipeline(cam.intrinsics, rintr, config.effects, mono=config.mono,
+                                                    supersample=config.supersample)
             key = (rintr.height, rintr.width)
             if key not in self._renderers:
                 r = mujoco.Renderer(self.model, rintr.height, rintr.width)

@@ -4,7 +4,10 @@ MuJoCo renders an ideal centred pinhole (:func:`vespro.sim.scene.render_intrinsi
 :class:`ImagePipeline` turns it into the rig camera's image:
 
 1. geometry: every output pixel samples the render where its ray hits, using the
-   rig camera's matrix and plumb_bob distortion (one ``cv2.remap``);
+   rig camera's matrix and plumb_bob distortion (one ``cv2.remap``); with
+   ``supersample`` = n > 1 the render is n times finer, each output pixel is
+   sampled at n x n points spread over its area and their mean is the pixel
+   (a sensor integrates light over the pixel; box filter, ``cv2.INTER_AREA``);
 2. pixel noise ``noise_px``: a random, smooth displacement field (new each frame)
    with standard deviation ``noise_px`` per axis and a correlation length of a
    few pixels, folded into the same remap. Image features (corners) move by it
@@ -73,31 +76,43 @@ class ImagePipeline:
     mono : bool
         A monochrome camera: 8-bit grey images (what the tracker uses; a third
         of the pixels to remap, blur and write).
+    supersample : int
+        Samples per pixel and axis (``render`` must then be that much finer,
+        :func:`vespro.sim.scene.render_intrinsics`).
     """
 
     def __init__(self, intr: CameraIntrinsics, render: CameraIntrinsics, effects: ImageEffects = ImageEffects(),
-                 mono: bool = False):
+                 mono: bool = False, supersample: int = 1):
         self.intr = intr
         self.render = render
         self.effects = effects
         self.mono = bool(mono)
+        self.supersample = n = int(supersample)
+        if n < 1:
+            raise ValueError(f"supersample must be an integer >= 1, got {supersample}")
         self._bank = None
         self._fields = None
-        self.identity = intr is render or (
+        self.identity = n == 1 and (intr is render or (
             intr.width == render.width and intr.height == render.height
             and np.allclose(intr.K, render.K) and not intr.has_distortion
-        )
+        ))
         if self.identity:
             u, v = np.meshgrid(np.arange(intr.width, dtype=np.float32), np.arange(intr.height, dtype=np.float32))
             self.map_x, self.map_y = u, v
         else:
-            u, v = np.meshgrid(np.arange(intr.width, dtype=np.float64), np.arange(intr.height, dtype=np.float64))
+            # Sample j of n along an axis of pixel u sits at u + (j + 0.5) / n - 0.5
+            # (pixel centres at integers, the pixel spans u +- 0.5).
+            off = (np.arange(n) + 0.5) / n - 0.5
+            us = (np.arange(intr.width)[:, None] + off).ravel()
+            vs = (np.arange(intr.height)[:, None] + off).ravel()
+            u, v = np.meshgrid(us, vs)
             uv = np.stack([u.ravel(), v.ravel()], axis=1)
             ideal = undistort_pixels(intr, uv)  # ideal pixels of the rig camera matrix
             xn = (ideal[:, 0] - intr.cx) / intr.fx
             yn = (ideal[:, 1] - intr.cy) / intr.fy
-            self.map_x = (render.fx * xn + render.cx).reshape(intr.height, intr.width).astype(np.float32)
-            self.map_y = (render.fy * yn + render.cy).reshape(intr.height, intr.width).astype(np.float32)
+            shape = (n * intr.height, n * intr.width)
+            self.map_x = (render.fx * xn + render.cx).reshape(shape).astype(np.float32)
+            self.map_y = (render.fy * yn + render.cy).reshape(shape).astype(np.float32)
 
     def _displacement(self, rng: np.random.Generator) -> np.ndarray:
         """A displacement field for one frame: a random crop of a bank of fields.
@@ -158,14 +173,20 @@ class ImagePipeline:
         noisy = e.noise_px > 0 or e.intensity_noise > 0
         if noisy and rng is None:
             raise ValueError("image noise needs a random generator")
+        n = self.supersample
         if e.noise_px > 0:
             d = self._displacement(rng)
+            if n > 1:
+                # The field is in rig pixels; render pixels are n times finer.
+                d = n * cv2.resize(d, (self.map_x.shape[1], self.map_x.shape[0]), interpolation=cv2.INTER_LINEAR)
             out = cv2.remap(bgr, self.map_x + d[..., 0], self.map_y + d[..., 1], cv2.INTER_LINEAR,
                             borderMode=cv2.BORDER_REPLICATE)
         elif not self.identity:
             out = cv2.remap(bgr, self.map_x, self.map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         else:
             out = bgr
+        if n > 1:
+            out = cv2.resize(out, (self.intr.width, self.intr.height), interpolation=cv2.INTER_AREA)
         if e.blur_px > 0:
             out = cv2.GaussianBlur(out, (0, 0), e.blur_px)
         if e.intensity_noise > 0:

@@ -44,7 +44,8 @@ BELT_CENTER_X = 0.90
 WORK_POINT = np.array([0.90, 0.0, 0.55])
 
 
-def render_intrinsics(intr: CameraIntrinsics, margin: float = 1.0) -> tuple[CameraIntrinsics, float]:
+def render_intrinsics(intr: CameraIntrinsics, margin: float = 1.0,
+                      supersample: int = 1) -> tuple[CameraIntrinsics, float]:
     """The centred square-pixel pinhole MuJoCo renders for a rig camera.
 
     Parameters
@@ -53,16 +54,24 @@ def render_intrinsics(intr: CameraIntrinsics, margin: float = 1.0) -> tuple[Came
         The rig camera (any focal lengths, principal point, distortion).
     margin : float
         Extra field of view factor (>= 1).
+    supersample : int
+        Render this many times finer than the rig camera's pixels (each rig
+        pixel then averages ``supersample**2`` render samples, see
+        :class:`~vespro.sim.imaging.ImagePipeline`).
 
     Returns
     -------
     render : CameraIntrinsics
-        Centred pinhole, focal length = max(fx, fy) (no loss of sampling density),
-        sized to cover every pixel of the rig image once undistorted.
+        Centred pinhole, focal length = ``supersample * max(fx, fy)`` (no loss
+        of sampling density), sized to cover every pixel of the rig image once
+        undistorted.
     fovy_deg : float
         MuJoCo ``fovy`` of that render camera.
     """
-    if not intr.has_distortion and abs(intr.fx - intr.fy) < 1e-6 * intr.fx \
+    ss = int(supersample)
+    if ss < 1:
+        raise ValueError(f"supersample must be an integer >= 1, got {supersample}")
+    if ss == 1 and not intr.has_distortion and abs(intr.fx - intr.fy) < 1e-6 * intr.fx \
             and abs(intr.cx - (intr.width - 1) / 2) < 1e-6 and abs(intr.cy - (intr.height - 1) / 2) < 1e-6:
         fovy = float(np.rad2deg(2 * np.arctan(0.5 * intr.height / intr.fy)))
         return intr, fovy
@@ -78,9 +87,9 @@ def render_intrinsics(intr: CameraIntrinsics, margin: float = 1.0) -> tuple[Came
     ideal = undistort_pixels(intr, border)
     xn = (ideal[:, 0] - intr.cx) / intr.fx
     yn = (ideal[:, 1] - intr.cy) / intr.fy
-    f = max(intr.fx, intr.fy)
-    half_w = margin * f * np.max(np.abs(xn)) + 2.0
-    half_h = margin * f * np.max(np.abs(yn)) + 2.0
+    f = ss * max(intr.fx, intr.fy)
+    half_w = margin * f * np.max(np.abs(xn)) + 2.0 * ss
+    half_h = margin * f * np.max(np.abs(yn)) + 2.0 * ss
     rw, rh = int(np.ceil(2 * half_w)), int(np.ceil(2 * half_h))
     K = np.array([[f, 0, (rw - 1) / 2], [0, f, (rh - 1) / 2], [0, 0, 1]])
     fovy = float(np.rad2deg(2 * np.arctan(0.5 * rh / f)))
@@ -107,6 +116,11 @@ class SceneSpec:
         Multisampling of the offscreen renders (anti-aliasing): 4 for accuracy,
         0 where render time matters most (a real-time demo, with a slight blur
         standing in for the pixel integration of a real sensor).
+    supersample : int
+        Render each camera this many times finer (per axis) than its pixels; the
+        image pipeline averages the samples of each pixel, as a sensor
+        integrates light over its area (multisampling only smooths geometry
+        edges: a texture is sampled once per render pixel).
     extras : tuple of callables
         Each is called as ``f(spec: mujoco.MjSpec)`` before compiling, to add
         bodies of its own (a calibration board, a second part...).
@@ -125,6 +139,7 @@ class SceneSpec:
     extras: tuple = ()
     render_samples: int = 4
     floor_tiles: bool = True
+    supersample: int = 1
 
 
 # The floor's checker (models/cell.xml: 512 px builtin checker, 8 repeats over the 8 m plane).
@@ -223,7 +238,7 @@ def build_cell(spec: SceneSpec) -> tuple[mujoco.MjModel, dict]:
 
     render = {}
     for cam in spec.rig:
-        rintr, fovy = render_intrinsics(cam.intrinsics)
+        rintr, fovy = render_intrinsics(cam.intrinsics, supersample=spec.supersample)
         pos, quat = _camera_pose_gl(cam)
         if cam.is_fixed:
             parent = wb
