@@ -168,6 +168,8 @@ def run(args) -> int:
     def _stop(signum, frame):
         server.stop()
 
+    if not server.wait_ready():
+        print("vespro serve: the initialisation worker is not ready; starting anyway", file=sys.stderr, flush=True)
     old = {s: signal.signal(s, _stop) for s in (signal.SIGINT, signal.SIGTERM)}
     print(f"vespro serve: {args.source} source, cameras {', '.join(source.rig.names)}, object {model.name}; "
           f"{where}", flush=True)

@@ -155,7 +155,7 @@ class PoseServer:
             self._pool = ProcessPoolExecutor(max_workers=1, initializer=_worker_setup, initargs=(initializer_factory,))
             # Start the worker now: started by the first real job, its launch stalled the live loop
             # for long enough that the frames after that job's were missing and its pose was discarded.
-            self._pool.submit(_worker_ping)
+            self._worker_up = self._pool.submit(_worker_ping)
             self._submit = lambda fs, seed: self._pool.submit(_worker_run, fs, seed)
         elif background_init:
             self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="vespro-init")
@@ -175,6 +175,22 @@ class PoseServer:
         self.caught_up_frames = 0
         self._catching: deque | None = None  # frame sets queued for the catch-up, oldest first
         self.stale_inits = 0
+
+    def wait_ready(self, timeout_s: float = 120.0) -> bool:
+        """Wait until the initialisation worker process is up with its initialiser built.
+
+        Building it (imports, compiled kernels, the model's features) takes a second or
+        two; a first job sent before that waits for it, and its frame grows old. The
+        command waits here before it starts capturing. True if ready (or no worker).
+        """
+        up = getattr(self, "_worker_up", None)
+        if up is None:
+            return True
+        try:
+            up.result(timeout=timeout_s)
+            return True
+        except Exception:  # a failed or slow start: the loop runs anyway, and says so in its log
+            return False
 
     def _seeded_call(self, fs: FrameSet, seed):
         if seed is not None and hasattr(self.initializer, "reseed"):
