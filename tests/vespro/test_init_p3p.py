@@ -71,3 +71,39 @@ def test_kabsch_least_squares_with_noise_beats_perturbed_rotation():
     res = np.linalg.norm(np.einsum("nij,nkj->nki", R2, P) + t2[:, None] - Qn, axis=2).__pow__(2).sum(1)
     res_true = np.linalg.norm(np.einsum("nij,nkj->nki", R, P) + t[:, None] - Qn, axis=2).__pow__(2).sum(1)
     assert np.all(res <= res_true + 1e-12)
+
+
+def test_quartic_roots_of_a_product_of_known_factors():
+    """Golden roots: (x - r1)(x - r2)(x - r3)(x - r4) scaled, real and complex pairs."""
+    from vespro.init.p3p import quartic_roots
+
+    cases = [[1.0, -2.0, 3.5, 0.25], [0.5, 0.5 + 1e-3, 2.0, -7.0], [1 + 2j, 1 - 2j, -0.3, 4.0],
+             [0.1 + 0.5j, 0.1 - 0.5j, -2 + 1j, -2 - 1j], [3.0, 3.0, 3.0, 3.0 + 1e-2]]
+    for k, r in enumerate(cases):
+        c = np.real(np.poly(r)) * (k + 0.5)  # leading coefficient not 1
+        got = quartic_roots(*[np.array([x]) for x in c])[0]
+        # Each golden root found (a near-quadruple root only to ~eps^(1/4)).
+        tol = 1e-3 if k == 4 else 1e-9
+        for x in r:
+            assert np.min(np.abs(got - x)) < tol * max(1.0, abs(x)), (r, got)
+
+
+def test_quartic_roots_match_companion_eigenvalues():
+    """Against the eigenvalues of the companion matrix (the former route)."""
+    from vespro.init.p3p import quartic_roots
+
+    rng = np.random.default_rng(5)
+    c = rng.normal(size=(5, 20000))
+    c[0] += np.sign(c[0]) * 0.1
+    C = np.zeros((c.shape[1], 4, 4))
+    C[:, 0, :] = -(c[1:] / c[0]).T
+    C[:, 1, 0] = C[:, 2, 1] = C[:, 3, 2] = 1.0
+    ev = np.linalg.eigvals(C)
+    got = quartic_roots(*c)
+    # Each eigenvalue has a closed-form root next to it (sorted pairing can
+    # mismatch conjugates, so nearest).
+    d = np.abs(ev[:, :, None] - got[:, None, :]).min(2) / np.maximum(1.0, np.abs(ev))
+    assert np.mean(d.max(1) < 1e-7) > 0.999
+    real_ev = np.abs(ev.imag) <= 1e-6 * np.maximum(1.0, np.abs(ev.real))
+    real_got = np.abs(got.imag) <= 1e-6 * np.maximum(1.0, np.abs(got.real))
+    assert abs(int(real_ev.sum()) - int(real_got.sum())) <= 1e-3 * real_ev.sum()

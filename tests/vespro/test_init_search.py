@@ -272,3 +272,46 @@ def test_init_result_has_the_tracker_fields():
     from vespro.init import InitResult
 
     assert [f.name for f in fields(InitResult)] == ["T_world_object", "cov6", "velocity"]
+
+
+def _picture(rng, sigma):
+    img = np.full((240, 320, 3), 60, np.uint8)
+    cv2.rectangle(img, (40, 40), (150, 120), (200, 180, 150), -1)
+    cv2.circle(img, (230, 150), 50, (30, 90, 200), -1)
+    return np.clip(img + rng.normal(0.0, sigma, img.shape), 0, 255).astype(np.uint8) if sigma else img
+
+
+def test_image_noise_estimate_against_added_noise():
+    from vespro.init.features import image_noise
+
+    rng = np.random.default_rng(0)
+    assert image_noise(_picture(rng, 0)) == 0.0  # shapes only: edges are a minority
+    for sigma in (2.0, 4.0, 8.0):
+        # 19k samples: the median estimate is good to a few percent.
+        assert abs(image_noise(_picture(rng, sigma)) - sigma) < 0.1 * sigma
+
+
+def test_canny_thresholds_keep_weak_part_edges_and_rise_with_noise():
+    """A face 20 grey levels off its dark background keeps its edge at the
+    floors (the former fixed 40 / 100 lost it); on a noisy image the
+    thresholds rise so that noise alone gives almost no edges."""
+    from dataclasses import replace
+
+    from vespro.init.features import canny_thresholds
+
+    opt = EdgeOptions()
+    img = np.full((120, 160), 20, np.uint8)
+    img[30:90, 40:120] = 40
+    weak = extract_features("c", img, K, opt).edges
+    old = extract_features("c", img, K, replace(opt, canny_low=40.0, canny_high=100.0, canny_noise_low=0.0,
+                                                  canny_noise_high=0.0)).edges
+    assert np.count_nonzero(weak[30, 45:115]) + np.count_nonzero(weak[29, 45:115]) > 50
+    assert np.count_nonzero(old) == 0
+    rng = np.random.default_rng(1)
+    flat = np.clip(100 + rng.normal(0.0, 8.0, (240, 320)), 0, 255).astype(np.uint8)
+    lo, hi = canny_thresholds(flat, opt)
+    assert lo > opt.canny_low and hi > opt.canny_high
+    floors = replace(opt, canny_noise_low=0.0, canny_noise_high=0.0)
+    n_adapt = np.count_nonzero(extract_features("c", flat, K, opt).edges)
+    n_floor = np.count_nonzero(extract_features("c", flat, K, floors).edges)
+    assert n_adapt < 1e-3 * flat.size < n_floor

@@ -4,16 +4,17 @@ The initialiser solves tens of thousands of P3P problems per camera, one per
 (image corner triple, model corner triple) pairing; OpenCV's ``solveP3P`` costs
 ~70 us per call, so the whole batch is solved here at once: Grunert's quartic
 (Haralick et al. 1994, "Review and analysis of solutions of the three point
-perspective pose estimation problem"), its roots from the eigenvalues of a
-batch of companion matrices, then a batched Kabsch fit of the model triple to
-the recovered camera-frame points.
+perspective pose estimation problem"), its roots in closed form (Ferrari,
+through a real root of the resolvent cubic) and polished by Newton steps, then
+the rigid transform of the model triple onto the recovered camera-frame
+points.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["p3p_grunert", "kabsch_batch", "triad_batch"]
+__all__ = ["p3p_grunert", "kabsch_batch", "triad_batch", "quartic_roots", "cubic_real_root"]
 
 
 def kabsch_batch(P_object: np.ndarray, Q_camera: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -82,12 +83,10 @@ def p3p_grunert(P_object: np.ndarray, bearings: np.ndarray) -> tuple[np.ndarray,
                   + 2 * bma * cg * cg)
         A1 = 4 * (-amc * (1 + amc) * cb + 2 * a2 / b2 * cg * cg * cb - (1 - apc) * ca * cg)
         A0 = (1 + amc) ** 2 - 4 * a2 / b2 * cg * cg
-    ok = np.isfinite(A4) & (np.abs(A4) > 1e-12)
+    ok = np.isfinite(A4) & (np.abs(A4) > 1e-12) & np.isfinite(A3) & np.isfinite(A2) & np.isfinite(A1) & \
+        np.isfinite(A0)
     idx = np.flatnonzero(ok)
-    C = np.zeros((idx.size, 4, 4))
-    C[:, 0, :] = -np.stack([A3[idx], A2[idx], A1[idx], A0[idx]], 1) / A4[idx, None]
-    C[:, 1, 0] = C[:, 2, 1] = C[:, 3, 2] = 1.0
-    roots = np.linalg.eigvals(C) if idx.size else np.zeros((0, 4), complex)
+    roots = quartic_roots(A4[idx], A3[idx], A2[idx], A1[idx], A0[idx])
     v = roots.real
     real = np.abs(roots.imag) <= 1e-6 * np.maximum(1.0, np.abs(roots.real))
     prob = np.repeat(idx, 4)
@@ -113,6 +112,61 @@ def p3p_grunert(P_object: np.ndarray, bearings: np.ndarray) -> tuple[np.ndarray,
     Q = j[prob] * s[:, :, None]
     R, t = triad_batch(P[prob], Q)
     return R, t, prob
+
+
+def cubic_real_root(b: np.ndarray, c: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """One real root of each monic cubic ``x^3 + b x^2 + c x + d``, batched.
+
+    Trigonometric form when the three roots are real (the largest), Cardano's
+    otherwise (the single real one).
+    """
+    a13 = b / 3.0
+    a2 = a13 * a13
+    f = c / 3.0 - a2
+    g = a13 * (2 * a2 - c) + d
+    h = 0.25 * g * g + f * f * f
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        j = np.sqrt(np.maximum(-f, 0.0))
+        k = np.arccos(np.clip(-0.5 * g / np.where(j > 0, j * j * j, 1.0), -1.0, 1.0))
+        trig = 2 * j * np.cos(k / 3.0) - a13
+        sh = np.sqrt(np.maximum(h, 0.0))
+        card = np.cbrt(-0.5 * g + sh) + np.cbrt(-0.5 * g - sh) - a13
+    return np.where(h <= 0, trig, card)
+
+
+def quartic_roots(A4: np.ndarray, A3: np.ndarray, A2: np.ndarray, A1: np.ndarray, A0: np.ndarray) -> np.ndarray:
+    """All four complex roots of ``A4 x^4 + ... + A0``, batched, in closed form (Ferrari).
+
+    The depressed quartic is split into two quadratics through one real root
+    of its resolvent cubic; ~6x cheaper than the eigenvalues of a batch of
+    4 x 4 companion matrices, to the same roots (the caller polishes them with
+    Newton steps).
+
+    Parameters
+    ----------
+    A4, A3, A2, A1, A0 : ndarray, shape (N,)
+        Real coefficients, ``A4 != 0``.
+
+    Returns
+    -------
+    ndarray, shape (N, 4), complex
+    """
+    a, b, c, d = A3 / A4, A2 / A4, A1 / A4, A0 / A4
+    a0 = 0.25 * a
+    a02 = a0 * a0
+    # x = y - a0 gives the depressed quartic y^4 - 2p y^2 + 2q y - r = 0.
+    p = 3 * a02 - 0.5 * b
+    q = a * a02 - b * a0 + 0.5 * c
+    r = 3 * a02 * a02 - b * a02 + c * a0 - d
+    z0 = cubic_real_root(p, r, p * r - 0.5 * q * q)
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        s = np.sqrt(2 * p + 2 * z0 + 0j)
+        big = np.abs(s) > 1e-12
+        t = np.where(big, -q / np.where(big, s, 1.0), z0 * z0 + r)
+        # y^2 + s y + (z0 + t) = 0 and y^2 - s y + (z0 - t) = 0
+        D1 = np.sqrt(s * s - 4 * (z0 + t))
+        D2 = np.sqrt(s * s - 4 * (z0 - t))
+    return np.stack([(-s + D1) / 2, (-s - D1) / 2, (s + D2) / 2, (s - D2) / 2], 1) - a0[:, None]
 
 
 def _triad(X):
