@@ -106,6 +106,15 @@ class TrackerConfig:
         the real-time demo after a 0.6 s gap: the right camera accepted 8 of 8,
         the left 2 of 8, the pose was 15 mm off along the right camera's line of
         sight and the totals (10 of 16) confirmed it.
+    disagree_frames : int
+        When the cameras of a confirmed track disagree this many frames in a row
+        (one accepts under half of the corners selected in it, at least
+        ``min_accepted``, while another accepts at least half of its own), the
+        pose covariance is widened by the start sigmas, so that the windows open
+        and the corners are associated again. Seen in the real-time demo: from a
+        good start the bracket's track slid in the fourth frame to a pose 8 mm /
+        8 deg off that one camera's corners fitted and the other's (2-4 of 8
+        accepted) did not, and stayed there for 4 s.
     refine_window_px : int
         When a frame's largest search window is at least this half-size (px),
         the frame is measured a second time after the first update (see
@@ -160,6 +169,7 @@ class TrackerConfig:
     confirm_min_inlier_fraction: float = 0.75
     confirm_min_selected_fraction: float = 0.6
     confirm_min_camera_fraction: float = 0.5
+    disagree_frames: int = 3
     refine_window_px: int = 12
     confirm_max_pos_std: float = 0.04
     confirm_max_rot_std: float = 0.035
@@ -311,6 +321,8 @@ class Tracker:
         self._t_ns: int | None = None
         self._bad = 0
         self._good = 0
+        self._disagree = 0
+        self.reassociations = 0
         self.confirmed = False
         self.sigma_px = config.sigma_px
         # Per (camera, corner) noise variance factor, learnt from the residuals (see TrackerConfig).
@@ -382,6 +394,7 @@ class Tracker:
         self._t_ns = t_ns
         self._bad = 0
         self._good = 0
+        self._disagree = 0
         self.confirmed = False
         self.status = STATUS_INITIALIZING
 
@@ -638,6 +651,20 @@ class Tracker:
                           for ob in obs if ob.feature_ids.size >= c.min_accepted)
                   and pos_std < c.confirm_max_pos_std * self.model.diameter and rot_std < c.confirm_max_rot_std)
         self._good = self._good + 1 if strong else 0
+        if self.confirmed and not bad:
+            # Cameras disagreeing: one accepts under half of the corners selected in it while
+            # another accepts at least half of its own.
+            agree = [int(ob.accepted.sum()) >= 0.5 * ob.feature_ids.size
+                     for ob in obs if ob.feature_ids.size >= c.min_accepted]
+            self._disagree = self._disagree + 1 if (False in agree and True in agree) else 0
+            if self._disagree >= c.disagree_frames:
+                # Widen the pose covariance: the windows open and the next frames associate
+                # the corners again (measured twice, see _track). An occluded camera also
+                # disagrees; there the wider windows only cost a few frames of accuracy.
+                self._disagree = 0
+                self.reassociations += 1
+                ekf.P[:3, :3] += np.eye(3) * c.init_sigma_pos**2
+                ekf.P[3:6, 3:6] += np.eye(3) * c.init_sigma_rot**2
         if not self.confirmed and self._good >= c.confirm_frames:
             self.confirmed = True
         T = ekf.pose

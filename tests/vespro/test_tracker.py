@@ -269,3 +269,39 @@ def test_confirmation_needs_every_camera_to_agree(recs):
 
     assert "tracking" not in frames(accepted_left=2)  # 10 of 16 accepted, one camera rejecting
     assert frames(accepted_left=6)[-1] == "tracking"  # both cameras agree: confirmed
+
+
+def test_cameras_disagreeing_on_a_confirmed_track_reopen_the_windows(recs):
+    """One camera rejecting most of its corners while the other accepts, three frames running:
+    the pose covariance is widened (the windows open, the corners are associated again)."""
+    from vespro.tracker import CameraObservation, InitResult
+
+    rec = Recording(recs["box_conveyor"])
+    _, _, T = read_groundtruth(recs["box_conveyor"])
+    fs = rec.frameset(0)
+    ids = np.arange(8)
+
+    def ob(name, n_acc):
+        acc = np.zeros(8, bool)
+        acc[:n_acc] = True
+        return CameraObservation(name, True, 12, ids, np.zeros((8, 2)), np.full(8, 3.0), np.zeros((8, 2)), acc)
+
+    def run(accepted_left):
+        tr = make_tracker(rec)
+        tr.start(InitResult(T[0], cov6=np.diag([1e-6] * 6)), fs.t_ns)
+        both = [ob("cam_left", 8), ob("cam_right", 8)]
+        for _ in range(3):
+            tr._status(fs, both, 16, 16, 2.0, {"visibility": 0.0})
+        assert tr.confirmed
+        P0 = tr.ekf.pose_covariance
+        obs = [ob("cam_left", accepted_left), ob("cam_right", 8)]
+        outs = [tr._status(fs, obs, 16, accepted_left + 8, 2.0, {"visibility": 0.0}) for _ in range(3)]
+        return tr, P0, outs
+
+    tr, P0, outs = run(accepted_left=2)
+    assert tr.reassociations == 1
+    c = tr.config
+    assert np.allclose(np.diag(tr.ekf.pose_covariance) - np.diag(P0),
+                       [c.init_sigma_pos**2] * 3 + [c.init_sigma_rot**2] * 3)
+    tr, P0, _ = run(accepted_left=6)  # both cameras agree: nothing changes
+    assert tr.reassociations == 0 and np.allclose(tr.ekf.pose_covariance, P0)
