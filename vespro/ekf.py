@@ -45,7 +45,7 @@ from filterpy.kalman import predict as kf_predict
 from filterpy.kalman import update as kf_update
 from scipy.stats import chi2
 
-from .se3 import log_so3, matrix_from_quat, skew
+from .se3 import log_so3, matrix_from_quat, rotation_rows, skew
 
 __all__ = [
     "Status",
@@ -179,21 +179,13 @@ def state_from_pose(T_world_object: np.ndarray, v=None, w=None) -> np.ndarray:
 def pose_from_state(x: np.ndarray) -> np.ndarray:
     """``T_world_object`` (4, 4) of a nominal state (13,).
 
-    The quaternion is normalised and turned into a matrix here with scalar
-    arithmetic (:func:`vespro.se3.matrix_from_quat`'s formula; its input checks
-    cost more than the arithmetic, and the state's quaternion is finite and unit).
+    Built from :func:`vespro.se3.rotation_rows` in plain floats (the state's
+    quaternion is finite and unit: :func:`vespro.se3.matrix_from_quat`'s input
+    checks cost more than the arithmetic).
     """
     px, py, pz, w, qx, qy, qz = x[:7].tolist()
-    n = math.sqrt(w * w + qx * qx + qy * qy + qz * qz)
-    w, qx, qy, qz = w / n, qx / n, qy / n, qz / n
-    x2, y2, z2, w2 = qx * qx, qy * qy, qz * qz, w * w
-    xy, zw, xz, yw, yz, xw = qx * qy, qz * w, qx * qz, qy * w, qy * qz, qx * w
-    return np.array([
-        [x2 - y2 - z2 + w2, 2 * (xy - zw), 2 * (xz + yw), px],
-        [2 * (xy + zw), -x2 + y2 - z2 + w2, 2 * (yz - xw), py],
-        [2 * (xz - yw), 2 * (yz + xw), -x2 - y2 + z2 + w2, pz],
-        [0.0, 0.0, 0.0, 1.0],
-    ])
+    r0, r1, r2 = rotation_rows(w, qx, qy, qz)
+    return np.array([[*r0, px], [*r1, py], [*r2, pz], [0.0, 0.0, 0.0, 1.0]])
 
 
 def left_jacobian_so3(phi: np.ndarray) -> np.ndarray:

@@ -103,6 +103,21 @@ def quat_canonical(q: np.ndarray) -> np.ndarray:
     return q * sign
 
 
+def rotation_rows(w: float, x: float, y: float, z: float) -> list:
+    """Rows of the rotation matrix of the quaternion ``(w, x, y, z)`` (normalised here), as
+    Python floats: the formula of :func:`matrix_from_quat` for callers that add to it
+    (the filter's pose, every frame) without NumPy's per-call overhead."""
+    n = math.sqrt(x * x + y * y + z * z + w * w)
+    x, y, z, w = x / n, y / n, z / n, w / n
+    x2, y2, z2, w2 = x * x, y * y, z * z, w * w
+    xy, zw, xz, yw, yz, xw = x * y, z * w, x * z, y * w, y * z, x * w
+    return [
+        [x2 - y2 - z2 + w2, 2 * (xy - zw), 2 * (xz + yw)],
+        [2 * (xy + zw), -x2 + y2 - z2 + w2, 2 * (yz - xw)],
+        [2 * (xz - yw), 2 * (yz + xw), -x2 - y2 + z2 + w2],
+    ]
+
+
 def matrix_from_quat(q: np.ndarray) -> np.ndarray:
     """Rotation matrix from a unit quaternion.
 
@@ -120,16 +135,7 @@ def matrix_from_quat(q: np.ndarray) -> np.ndarray:
         # One quaternion (every filter step): SciPy's arithmetic, written out (it
         # normalises again, then the usual products), equal to it bit for bit and
         # without its ~40 us of per-call overhead.
-        w, x, y, z = q.tolist()
-        n = math.sqrt(x * x + y * y + z * z + w * w)
-        x, y, z, w = x / n, y / n, z / n, w / n
-        x2, y2, z2, w2 = x * x, y * y, z * z, w * w
-        xy, zw, xz, yw, yz, xw = x * y, z * w, x * z, y * w, y * z, x * w
-        return np.array([
-            [x2 - y2 - z2 + w2, 2 * (xy - zw), 2 * (xz + yw)],
-            [2 * (xy + zw), -x2 + y2 - z2 + w2, 2 * (yz - xw)],
-            [2 * (xz - yw), 2 * (yz + xw), -x2 - y2 + z2 + w2],
-        ])
+        return np.array(rotation_rows(*q.tolist()))
     q_xyzw = np.roll(q, -1, axis=-1)
     return Rotation.from_quat(q_xyzw).as_matrix()
 
