@@ -148,28 +148,30 @@ def _spawn(cmd: list[str], log: Path, **env_extra) -> subprocess.Popen:
     return subprocess.Popen(cmd, stdout=f, stderr=subprocess.STDOUT, env=env, start_new_session=True)
 
 
-# Where an eye-in-hand-only cell waits for the part: the tool 0.3 m above the belt and behind
-# the entry area, looking back at it (belt centre line x = 0.90 m, top z = 0.50 m). From the
-# home pose the hand camera sees the floor; straight above the belt it would see the part
-# face-on, the view a single camera settles worst (see issue 5's notes).
-SEARCH_TCP_AT = (0.90, 0.15, 0.80)
-SEARCH_LOOK_AT = (0.90, -0.15, 0.50)
-
-
 def search_q0(cameras: str) -> np.ndarray | None:
-    """Starting joints for a camera set whose only camera is on the arm (None: the home pose)."""
+    """Starting joints for a camera set whose only camera is on the arm (None: the home pose).
+
+    The tool 0.3 m above the belt and 0.15 m past the cell's centre, looking back at the
+    belt's entry 0.15 m before it: from the home pose the hand camera sees the floor, and
+    straight above the belt it would see the part face-on, the view a single camera
+    settles worst (see issue 5's notes).
+    """
     if cameras != "eye-in-hand":
         return None
+    import mujoco
+
     from servo.kinematics import ArmKinematics, solve_ik
 
     from .se3 import transform_from_rt
+    from .sim.scene import BELT_CENTER_X, BELT_TOP_Z, CELL_XML
 
-    z = np.subtract(SEARCH_LOOK_AT, SEARCH_TCP_AT)
+    tcp = np.array([BELT_CENTER_X, 0.15, BELT_TOP_Z + 0.30])
+    z = np.array([BELT_CENTER_X, -0.15, BELT_TOP_Z]) - tcp
     z /= np.linalg.norm(z)
     x = np.array([1.0, 0.0, 0.0]) - z * z[0]
     x /= np.linalg.norm(x)
-    T = transform_from_rt(np.column_stack([x, np.cross(z, x), z]), np.asarray(SEARCH_TCP_AT, float))
-    q, ok = solve_ik(ArmKinematics(), T, np.array([0.0, -0.6, 0.9, 0.0, 1.2, 0.0]))
+    home = mujoco.MjModel.from_xml_path(str(CELL_XML)).key("home").qpos[:6]
+    q, ok = solve_ik(ArmKinematics(), transform_from_rt(np.column_stack([x, np.cross(z, x), z]), tcp), home)
     if not ok:
         raise RuntimeError("demo: no arm configuration reaches the search pose")
     return q
