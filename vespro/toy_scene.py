@@ -227,6 +227,7 @@ def run_ekf(
     init_error=(0.02, np.deg2rad(5.0)),
     outliers=None,
     select_joint=None,
+    robust_nis: float = 0.0,
 ):
     """Track ``truth`` (n, 13) with :class:`vespro.ekf.PoseEKF` from synthetic pixels.
 
@@ -248,6 +249,8 @@ def run_ekf(
         ``select_joint(cands, P6) -> list of positions`` with ``cands`` a list of
         per-camera ``(idx, uv, J, view_angle, silhouette_px, intr)``; used
         instead of ``select`` when given (selection across cameras).
+    robust_nis : float
+        The filter's residual-consistent covariance threshold (0: off).
 
     Returns
     -------
@@ -262,7 +265,7 @@ def run_ekf(
     dth = init_error[1] * d / np.linalg.norm(d)
     T0 = ekf.pose_from_state(ekf.inject(truth[0], np.r_[dp, dth, np.zeros(6)]))
     P0 = np.diag(np.r_[np.full(3, init_error[0] ** 2), np.full(3, init_error[1] ** 2), np.full(3, 0.1**2), np.full(3, 0.5**2)])
-    f = ekf.PoseEKF(T0, P0, q_acc=q_acc, q_alpha=q_alpha, sigma_px=sigma_px)
+    f = ekf.PoseEKF(T0, P0, q_acc=q_acc, q_alpha=q_alpha, sigma_px=sigma_px, robust_nis=robust_nis)
     out = {"T_est": np.empty((n, 4, 4)), "T_true": np.empty((n, 4, 4)), "P6": np.empty((n, 6, 6)), "results": [], "n_meas": np.zeros(n, int), "meas": []}
     for k in range(n):
         if k > 0:

@@ -69,6 +69,13 @@ class TrackerConfig:
         Process noise spectral densities (m^2/s^3, rad^2/s^3).
     gate_prob : float
         Innovation gate probability (chi-square, 2 dof per point).
+    robust_nis : float
+        Residual-consistent covariance threshold (:func:`vespro.ekf.update`):
+        an accepted corner whose leave-one-out statistic exceeds it counts in
+        the published covariance with its variance raised in proportion (the
+        pose estimate is unchanged). 0 turns it off. On the nominal recordings
+        (two fixed cameras, 0.5 px) it moves the frames inside the NEES 95% band
+        from 0.909 to 0.94 (pooled), fast free motion 0.85-0.89 -> 0.89-0.94.
     init_sigma_pos, init_sigma_rot : float
         Initial pose std (m, rad) when started from a given pose.
     init_sigma_vel, init_sigma_angvel : float
@@ -158,6 +165,7 @@ class TrackerConfig:
     q_acc: float = 0.05
     q_alpha: float = 0.5
     gate_prob: float = 0.999
+    robust_nis: float = 3.0
     init_sigma_pos: float = 0.01
     init_sigma_rot: float = 0.05
     init_sigma_vel: float = 0.2
@@ -394,7 +402,7 @@ class Tracker:
         if init.velocity is not None:
             v, w = init.velocity[:3], init.velocity[3:]
         self.ekf = PoseEKF(init.T_world_object, P0, q_acc=c.q_acc, q_alpha=c.q_alpha, sigma_px=c.sigma_px,
-                           gate_prob=c.gate_prob, v=v, w=w)
+                           gate_prob=c.gate_prob, v=v, w=w, robust_nis=c.robust_nis)
         self._t_ns = t_ns
         self._bad = 0
         self._good = 0

@@ -370,3 +370,69 @@ from hypothesis import strategies as st  # noqa: E402
 def test_inject_boxminus_property(dx, seed):
     x = _random_state(np.random.default_rng(seed))
     np.testing.assert_allclose(ekf.boxminus(ekf.inject(x, dx), x), dx, atol=1e-10)
+
+
+# --------------------------------------------------------------------------- residual-consistent covariance
+
+
+def test_robust_nis_keeps_the_estimate_and_raises_the_variance_of_large_residual_points():
+    x, P, z, h, J, _ = _one_update_setup()
+    z = z.copy()
+    z[3] += [1.6, -1.2]  # 4 sigma: stays under the 0.999 gate (13.8), leave-one-out NIS well above 3
+    x0, P0, r0 = ekf.update(x, P, z, h, J, sigma_px=0.5)
+    x1, P1, r1 = ekf.update(x, P, z, h, J, sigma_px=0.5, robust_nis=3.0)
+    assert r0.accepted.all() and r1.accepted.all()
+    np.testing.assert_array_equal(x0, x1)  # the gain is the model's; only the covariance changes
+    np.testing.assert_array_equal(r0.nis, r1.nis)
+    # reference: Joseph form with the per-point variance raised to sigma^2 d2 / c where larger
+    M = len(z)
+    H = np.zeros((2 * M, 12))
+    H[:, :6] = J.reshape(-1, 6)
+    R = 0.25 * np.eye(2 * M)
+    K = P @ H.T @ np.linalg.inv(H @ P @ H.T + R)
+    Rp = np.diag(np.repeat(0.25 * np.maximum(r0.nis / 3.0, 1.0), 2))
+    A = np.eye(12) - K @ H
+    dx = ekf.boxminus(x1, x)
+    G = ekf.reset_jacobian(dx)
+    P_ref = G @ (A @ P @ A.T + K @ Rp @ K.T) @ G.T
+    np.testing.assert_allclose(P1, P_ref, rtol=1e-9, atol=1e-16)
+    assert r0.nis[3] > 3.0 and np.sum(r0.nis > 3.0) < M // 2
+    # P grows (positive semi-definite difference), most along what point 3 measures
+    assert np.linalg.eigvalsh(P1 - P0).min() > -1e-18
+    assert np.trace(P1[:6, :6]) > 1.02 * np.trace(P0[:6, :6])
+    # with a threshold no point reaches, nothing changes
+    _, P2, _ = ekf.update(x, P, z, h, J, sigma_px=0.5, robust_nis=1e9)
+    np.testing.assert_array_equal(P2, P0)
+
+
+def _heavy_tailed_runs(robust_nis, seeds=(0, 1, 2), contamination=0.1, extra_px=1.5):
+    """NEES after convergence over toy runs where a tenth of the corners carry an extra
+    error of 1.5 px (3 sigma) std: most pass the 0.999 gate, as real detector errors do."""
+    out = []
+    for seed in seeds:
+        poly, cams, truth, rng = _scene(2, seed=seed)
+        crng = np.random.default_rng(100 + seed)
+
+        def corrupt(k, z):
+            z = z.copy()
+            m = crng.random(len(z)) < contamination
+            z[m] += crng.normal(0.0, extra_px, (int(m.sum()), 2))
+            return z
+
+        run = ts.run_ekf(poly, cams, truth, DT, rng, q_acc=Q_ACC, q_alpha=Q_ALPHA,
+                         outliers=corrupt if contamination else None, robust_nis=robust_nis)
+        out.append(_errors(run)[2][CONVERGED:])
+    return np.concatenate(out)
+
+
+def test_robust_nis_makes_the_covariance_honest_under_heavy_tailed_corner_errors():
+    plain, robust = _heavy_tailed_runs(0.0), _heavy_tailed_runs(3.0)
+    above = lambda ne: np.mean(ne > CHI2_6_BAND[1])  # noqa: E731
+    inside = lambda ne: np.mean((ne > CHI2_6_BAND[0]) & (ne < CHI2_6_BAND[1]))  # noqa: E731
+    # the model's Gaussian R is optimistic for such points: too many frames above the band
+    assert above(plain) > 0.06, above(plain)
+    assert above(robust) < 0.5 * above(plain), (above(robust), above(plain))
+    assert inside(robust) >= 0.92, inside(robust)
+    # and on clean Gaussian corners it costs little: not turned conservative
+    clean = _heavy_tailed_runs(3.0, seeds=(0,), contamination=0.0)
+    assert inside(clean) >= 0.90 and 4.5 < clean.mean() < 7.5, (inside(clean), clean.mean())
