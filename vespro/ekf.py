@@ -104,6 +104,9 @@ class UpdateResult:
         non-finite points.
     n_gated : int
         Number of finite points rejected by the gate.
+    P_pub : ndarray, shape (12, 12), or None
+        The published (residual-consistent) covariance after this update, when
+        :func:`update` was given one (``P_pub``); see its Notes.
     """
 
     status: Status
@@ -111,6 +114,7 @@ class UpdateResult:
     nonfinite: np.ndarray
     nis: np.ndarray
     n_gated: int
+    P_pub: np.ndarray | None = None
 
     @property
     def n_nonfinite(self) -> int:
@@ -380,6 +384,7 @@ def update(
     gate_prob: float = 0.999,
     min_points: int = 3,
     robust_nis: float = 0.0,
+    P_pub: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, UpdateResult]:
     """Stacked multi-camera pixel update with one-by-one outlier gating.
 
@@ -404,10 +409,15 @@ def update(
         Below this many accepted points the update is skipped
         (``Status.NO_MEASUREMENTS``): gating cannot tell inliers apart.
     robust_nis : float
-        Residual-consistent covariance (0: off). An accepted point whose
-        leave-one-out statistic ``d2`` exceeds ``robust_nis`` enters the
-        posterior covariance as if its variance were ``sigma^2 d2 / robust_nis``
-        (the estimate itself is unchanged); see Notes.
+        Residual-consistent covariance threshold (0: no raise). With ``P_pub``:
+        an accepted point whose leave-one-out statistic ``d2`` exceeds it counts
+        in ``result.P_pub`` as if its variance were ``sigma^2 d2 / robust_nis``.
+    P_pub : ndarray (12, 12), optional
+        The published covariance before the update (the error covariance of
+        this filter's estimate under the noise the residuals show; equal to
+        ``P`` until some point raised it). Updated with the model's gain into
+        ``result.P_pub``; the returned state and ``P`` are the model's
+        whatever it holds. See Notes.
 
     Returns
     -------
@@ -429,19 +439,24 @@ def update(
     injection of ``dtheta`` into the quaternion and the covariance reset),
     which follows here.
 
-    Residual-consistent covariance (``robust_nis`` > 0): real corner errors are
-    heavier-tailed than the Gaussian ``sigma`` says (a corner 3-5 sigma off,
-    e.g. where another edge crosses its window, stays under a 0.999 gate), and
-    the few frames that hold one account for most of the frames whose pose error
-    lies outside the filter's own 95% band. Rejecting such points harder makes it
-    worse (a tighter gate drops good points that disagree with the prediction).
-    So the gain is kept, and the covariance is computed for the noise the data
-    show: the Joseph form ``(I - K H) P (I - K H)^T + K R' K^T`` with ``R'`` the
-    per-point variance raised to ``sigma^2 d2 / robust_nis`` where that is larger
-    (a heteroskedasticity-consistent, "sandwich" covariance in the manner of
-    White's estimator, floored at the model's ``R``). For Gaussian points and
-    ``robust_nis = 3`` this adds ~15% to the measurement term on average.
-    With the optimal gain ``K = P+ H^T R^-1`` (R diagonal), so no extra solve.
+    Published covariance (``P_pub``, ``robust_nis`` > 0): real corner errors
+    are heavier-tailed than the Gaussian ``sigma`` says (a corner 3-5 sigma
+    off, e.g. found at a neighbouring junction, stays under a 0.999 gate), and
+    the few frames that hold one account for most of the frames whose pose
+    error lies outside the filter's own 95% band. Rejecting such points harder
+    makes it worse (a tighter gate drops good points that disagree with the
+    prediction). So the filter keeps its model (gain ``K`` from ``P`` and
+    ``R``: estimates and velocities are the plain filter's), and beside ``P``
+    it carries the covariance of that filter's error for the noise the data
+    show: ``P_pub+ = A P_pub A^T + K R' K^T``, ``A = I - K H``, with ``R'`` each
+    point's variance raised to ``sigma^2 d2 / robust_nis`` where that is larger
+    (the analysis of a filter whose gain was designed for another ``R``; per
+    frame a heteroskedasticity-consistent, "sandwich" covariance in the manner
+    of White's estimator, floored at the model's ``R``). It is propagated like
+    ``P`` (same transition and process noise), so an error a bad corner leaves
+    in the estimate is still counted in the next frames. For Gaussian points
+    and ``robust_nis = 3`` the measurement term grows by ~15% on average. The
+    model gain is ``K = P+ H^T R^-1`` (R diagonal): no extra solve.
     """
     z = np.asarray(z, dtype=float)
     h = np.asarray(h, dtype=float)
@@ -491,16 +506,17 @@ def update(
 
     if dx is None:  # fewer than min_points survived
         accepted[:] = False
-        return x.copy(), P.copy(), UpdateResult(Status.NO_MEASUREMENTS, accepted, nonfinite, nis, int(finite.sum()))
+        return x.copy(), P.copy(), UpdateResult(Status.NO_MEASUREMENTS, accepted, nonfinite, nis, int(finite.sum()),
+                                                None if P_pub is None else np.array(P_pub, dtype=float))
 
-    if robust_nis > 0:
+    Pp_post = None
+    if P_pub is not None:
         idx = np.flatnonzero(accepted)
-        extra = sig2[idx] * np.maximum(nis[idx] / robust_nis - 1.0, 0.0)
-        if np.any(extra > 0):
-            H = H_all[idx].reshape(-1, 12)
-            s2 = np.repeat(sig2[idx], 2)
-            K = (P_post @ H.T) / s2  # optimal gain P+ H^T R^-1
-            P_post = P_post + (K * np.repeat(extra, 2)) @ K.T
+        r2 = sig2[idx] * (np.maximum(nis[idx] / robust_nis, 1.0) if robust_nis > 0 else 1.0)
+        H = H_all[idx].reshape(-1, 12)
+        K = (P_post @ H.T) / np.repeat(sig2[idx], 2)  # the model's gain, P+ H^T R^-1
+        A = np.eye(12) - K @ H
+        Pp_post = A @ np.asarray(P_pub, dtype=float) @ A.T + (K * np.repeat(r2, 2)) @ K.T
 
     gated = finite & ~accepted
     if gated.any():
@@ -513,7 +529,10 @@ def update(
     G = reset_jacobian(dx)
     P_new = G @ P_post @ G.T
     P_new = 0.5 * (P_new + P_new.T)
-    return x_new, P_new, UpdateResult(Status.OK, accepted, nonfinite, nis, int(gated.sum()))
+    if Pp_post is not None:
+        Pp_post = G @ Pp_post @ G.T
+        Pp_post = 0.5 * (Pp_post + Pp_post.T)
+    return x_new, P_new, UpdateResult(Status.OK, accepted, nonfinite, nis, int(gated.sum()), Pp_post)
 
 
 # --------------------------------------------------------------------------- consistency
@@ -561,7 +580,8 @@ class PoseEKF:
     gate_prob : float
         Chi-square (2 dof) gate probability per point.
     robust_nis : float
-        See :func:`update` (0: off).
+        See :func:`update`. When > 0 the filter carries ``P_pub`` beside ``P``
+        and publishes its pose block (:attr:`pose_covariance`); 0: ``P``.
     v, w : ndarray (3,), optional
         Initial velocities (world), m/s and rad/s.
     """
@@ -579,19 +599,25 @@ class PoseEKF:
         self.sigma_px = float(sigma_px)
         self.gate_prob = float(gate_prob)
         self.robust_nis = float(robust_nis)
+        self.P_pub = P0.copy() if self.robust_nis > 0 else None
         self.n_nonfinite = 0  # running count of non-finite measurements rejected
 
     def predict(self, dt: float) -> Status:
         """Propagate by ``dt`` s (from capture stamps). Bad dt: state unchanged."""
         if not np.isfinite(dt) or dt < 0.0:
             return Status.BAD_DT
-        self.x, self.P = predict(self.x, self.P, float(dt), self.q_acc, self.q_alpha)
+        x = self.x
+        self.x, self.P = predict(x, self.P, float(dt), self.q_acc, self.q_alpha)
+        if self.P_pub is not None:
+            _, self.P_pub = predict(x, self.P_pub, float(dt), self.q_acc, self.q_alpha)
         return Status.OK
 
     def update(self, z, h, J_pose) -> UpdateResult:
         """Stacked pixel update; see :func:`update`."""
         self.x, self.P, res = update(self.x, self.P, z, h, J_pose, self.sigma_px, self.gate_prob,
-                                       robust_nis=self.robust_nis)
+                                     robust_nis=self.robust_nis, P_pub=self.P_pub)
+        if res.P_pub is not None:
+            self.P_pub = res.P_pub
         self.n_nonfinite += res.n_nonfinite
         return res
 
@@ -624,5 +650,23 @@ class PoseEKF:
 
     @property
     def pose_covariance(self) -> np.ndarray:
-        """Covariance (6, 6) of ``[dp, dtheta]`` (world, left rotation error)."""
-        return self.P[:6, :6].copy()
+        """Covariance (6, 6) of ``[dp, dtheta]`` (world, left rotation error).
+
+        The published one: ``P_pub``'s pose block with ``robust_nis``, else ``P``'s.
+        """
+        return (self.P if self.P_pub is None else self.P_pub)[:6, :6].copy()
+
+    def snapshot(self) -> tuple:
+        """State and covariances, for :meth:`restore`."""
+        return (self.x.copy(), self.P.copy(), None if self.P_pub is None else self.P_pub.copy())
+
+    def restore(self, snap: tuple) -> None:
+        """Back to a :meth:`snapshot`."""
+        self.x, self.P, self.P_pub = snap[0], snap[1], snap[2]
+
+    def widen_pose(self, sigma_pos: float, sigma_rot: float) -> None:
+        """Add independent position (m) and orientation (rad) variance to ``P`` (and ``P_pub``)."""
+        for M in (self.P, self.P_pub):
+            if M is not None:
+                M[:3, :3] += np.eye(3) * sigma_pos**2
+                M[3:6, 3:6] += np.eye(3) * sigma_rot**2

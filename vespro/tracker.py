@@ -70,12 +70,10 @@ class TrackerConfig:
     gate_prob : float
         Innovation gate probability (chi-square, 2 dof per point).
     robust_nis : float
-        Residual-consistent covariance threshold (:func:`vespro.ekf.update`):
+        Residual-consistent published covariance (:func:`vespro.ekf.update`):
         an accepted corner whose leave-one-out statistic exceeds it counts in
-        the published covariance with its variance raised in proportion (the
-        pose estimate is unchanged). 0 turns it off. On the nominal recordings
-        (two fixed cameras, 0.5 px) it moves the frames inside the NEES 95% band
-        from 0.909 to 0.94 (pooled), fast free motion 0.85-0.89 -> 0.89-0.94.
+        the published covariance with its variance raised in proportion; the
+        filter's gain, estimate and velocity are unchanged. 0 turns it off.
     init_sigma_pos, init_sigma_rot : float
         Initial pose std (m, rad) when started from a given pose.
     init_sigma_vel, init_sigma_angvel : float
@@ -492,7 +490,7 @@ class Tracker:
         if not (np.all(np.isfinite(ekf.pose)) and np.all(np.isfinite(ekf.pose_covariance))):
             self._lose()
             return TrackerOutput(fs.index, fs.t_ns, STATUS_LOST)
-        saved = (ekf.x.copy(), ekf.P.copy(), self.sigma_px, self.feature_factor.copy(), self._noise_updates)
+        saved = (ekf.snapshot(), self.sigma_px, self.feature_factor.copy(), self._noise_updates)
         obs, n_found, n_acc, mean_nis, max_half, ok = self._measure(fs, stage)
         if ok and max_half >= c.refine_window_px:
             # Large windows (a start, a coast, a jolt): the first pass used the corners with no
@@ -500,7 +498,8 @@ class Tracker:
             # pass (small, the full feature set); the filter is then updated once, from its
             # prediction, with the second pass's corners: each image counts once.
             assoc = (ekf.pose, ekf.pose_covariance)
-            ekf.x, ekf.P, self.sigma_px, self.feature_factor, self._noise_updates = saved
+            snap, self.sigma_px, self.feature_factor, self._noise_updates = saved
+            ekf.restore(snap)
             obs, n_found, n_acc, mean_nis, max_half, ok = self._measure(fs, stage, assoc)
         return self._status(fs, obs, n_found, n_acc, mean_nis, stage)
 
@@ -675,8 +674,7 @@ class Tracker:
                 # disagrees; there the wider windows only cost a few frames of accuracy.
                 self._disagree = 0
                 self.reassociations += 1
-                ekf.P[:3, :3] += np.eye(3) * c.init_sigma_pos**2
-                ekf.P[3:6, 3:6] += np.eye(3) * c.init_sigma_rot**2
+                ekf.widen_pose(c.init_sigma_pos, c.init_sigma_rot)
         if not self.confirmed and self._good >= c.confirm_frames:
             self.confirmed = True
         T = ekf.pose

@@ -375,16 +375,21 @@ def test_inject_boxminus_property(dx, seed):
 # --------------------------------------------------------------------------- residual-consistent covariance
 
 
-def test_robust_nis_keeps_the_estimate_and_raises_the_variance_of_large_residual_points():
+def test_published_covariance_keeps_the_filter_and_raises_large_residual_points():
     x, P, z, h, J, _ = _one_update_setup()
     z = z.copy()
     z[3] += [1.6, -1.2]  # 4 sigma: stays under the 0.999 gate (13.8), leave-one-out NIS well above 3
     x0, P0, r0 = ekf.update(x, P, z, h, J, sigma_px=0.5)
-    x1, P1, r1 = ekf.update(x, P, z, h, J, sigma_px=0.5, robust_nis=3.0)
+    Pp = P * 1.5  # a published covariance that has drifted from the model's
+    x1, P1, r1 = ekf.update(x, P, z, h, J, sigma_px=0.5, robust_nis=3.0, P_pub=Pp)
     assert r0.accepted.all() and r1.accepted.all()
-    np.testing.assert_array_equal(x0, x1)  # the gain is the model's; only the covariance changes
+    # the filter itself is the model's: same state, same P, same statistics
+    np.testing.assert_array_equal(x0, x1)
+    np.testing.assert_array_equal(P0, P1)
     np.testing.assert_array_equal(r0.nis, r1.nis)
-    # reference: Joseph form with the per-point variance raised to sigma^2 d2 / c where larger
+    assert r0.P_pub is None
+    # reference: the model's gain applied to the published covariance, Joseph form, with the
+    # per-point variance raised to sigma^2 d2 / c where larger
     M = len(z)
     H = np.zeros((2 * M, 12))
     H[:, :6] = J.reshape(-1, 6)
@@ -392,17 +397,52 @@ def test_robust_nis_keeps_the_estimate_and_raises_the_variance_of_large_residual
     K = P @ H.T @ np.linalg.inv(H @ P @ H.T + R)
     Rp = np.diag(np.repeat(0.25 * np.maximum(r0.nis / 3.0, 1.0), 2))
     A = np.eye(12) - K @ H
-    dx = ekf.boxminus(x1, x)
-    G = ekf.reset_jacobian(dx)
-    P_ref = G @ (A @ P @ A.T + K @ Rp @ K.T) @ G.T
-    np.testing.assert_allclose(P1, P_ref, rtol=1e-9, atol=1e-16)
+    G = ekf.reset_jacobian(ekf.boxminus(x1, x))
+    np.testing.assert_allclose(r1.P_pub, G @ (A @ Pp @ A.T + K @ Rp @ K.T) @ G.T, rtol=1e-9, atol=1e-16)
     assert r0.nis[3] > 3.0 and np.sum(r0.nis > 3.0) < M // 2
-    # P grows (positive semi-definite difference), most along what point 3 measures
-    assert np.linalg.eigvalsh(P1 - P0).min() > -1e-18
-    assert np.trace(P1[:6, :6]) > 1.02 * np.trace(P0[:6, :6])
-    # with a threshold no point reaches, nothing changes
-    _, P2, _ = ekf.update(x, P, z, h, J, sigma_px=0.5, robust_nis=1e9)
-    np.testing.assert_array_equal(P2, P0)
+    # from the model's covariance and with no point raised it is the model's posterior
+    _, _, r2 = ekf.update(x, P, z, h, J, sigma_px=0.5, robust_nis=1e9, P_pub=P)
+    np.testing.assert_allclose(r2.P_pub, P0, rtol=1e-9, atol=1e-18)
+    # with the point raised it is larger (positive semi-definite difference)
+    _, _, r3 = ekf.update(x, P, z, h, J, sigma_px=0.5, robust_nis=3.0, P_pub=P)
+    assert np.linalg.eigvalsh(r3.P_pub - P0).min() > -1e-18
+    assert np.trace(r3.P_pub[:6, :6]) > 1.02 * np.trace(P0[:6, :6])
+    # no measurement: the published covariance is returned unchanged
+    _, _, r4 = ekf.update(x, P, z[:2], h[:2], J[:2], sigma_px=0.5, robust_nis=3.0, P_pub=Pp)
+    assert r4.status is ekf.Status.NO_MEASUREMENTS
+    np.testing.assert_array_equal(r4.P_pub, Pp)
+
+
+def test_pose_ekf_publishes_its_residual_consistent_covariance():
+    x, P, z, h, J, _ = _one_update_setup()
+    z = z.copy()
+    z[3] += [1.6, -1.2]
+    T = ekf.pose_from_state(x)
+    f0 = ekf.PoseEKF(T, P, sigma_px=0.5)
+    f1 = ekf.PoseEKF(T, P, sigma_px=0.5, robust_nis=3.0)
+    assert f0.P_pub is None
+    np.testing.assert_array_equal(f1.pose_covariance, f0.pose_covariance)
+    f0.update(z, h, J)
+    res = f1.update(z, h, J)
+    np.testing.assert_array_equal(f0.x, f1.x)
+    np.testing.assert_array_equal(f0.P, f1.P)
+    np.testing.assert_array_equal(f1.pose_covariance, res.P_pub[:6, :6])
+    assert np.trace(f1.pose_covariance) > np.trace(f0.pose_covariance)
+    # propagated like P: same transition and process noise
+    snap = f1.snapshot()
+    f0.predict(DT)
+    f1.predict(DT)
+    np.testing.assert_array_equal(f0.x, f1.x)
+    np.testing.assert_array_equal(f0.P, f1.P)
+    _, Pp_ref = ekf.predict(snap[0], snap[2], DT, f1.q_acc, f1.q_alpha)
+    np.testing.assert_allclose(f1.P_pub, Pp_ref, atol=1e-18)
+    # snapshot / restore and widening act on both
+    f1.restore(snap)
+    np.testing.assert_array_equal(f1.P_pub, snap[2])
+    before = f1.P_pub.copy(), f1.P.copy()
+    f1.widen_pose(0.01, 0.05)
+    np.testing.assert_allclose(np.diag(f1.P_pub - before[0])[:6], [1e-4] * 3 + [2.5e-3] * 3)
+    np.testing.assert_allclose(np.diag(f1.P - before[1])[:6], [1e-4] * 3 + [2.5e-3] * 3)
 
 
 def _heavy_tailed_runs(robust_nis, seeds=(0, 1, 2), contamination=0.1, extra_px=1.5):
