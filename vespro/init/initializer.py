@@ -101,6 +101,15 @@ class InitOptions:
     min_open_faces_single : int
         With one judging camera, the least number of large faces seen
         within 75 degrees of their normal (rejects accidental viewpoints).
+    min_open_faces_confirm : int
+        With one judging camera, a pose passing every other check (or the
+        plain-face limits) with fewer open faces than
+        ``min_open_faces_single`` but at least this many is provisional: it
+        is returned only when the next call finds it again (as under
+        ``confirm_plain``). One face seen head-on is a common view of a part
+        lying at random; its pose is less sure (the depth rests on the thin
+        strips of the side faces), and a lucky fit of a rectangle in the
+        background does not survive a second frame.
     min_size_px : float
         Least projected size of the part (bounding-box diagonal, px) in every
         judging camera: tiny far-away fits of background texture are rejected,
@@ -190,6 +199,7 @@ class InitOptions:
     min_size_px_single: float = 90.0
     max_mean_dist_single: float = 2.5
     min_open_faces_single: int = 2
+    min_open_faces_confirm: int = 1
     max_overrun_frac: float = 0.5
     max_overrun_frac_single: float = 0.25
     min_supported_edge_frac: float = 0.6
@@ -356,12 +366,23 @@ def _accept_plain(chk, opt: InitOptions) -> tuple[bool, str]:
 
 
 def _verdict(chk, opt: InitOptions) -> tuple[bool, bool, str]:
-    """(accepted, under the looser plain-face limits only, why not)."""
+    """(accepted, only provisionally: to be confirmed by the next call, why not).
+
+    Provisional: passed under the looser plain-face limits only, or (one
+    judging camera) passed every check but seen along all faces but one
+    (``InitOptions.min_open_faces_confirm``).
+    """
     ok, why = _accept(chk, opt)
     if ok:
         return True, False, ""
     okp, _ = _accept_plain(chk, opt)
-    return (True, True, "") if okp else (False, False, why)
+    if okp:
+        return True, True, ""
+    if chk.n_cameras == 1 and opt.min_open_faces_confirm <= chk.open_faces < opt.min_open_faces_single:
+        o2 = replace(opt, min_open_faces_single=opt.min_open_faces_confirm)
+        if _accept(chk, o2)[0] or _accept_plain(chk, o2)[0]:
+            return True, True, ""
+    return False, False, why
 
 
 def _margin(chk, opt: InitOptions) -> float:
