@@ -170,3 +170,12 @@ def test_one_open_face_is_provisional_with_one_camera():
     assert not _verdict(_check(**strict_pass, open_faces=0), opt)[0]
     assert not _verdict(_check(**{**strict_pass, "supported_edges": 5}, open_faces=1), opt)[0]
     assert not _verdict(_check(**strict_pass, open_faces=1), replace(opt, min_open_faces_confirm=2))[0]
+
+
+def test_plain_limits_accept_half_the_creases():
+    """Under one light two faces can share a shade: an L-block's true pose
+    often shows 2 of its 4 creases. Fewer than half is still a rejection."""
+    opt = InitOptions()
+    assert _accept_plain(_check(crease_edges=4, crease_supported=2), opt)[0]
+    assert not _accept_plain(_check(crease_edges=4, crease_supported=1), opt)[0]
+    assert not _accept_plain(_check(crease_edges=1, crease_supported=0), opt)[0]

@@ -153,11 +153,13 @@ class InitOptions:
     plain_min_supported_edges : int
         The looser single-camera limits.
     plain_min_crease_frac : float
-        More than this fraction of the visible creases (edges between two
+        At least this fraction of the visible creases (edges between two
         faces that both face the camera) must be supported: a face may match its
         background, but two faces at an angle seldom share a shade, so a pose
         putting its creases across a plain image region is wrong (a flipped
-        box over one plain face). Not all: under one light two faces can.
+        box over one plain face). Not all: under one light two faces can (an
+        L-block's true pose often shows 2 of its 4 creases; more than half
+        rejected it on every frame of two tuning trials).
     plain_rival_px_frac : float
         A pose accepted under the looser limits must explain more edge length
         than this fraction of any distinct rival whose faces are also clear.
@@ -350,7 +352,7 @@ def _accept_plain(chk, opt: InitOptions) -> tuple[bool, str]:
         return False, f"image edges inside the faces ({chk.interior_edge_frac:.3f})"
     if chk.inlier_frac < opt.plain_min_inlier_frac:
         return False, f"inlier fraction {chk.inlier_frac:.2f} < {opt.plain_min_inlier_frac}"
-    if chk.crease_edges and chk.crease_supported <= opt.plain_min_crease_frac * chk.crease_edges:
+    if chk.crease_edges and chk.crease_supported < opt.plain_min_crease_frac * chk.crease_edges:
         return False, f"{chk.crease_supported}/{chk.crease_edges} creases supported"
     if chk.mean_dist > opt.plain_max_mean_dist:
         return False, f"mean edge distance {chk.mean_dist:.2f} px > {opt.plain_max_mean_dist}"
