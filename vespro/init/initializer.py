@@ -65,6 +65,12 @@ class InitOptions:
         Hypotheses kept per camera after the first (sparse) ranking pass.
     keep_per_camera : int
         Hypotheses kept per camera after the second ranking pass.
+    keep_occlusion_rank : int
+        For a non-convex part, this many of the best after the second pass are
+        scored again with the samples the part hides from itself left out
+        (``rank_in_camera`` with the BSP tree), and so are all candidates in
+        the re-ranking in every camera (0: culling only). The hidden edges of
+        a bracket counted as unsupported ranked its true pose out.
     n_refine : int
         Hypotheses refined and verified (the best distinct ones) ...
     n_refine_extra, refine_windows : int
@@ -187,6 +193,7 @@ class InitOptions:
     max_image_paths: int = 1500
     keep_after_sparse: int = 2000
     keep_per_camera: int = 60
+    keep_occlusion_rank: int = 300
     n_refine: int = 6
     n_refine_extra: int = 3
     refine_windows: int = 5
@@ -526,6 +533,13 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
         top = top[sc[top] > 0]
         sc2, _ = rank_in_camera(R[top], t[top], v.feat, mf, opt.rank_tol_px)
         sc2 = np.where(np.isfinite(sc2), sc2, -1.0)
+        if setup.tree is not None and not mf.convex and opt.keep_occlusion_rank > 0:
+            # A third pass for a non-convex part: the best few hundred again,
+            # without the samples the part hides from itself.
+            o2 = np.argsort(-sc2)[:opt.keep_occlusion_rank]
+            top = top[o2[sc2[o2] > 0]]
+            sc2, _ = rank_in_camera(R[top], t[top], v.feat, mf, opt.rank_tol_px, tree=setup.tree)
+            sc2 = np.where(np.isfinite(sc2), sc2, -1.0)
         o2 = np.argsort(-sc2)[:opt.keep_per_camera]
         top = top[o2[sc2[o2] > 0]]
         for k in top:
@@ -540,7 +554,8 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
     for v in views:
         T_cw = invert_transform(v.T_world_camera)
         Tc = np.einsum("ij,njk->nik", T_cw, cand)
-        sc, _ = rank_in_camera(Tc[:, :3, :3], Tc[:, :3, 3], v.feat, mf, opt.rank_tol_px, min_inside=0.5)
+        sc, _ = rank_in_camera(Tc[:, :3, :3], Tc[:, :3, 3], v.feat, mf, opt.rank_tol_px, min_inside=0.5,
+                               tree=setup.tree if opt.keep_occlusion_rank > 0 else None)
         judged = np.isfinite(sc)
         total += np.where(judged, sc, 0.0)
         # The part is in the common view of the fixed cameras: one that cannot
