@@ -166,7 +166,7 @@ def test_one_open_face_is_provisional_with_one_camera():
     strict_pass = dict(inlier_frac=0.9, per_camera={"c": 0.9}, mean_dist=1.0, supported_edges=9, visible_edges=9)
     assert _verdict(_check(**strict_pass), opt) == (True, False, "")
     assert _verdict(_check(**strict_pass, open_faces=1), opt) == (True, True, "")
-    assert _verdict(_check(open_faces=1), opt) == (True, True, "")  # the plain-face limits, too
+    assert not _verdict(_check(open_faces=1), opt)[0]  # not under the plain-face limits as well
     assert not _verdict(_check(**strict_pass, open_faces=0), opt)[0]
     assert not _verdict(_check(**{**strict_pass, "supported_edges": 5}, open_faces=1), opt)[0]
     assert not _verdict(_check(**strict_pass, open_faces=1), replace(opt, min_open_faces_confirm=2))[0]
