@@ -156,3 +156,26 @@ def test_plain_limits_reject(kw):
     face), an accidental view, edges running on, too few inliers, or several
     cameras (which have the strict limits)."""
     assert not _accept_plain(_check(**kw), InitOptions())[0]
+
+
+def test_one_open_face_is_provisional_with_one_camera():
+    """Every check passed but one face seen openly (an accidental view): a
+    pose to confirm on the next call, not a result; not at all with no open
+    face, or when provisional accidental views are turned off."""
+    opt = InitOptions()
+    strict_pass = dict(inlier_frac=0.9, per_camera={"c": 0.9}, mean_dist=1.0, supported_edges=9, visible_edges=9)
+    assert _verdict(_check(**strict_pass), opt) == (True, False, "")
+    assert _verdict(_check(**strict_pass, open_faces=1), opt) == (True, True, "")
+    assert not _verdict(_check(open_faces=1), opt)[0]  # not under the plain-face limits as well
+    assert not _verdict(_check(**strict_pass, open_faces=0), opt)[0]
+    assert not _verdict(_check(**{**strict_pass, "supported_edges": 5}, open_faces=1), opt)[0]
+    assert not _verdict(_check(**strict_pass, open_faces=1), replace(opt, min_open_faces_confirm=2))[0]
+
+
+def test_plain_limits_accept_half_the_creases():
+    """Under one light two faces can share a shade: an L-block's true pose
+    often shows 2 of its 4 creases. Fewer than half is still a rejection."""
+    opt = InitOptions()
+    assert _accept_plain(_check(crease_edges=4, crease_supported=2), opt)[0]
+    assert not _accept_plain(_check(crease_edges=4, crease_supported=1), opt)[0]
+    assert not _accept_plain(_check(crease_edges=1, crease_supported=0), opt)[0]

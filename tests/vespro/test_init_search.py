@@ -315,3 +315,26 @@ def test_canny_thresholds_keep_weak_part_edges_and_rise_with_noise():
     n_adapt = np.count_nonzero(extract_features("c", flat, K, opt).edges)
     n_floor = np.count_nonzero(extract_features("c", flat, K, floors).edges)
     assert n_adapt < 1e-3 * flat.size < n_floor
+
+
+@pytest.mark.parametrize("rotvec", [[0.4, -0.3, 0.9], [0.2, 2.5, 0.4]])
+def test_ranking_with_the_tree_drops_the_samples_the_part_hides(rotvec):
+    """A non-convex part: with the BSP tree, the chamfer score is the mean
+    over exactly the samples in line of sight (``visible_samples``), and it
+    rises over culling alone (hidden edges no longer count as unsupported)."""
+    from vespro.bsp import load_or_build_bsp
+    from vespro.init.search import rank_in_camera, visible_samples
+
+    bracket = load_model(MODELS_DIR / "objects" / "bracket.stl")
+    mf = model_features(bracket)
+    tree = load_or_build_bsp(bracket)
+    T_co = invert_transform(CAMS[0]) @ _pose(rotvec, [0.0, 0.0, 0.0])
+    feat = extract_features("c", render(bracket, T_co, np.random.default_rng(0)), K)
+    seen = np.intersect1d(mf.coarse, visible_samples(T_co, mf, tree))
+    R, t = T_co[None, :3, :3], T_co[None, :3, 3]
+    culled, _ = rank_in_camera(R, t, feat, mf)
+    with_tree, _ = rank_in_camera(R, t, feat, mf, tree=tree)
+    reference, _ = rank_in_camera(R, t, feat, mf, samples=seen)
+    assert 0 < len(seen) < len(mf.coarse)
+    assert with_tree[0] == pytest.approx(reference[0], abs=1e-6)
+    assert with_tree[0] > culled[0] + 0.05

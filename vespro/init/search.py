@@ -111,12 +111,17 @@ def _edge_visible(front, mf):
 
 
 def rank_in_camera(R: np.ndarray, t: np.ndarray, feat: CameraFeatures, mf: ModelFeatures, tol_px: float = 3.0,
-                   chunk: int = 8192, min_inside: float = 0.3, samples: np.ndarray | None = None
+                   chunk: int = 8192, min_inside: float = 0.3, samples: np.ndarray | None = None, tree=None
                    ) -> tuple[np.ndarray, np.ndarray]:
     """Fast chamfer agreement of many camera-frame poses with one image.
 
     Edge samples (``samples``, indices into ``mf.sample_p``; the coarse set by
-    default), back-face culling only (no self-occlusion). The agreement of a
+    default), back-face culling only, or with ``tree`` (a BSP tree of a
+    non-convex model) also the line of sight: samples the part hides from
+    itself are dropped (~0.5 ms a pose on the coarse set, so for the best few
+    hundred). Without it, the hidden edges of a non-convex part count as
+    unsupported: its true pose scored 0.44 on a bracket view where flatter
+    wrong poses scored 0.7, and ranked out. The agreement of a
     sample is ``max(0, 1 - d / tol_px)`` with ``d`` its oriented edge distance;
     the score is the mean over visible samples.
 
@@ -173,6 +178,15 @@ def rank_in_camera(R: np.ndarray, t: np.ndarray, feat: CameraFeatures, mf: Model
             vi = np.rint(uv[..., 1])
         vis = vis_e[:, se_l]
         inside = (ui >= 0) & (ui <= W_img - 1) & (vi >= 0) & (vi <= H_img - 1) & (z > 0)
+        if tree is not None and not mf.convex:
+            hh, ss = np.nonzero(vis & inside)
+            if hh.size:
+                A = mf.sample_p[samples[ss]]
+                cam = -w[hh].astype(float)  # camera centre, object frame
+                seg = np.linalg.norm(cam - A, axis=1)
+                blocked = tree.segments_blocked(A, cam, t_lo=np.minimum(2e-4 / seg, 0.1), t_hi=1.0, min_length=1e-9)
+                vis = vis.copy()
+                vis[hh[blocked], ss[blocked]] = False
         flat = (bins[:, se_l].astype(np.int32) * H_img + np.where(inside, vi, 0).astype(np.int32)) * W_img \
             + np.where(inside, ui, 0).astype(np.int32)
         d = dt_flat[flat]
