@@ -171,9 +171,11 @@ def test_example_box2_one_camera_missing(example_box2):
 #: limits reject the true pose; found on frame 0, confirmed on frame 5. With
 #: the edge thresholds that lose that face (the former fixed 40 / 100: the
 #: present floors find most of its edges, and the strict limits then pass),
-#: and with culling alone in the ranking (``keep_occlusion_rank=0``: ranked
+#: with culling alone in the ranking (``keep_occlusion_rank=0``: ranked
 #: with the part's self-occlusion, L-block 16 has a candidate that passes the
-#: strict limits on frame 0; see the test after these).
+#: strict limits on frame 0; see the test after these), and with an image
+#: edge point counted for both edges of a thin strip (``shared_edge_px=0``:
+#: otherwise L-block 16 passes the strict limits on frame 0 as well).
 SINGLE_PLAIN = [("box", 6), ("lblock", 6), ("lblock", 16)]
 LOSSY_EDGES = EdgeOptions(canny_low=40.0, canny_high=100.0)
 
@@ -184,8 +186,9 @@ def test_single_camera_plain_faces_initialise_without_wrong_lock(obj, seed):
     config, motion, mesh = trial_config(obj, rig, seed)
     model = load_model(mesh)
     syms = model_symmetries(model.vertices)
-    ini = make_initializer(rig, model, edges=LOSSY_EDGES, keep_occlusion_rank=0)
-    strict = make_initializer(rig, model, plain_faces=False, edges=LOSSY_EDGES, keep_occlusion_rank=0)
+    ini = make_initializer(rig, model, edges=LOSSY_EDGES, keep_occlusion_rank=0, shared_edge_px=0.0)
+    strict = make_initializer(rig, model, plain_faces=False, edges=LOSSY_EDGES, keep_occlusion_rank=0,
+                              shared_edge_px=0.0)
     modes = []
     with SimCell(config, motion) as cell:
         cell.settle_arm()
@@ -240,19 +243,41 @@ def test_single_camera_accidental_view_is_confirmed_not_locked_at_once(obj, seed
 def test_ranking_with_self_occlusion_lets_the_strict_limits_initialise():
     """L-block, rig seed 16, one camera, the edge thresholds of the test
     above: with culling alone no refined candidate passes the strict limits
-    on frame 0; ranked without the samples the part hides from itself, the
-    right pose is refined and passes at once."""
+    on frame 0 (with an image edge point counted for both edges of a thin
+    strip, ``shared_edge_px=0``: see the next test); ranked without the
+    samples the part hides from itself, the right pose is refined and passes
+    at once."""
     rig = _rig("1", 16)
     config, motion, mesh = trial_config("lblock", rig, 16)
     model = load_model(mesh)
-    strict = make_initializer(rig, model, plain_faces=False, edges=LOSSY_EDGES)
-    culled = make_initializer(rig, model, plain_faces=False, edges=LOSSY_EDGES, keep_occlusion_rank=0)
+    strict = make_initializer(rig, model, plain_faces=False, edges=LOSSY_EDGES, shared_edge_px=0.0)
+    culled = make_initializer(rig, model, plain_faces=False, edges=LOSSY_EDGES, keep_occlusion_rank=0,
+                              shared_edge_px=0.0)
     with SimCell(config, motion) as cell:
         cell.settle_arm()
         fs = cell.next_frameset()
         assert culled(fs) is None
         res = strict(fs)
         assert res is not None, strict.last_report.reason
+        assert _sym_add_frac(res.T_world_object, cell.true_object_pose(), model,
+                             model_symmetries(model.vertices)) < 0.1
+
+
+def test_an_image_edge_serves_one_edge_of_a_thin_strip():
+    """L-block, rig seed 16, one camera, culling alone in the ranking, the
+    lossy edge thresholds: with each image edge point counted for both edges
+    of a face seen nearly edge-on, the best refined candidate fails the
+    strict limits on frame 0 (image edges run on past its corners; test
+    above); with the point serving the nearer edge only, the right pose
+    passes at once."""
+    rig = _rig("1", 16)
+    config, motion, mesh = trial_config("lblock", rig, 16)
+    model = load_model(mesh)
+    ini = make_initializer(rig, model, plain_faces=False, edges=LOSSY_EDGES, keep_occlusion_rank=0)
+    with SimCell(config, motion) as cell:
+        cell.settle_arm()
+        res = ini(cell.next_frameset())
+        assert res is not None, ini.last_report.reason
         assert _sym_add_frac(res.T_world_object, cell.true_object_pose(), model,
                              model_symmetries(model.vertices)) < 0.1
 

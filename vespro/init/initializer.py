@@ -138,6 +138,13 @@ class InitOptions:
         Spread of the extra starting points around a seeded pose.
     seed_only : bool
         With a seed, try only near it (no full search).
+    shared_edge_px : float
+        In the sub-pixel refinement an image edge point found by samples of
+        two nearly parallel model edges within this distance (px) serves only
+        the nearer one (``refine_subpixel``): counted for both, the thin strip
+        of a face seen nearly edge-on was pulled onto one image edge and a
+        single-camera pose 12% of the diameter off along the ray (refined
+        from the true pose too) was locked. 0: off.
     require_fixed_view : bool
         The part is in the common view of the fixed cameras (the spec's
         set-up): a pose that a fixed camera with an image cannot see is
@@ -221,6 +228,7 @@ class InitOptions:
     seed_only: bool = False
     require_fixed_view: bool = True
     subpixel: bool = True
+    shared_edge_px: float = 1.5
     plain_faces: bool = True
     plain_max_interior_edge_frac: float = 0.005
     plain_min_inlier_frac: float = 0.65
@@ -420,7 +428,7 @@ def _probe(T_world_object: np.ndarray, chk, views, setup: InitSetup) -> tuple[bo
         if _adds(mf, Tr, T_world_object) <= opt.distinct_frac * mf.diameter:
             continue
         if opt.subpixel:
-            Tr = refine_subpixel(Tr, views, mf, setup.tree)
+            Tr = refine_subpixel(Tr, views, mf, setup.tree, shared_edge_px=opt.shared_edge_px)
         c2 = check_pose(Tr, views, mf, setup.tree, opt.verify_tol_px, require_fixed=opt.require_fixed_view)
         if c2.n_cameras and _adds(mf, Tr, T_world_object) > opt.distinct_frac * mf.diameter and \
                 c2.inlier_frac >= chk.inlier_frac - _margin(chk, opt) and \
@@ -493,7 +501,7 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
         near = (opt.confirm_frac * mf.diameter + opt.confirm_speed * max(pending_age_s, 0.0))
         Tr = refine_pose(Tp, views, mf, setup.tree)
         if opt.subpixel:
-            Tr = refine_subpixel(Tr, views, mf, setup.tree)
+            Tr = refine_subpixel(Tr, views, mf, setup.tree, shared_edge_px=opt.shared_edge_px)
         chk = check_pose(Tr, views, mf, setup.tree, opt.verify_tol_px, require_fixed=opt.require_fixed_view)
         if _verdict(chk, opt)[0] and _adds(mf, Tr, Tp) < near:
             return finish(Tr, chk, "confirm", 1)
@@ -509,7 +517,7 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
         for T in starts:
             Tr = refine_pose(T, views, mf, setup.tree)
             if opt.subpixel:
-                Tr = refine_subpixel(Tr, views, mf, setup.tree)
+                Tr = refine_subpixel(Tr, views, mf, setup.tree, shared_edge_px=opt.shared_edge_px)
             chk = check_pose(Tr, views, mf, setup.tree, opt.verify_tol_px, require_fixed=opt.require_fixed_view)
             if best is None or chk.inlier_frac > best[1].inlier_frac:
                 best = (Tr, chk)
@@ -581,7 +589,7 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
             continue
         Tr = refine_pose(cand[k], views, mf, setup.tree)
         if opt.subpixel:
-            Tr = refine_subpixel(Tr, views, mf, setup.tree)
+            Tr = refine_subpixel(Tr, views, mf, setup.tree, shared_edge_px=opt.shared_edge_px)
         if any(_adds(mf, Tr, T) < 0.02 * mf.diameter for T, _ in refined):
             continue
         chk = check_pose(Tr, views, mf, setup.tree, opt.verify_tol_px, require_fixed=opt.require_fixed_view)
