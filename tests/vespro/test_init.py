@@ -38,6 +38,29 @@ def _sym_add_frac(T_est, T_true, model, syms):
     return min(add(T_est, T_true @ S, model.vertices) for S in syms) / model.diameter
 
 
+def _calls_until_pose(cell, ini, model, syms, before=None, frames=6, stride=5):
+    """Call ``ini`` on frames 0, stride, ... of ``cell`` until it returns a pose.
+
+    ``before(k, frameset)`` runs ahead of each call. A returned pose must be
+    within 10% of the diameter (symmetry-aware ADD). Returns the last result
+    and each call's (mode, plain, reason).
+    """
+    cell.settle_arm()
+    res, modes = None, []
+    for k in range(frames):
+        fs = cell.next_frameset()
+        if k % stride:
+            continue
+        if before is not None:
+            before(k, fs)
+        res = ini(fs)
+        modes.append((ini.last_report.mode, ini.last_report.plain, ini.last_report.reason))
+        if res is not None:
+            assert _sym_add_frac(res.T_world_object, cell.true_object_pose(), model, syms) < 0.1
+            break
+    return res, modes
+
+
 @pytest.fixture(scope="module")
 def trial_results():
     """Per trial: (ADD / diameter of the first pose returned or None, report)."""
@@ -189,20 +212,13 @@ def test_single_camera_plain_faces_initialise_without_wrong_lock(obj, seed):
     ini = make_initializer(rig, model, edges=LOSSY_EDGES, keep_occlusion_rank=0, shared_edge_px=0.0)
     strict = make_initializer(rig, model, plain_faces=False, edges=LOSSY_EDGES, keep_occlusion_rank=0,
                               shared_edge_px=0.0)
-    modes = []
+
+    def strict_fails_on_frame_0(k, fs):
+        if k == 0:
+            assert strict(fs) is None  # the strict limits alone cannot
+
     with SimCell(config, motion) as cell:
-        cell.settle_arm()
-        for k in range(6):
-            fs = cell.next_frameset()
-            if k % 5:
-                continue
-            if k == 0:
-                assert strict(fs) is None  # the strict limits alone cannot
-            res = ini(fs)
-            modes.append((ini.last_report.mode, ini.last_report.plain, ini.last_report.reason))
-            if res is not None:
-                assert _sym_add_frac(res.T_world_object, cell.true_object_pose(), model, syms) < 0.1
-                break
+        res, modes = _calls_until_pose(cell, ini, model, syms, before=strict_fails_on_frame_0)
     assert res is not None, modes
     # Held back on frame 0 (plain limits), found again on frame 5.
     assert modes[0][:2] == ("none", True) and modes[-1][0] == "confirm", modes
@@ -222,19 +238,9 @@ def test_single_camera_accidental_view_is_confirmed_not_locked_at_once(obj, seed
     syms = model_symmetries(model.vertices)
     ini = make_initializer(rig, model)
     without = make_initializer(rig, model, min_open_faces_confirm=2)
-    modes, res_without = [], []
+    res_without = []
     with SimCell(config, motion) as cell:
-        cell.settle_arm()
-        for k in range(6):
-            fs = cell.next_frameset()
-            if k % 5:
-                continue
-            res_without.append(without(fs))
-            res = ini(fs)
-            modes.append((ini.last_report.mode, ini.last_report.plain, ini.last_report.reason))
-            if res is not None:
-                assert _sym_add_frac(res.T_world_object, cell.true_object_pose(), model, syms) < 0.1
-                break
+        res, modes = _calls_until_pose(cell, ini, model, syms, before=lambda k, fs: res_without.append(without(fs)))
     assert res is not None, modes
     assert modes[0][:2] == ("none", True) and modes[-1][0] == "confirm", modes
     assert res_without == [None, None]  # the accidental-view test alone rejects it
