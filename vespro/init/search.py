@@ -668,6 +668,41 @@ class PoseCheck:
     crease_supported: int = 0
 
 
+def _continued_in_view(ends_xyz: np.ndarray, dirs: np.ndarray, mf: ModelFeatures, ua: np.ndarray, ub: np.ndarray,
+                       edges: np.ndarray, max_deg: float = 15.0) -> np.ndarray:
+    """Which edge ends another supported model edge continues nearly straight in the image.
+
+    Parameters
+    ----------
+    ends_xyz : ndarray, shape (n, 3)
+        The model vertex at each end (object frame).
+    dirs : ndarray, shape (n, 2)
+        Unit image direction pointing past each end (away from its edge).
+    mf : ModelFeatures
+    ua, ub : ndarray, shape (E, 2)
+        Projected model edge end points, px.
+    edges : ndarray of int
+        The edges supported in this view (a continuation counts only where
+        the image shows it: in a grazing view of a wrong pose, edges of the
+        part line up everywhere).
+    max_deg : float
+        Most angle between the continuation and the other edge leaving the
+        vertex, deg.
+
+    Returns
+    -------
+    ndarray, shape (n,), bool
+    """
+    A, B = mf.edge_a[edges], mf.edge_b[edges]
+    d = ub[edges] - ua[edges]
+    d = d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-9)
+    at_a = np.linalg.norm(ends_xyz[:, None, :] - A[None], axis=2) < 1e-9  # (n, k): edge leaves the vertex as a->b
+    at_b = np.linalg.norm(ends_xyz[:, None, :] - B[None], axis=2) < 1e-9  # ... as b->a
+    cos_ = dirs @ d.T
+    c = np.cos(np.deg2rad(max_deg))
+    return np.any((at_a & (cos_ >= c)) | (at_b & (-cos_ >= c)), axis=1)
+
+
 def check_pose(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFeatures, tree=None,
                tol_px: float = 2.0, min_inside: float = 0.5, min_edge_px: float = 10.0,
                require_fixed: bool = False, open_face_deg: float = 75.0) -> PoseCheck:
@@ -716,23 +751,28 @@ def check_pose(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFea
         elen = np.linalg.norm(ub - ue, axis=1)
         inl_px += float(np.sum((elen[e] / np.maximum(per_edge[e], 1))[inl]))
         # Edge ends: look 3 to 8 px past each visible, supported end.
-        ends_uv, dirs, ebins = [], [], []
+        ends_uv, dirs, ebins, ends_xyz, sup_k = [], [], [], [], []
         for k in np.unique(e):
             m = np.flatnonzero(e == k)
             if elen[k] < min_edge_px or len(m) < 3 or inl[m].mean() < 0.5:
                 continue
+            sup_k.append(k)
             allk = np.flatnonzero(mf.sample_edge == k)
             u = (ub[k] - ue[k]) / elen[k]
             if idx[m[0]] == allk[0] and inl[m[0]] and mf.end_free[k, 0]:
-                ends_uv.append(ue[k]); dirs.append(-u); ebins.append(bins[m[0]])
+                ends_uv.append(ue[k]); dirs.append(-u); ebins.append(bins[m[0]]); ends_xyz.append(mf.edge_a[k])
             if idx[m[-1]] == allk[-1] and inl[m[-1]] and mf.end_free[k, 1]:
-                ends_uv.append(ub[k]); dirs.append(u); ebins.append(bins[m[-1]])
+                ends_uv.append(ub[k]); dirs.append(u); ebins.append(bins[m[-1]]); ends_xyz.append(mf.edge_b[k])
         if ends_uv:
             s_ = np.linspace(3.0, 8.0, 5)
             q = np.asarray(ends_uv)[:, None, :] + s_[None, :, None] * np.asarray(dirs)[:, None, :]
             dq = lookup_dt(v.feat.dt, np.broadcast_to(np.asarray(ebins)[:, None], q.shape[:2]), q, np.inf)
-            n_over += int(np.sum(np.mean(dq <= 1.5, axis=1) >= 0.8))
-            n_ends += len(ends_uv)
+            # An end at a vertex where another supported edge of the part
+            # leaves nearly straight on in this view says nothing: the image
+            # edge running on is the part's own.
+            own = _continued_in_view(np.asarray(ends_xyz), np.asarray(dirs), mf, ue, ub, np.asarray(sup_k, np.int64))
+            n_over += int(np.sum((np.mean(dq <= 1.5, axis=1) >= 0.8) & ~own))
+            n_ends += int(np.sum(~own))
         front = _front(T_co[None, :3, :3], T_co[None, :3, 3], mf)[0]
         crease = front[mf.edge_faces[:, 0]] & front[mf.edge_faces[:, 1]]
         for k in np.unique(e):
