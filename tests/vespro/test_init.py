@@ -355,3 +355,31 @@ def test_single_camera_turned_over_lblock_is_not_a_lock():
             res = ini(fs)
             if res is not None:
                 assert _sym_add_frac(res.T_world_object, cell.true_object_pose(), model, syms) < 0.1
+
+
+def test_paths_with_one_edge_running_on_find_a_part_against_an_aligned_background():
+    """Bracket, rig seed 36, one camera, frame 0: the flange's long edge lies
+    along a rail whose edge runs on past the part's corner, so no image corner
+    path on the part's true corners has both edges ending there and no P3P
+    pose comes within 14% of the diameter. A call after one without a pose
+    also forms paths with one edge ending at the middle corner, and finds it
+    (the first call does not: its cost is unchanged)."""
+    from dataclasses import replace
+
+    from vespro.init import InitOptions
+    from vespro.init.initializer import initialize, make_setup
+
+    rig = _rig("1", 36)
+    config, motion, mesh = trial_config("bracket", rig, 36)
+    model = load_model(mesh)
+    setup = make_setup(rig, model)
+    both_ends = make_setup(rig, model, replace(InitOptions(), one_end_paths=False), tree=setup.tree)
+    with SimCell(config, motion) as cell:
+        cell.settle_arm()
+        fs = cell.next_frameset()
+        T_true = cell.true_object_pose()
+    assert initialize(setup, fs, attempt=0)[0] is None
+    assert initialize(both_ends, fs, attempt=1)[0] is None
+    res, rep = initialize(setup, fs, attempt=1)
+    assert res is not None, rep.reason
+    assert _sym_add_frac(res.T_world_object, T_true, model, model_symmetries(model.vertices)) < 0.1

@@ -439,3 +439,23 @@ def test_an_edge_the_pose_itself_continues_is_no_overrun(box, monkeypatch, rotve
     monkeypatch.setattr(search, "_continued_in_view", lambda q, *a, **k: np.zeros(len(q), bool))
     assert check_pose(T_wo, views, mf).overrun_frac > InitOptions().max_overrun_frac_single
 
+
+
+def test_image_paths_with_one_end_add_the_corners_an_edge_runs_past():
+    """Three corners a-b-c of a right angle, with the edge b-c running on past
+    b: with both ends required there is no path at b; with one end, there is."""
+    from vespro.init.search import image_paths
+
+    # A bright square; a bright bar continues its right side below its
+    # bottom-right corner b (150, 150).
+    img = np.full((200, 200), 40, np.uint8)
+    cv2.rectangle(img, (50, 30), (150, 150), 200, -1)
+    cv2.rectangle(img, (148, 150), (152, 195), 200, -1)
+    feat = extract_features("c", img, np.array([[300.0, 0, 99.5], [0, 300.0, 99.5], [0, 0, 1]]), EdgeOptions())
+    b = int(np.argmin(np.linalg.norm(feat.corners - [150, 150], axis=1)))
+    assert np.linalg.norm(feat.corners[b] - [150, 150]) < 3
+    strict = image_paths(feat)
+    loose = image_paths(feat, one_end=True)
+    assert not np.any(strict[:, 1] == b)
+    assert np.any(loose[:, 1] == b)
+    assert set(map(tuple, strict.tolist())) <= set(map(tuple, loose.tolist()))

@@ -61,6 +61,12 @@ class InitOptions:
     edges : EdgeOptions
     max_image_paths : int
         Image corner paths kept per camera (shortest links first).
+    one_end_paths : bool
+        On every other call after one without a pose, image corner paths
+        need only one of their two edges to end at the middle corner (the
+        other may run on along a background line in line with it: a bracket
+        flange against a rail had no path on its true corners). About twice
+        the hypotheses (and the ranking time) on those calls.
     keep_after_sparse : int
         Hypotheses kept per camera after the first (sparse) ranking pass.
     keep_per_camera : int
@@ -198,6 +204,7 @@ class InitOptions:
 
     edges: EdgeOptions = field(default_factory=EdgeOptions)
     max_image_paths: int = 1500
+    one_end_paths: bool = True
     keep_after_sparse: int = 2000
     keep_per_camera: int = 60
     keep_occlusion_rank: int = 300
@@ -530,7 +537,7 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
     # Full search: P3P hypotheses per camera, ranked in that camera.
     cand, nh = [], 0
     for v in views:
-        ip = image_paths(v.feat, max_paths=opt.max_image_paths)
+        ip = image_paths(v.feat, max_paths=opt.max_image_paths, one_end=opt.one_end_paths and attempt % 2 == 1)
         R, t = p3p_hypotheses(v.feat, mf, setup.model.vertices, ip)
         nh += len(R)
         if len(R) == 0:

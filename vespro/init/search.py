@@ -27,9 +27,12 @@ __all__ = ["image_paths", "p3p_hypotheses", "rank_in_camera", "CameraView", "vis
 
 # -- hypothesis generation ---------------------------------------------------
 
-def image_paths(feat: CameraFeatures, min_angle_deg: float = 15.0, max_paths: int = 20000) -> np.ndarray:
+def image_paths(feat: CameraFeatures, min_angle_deg: float = 15.0, max_paths: int = 20000,
+                one_end: bool = False) -> np.ndarray:
     """Image corner paths ``(a, b, c)``: corners a and c linked to b by edges ending at b.
 
+    With ``one_end`` only one of the two links need end at b (the other's
+    edge may run on past b, along a background line in line with it).
     Each unordered pair {a, c} appears once (the model paths hold both orders).
     Paths with nearly straight or folded angles at b are dropped; when there
     are more than ``max_paths`` the ones with the shortest links are kept
@@ -43,15 +46,19 @@ def image_paths(feat: CameraFeatures, min_angle_deg: float = 15.0, max_paths: in
     if len(links) == 0:
         return np.zeros((0, 3), np.int64)
     c = feat.corners
-    # (b, other) for every link whose edge ends at b.
-    both = np.concatenate([links[feat.link_ends[:, 0]], links[feat.link_ends[:, 1]][:, ::-1]])
+    # (b, other, the link's edge ends at b) for every link.
+    both = np.concatenate([links, links[:, ::-1]])
+    ends = np.concatenate([feat.link_ends[:, 0], feat.link_ends[:, 1]])
+    if not one_end:
+        both, ends = both[ends], ends[ends]
     order = np.argsort(both[:, 0], kind="stable")
-    both = both[order]
+    both, ends = both[order], ends[order]
     starts = np.searchsorted(both[:, 0], np.arange(len(c) + 1))
     out, cost = [], []
     cmax = np.cos(np.deg2rad(min_angle_deg))
     for b in range(len(c)):
         nb = both[starts[b]:starts[b + 1], 1]
+        eb = ends[starts[b]:starts[b + 1]]
         if len(nb) < 2:
             continue
         i, j = np.triu_indices(len(nb), 1)
@@ -59,7 +66,7 @@ def image_paths(feat: CameraFeatures, min_angle_deg: float = 15.0, max_paths: in
         dc = c[nb[j]] - c[b]
         la, lc = np.linalg.norm(da, axis=1), np.linalg.norm(dc, axis=1)
         cosang = np.einsum("ij,ij->i", da, dc) / (la * lc)
-        ok = np.abs(cosang) < cmax
+        ok = (np.abs(cosang) < cmax) & (eb[i] | eb[j])
         out.append(np.stack([nb[i][ok], np.full(ok.sum(), b), nb[j][ok]], 1))
         cost.append(np.maximum(la, lc)[ok])
     if not out:
