@@ -380,7 +380,8 @@ def test_subpixel_refinement_does_not_squeeze_an_edge_on_face(box):
 
 def test_continued_in_view_needs_a_visible_edge_leaving_the_vertex_straight_on(box):
     """An end is continued when another listed edge leaves the same model
-    vertex within 15 deg of the straight continuation in the image."""
+    vertex 4-15 deg from the straight continuation in the image (exactly in
+    line, the face between them is seen edge-on: no excuse)."""
     from vespro.init.search import _continued_in_view
 
     mf = model_features(box)
@@ -391,26 +392,30 @@ def test_continued_in_view_needs_a_visible_edge_leaving_the_vertex_straight_on(b
     assert len(others) == 2
     j = others[0]
     # Fake projections: edge k runs from (100, 100) to (200, 100); edge j leaves
-    # the vertex at (100, 100) towards -x, i.e. straight on past the end.
+    # the vertex at (100, 100) towards -x, 7 deg off the straight continuation.
     ua = np.zeros((len(mf.edge_a), 2))
     ub = np.zeros((len(mf.edge_a), 2))
     ua[k], ub[k] = (100.0, 100.0), (200.0, 100.0)
-    far = (0.0, 104.0) if np.allclose(mf.edge_a[j], X) else None
-    if far is not None:
-        ua[j], ub[j] = (100.0, 100.0), far
-    else:
-        ua[j], ub[j] = (0.0, 104.0), (100.0, 100.0)
+    j_from_vertex = np.allclose(mf.edge_a[j], X)
+
+    def leave(far):
+        if j_from_vertex:
+            ua[j], ub[j] = (100.0, 100.0), far
+        else:
+            ua[j], ub[j] = far, (100.0, 100.0)
+
+    leave((0.0, 112.3))
     ends = X[None]
     past = np.array([[-1.0, 0.0]])
     assert _continued_in_view(ends, past, mf, ua, ub, np.array([k, j]))[0]
+    # Exactly in line (1 deg): the face between them is seen edge-on.
+    leave((0.0, 101.7))
+    assert not _continued_in_view(ends, past, mf, ua, ub, np.array([k, j]))[0]
+    leave((0.0, 112.3))
     # Not listed (hidden or unsupported): no continuation.
     assert not _continued_in_view(ends, past, mf, ua, ub, np.array([k]))[0]
     # Leaving at 45 deg: no continuation.
-    bend = (29.3, 170.7)
-    if np.allclose(mf.edge_a[j], X):
-        ub[j] = bend
-    else:
-        ua[j] = bend
+    leave((29.3, 170.7))
     assert not _continued_in_view(ends, past, mf, ua, ub, np.array([k, j]))[0]
     # A parallel edge nearby that does not share the vertex does not count.
     ua[j], ub[j] = (100.0, 101.0), (0.0, 101.0)
@@ -424,8 +429,8 @@ def test_an_edge_the_pose_itself_continues_is_no_overrun(box, monkeypatch, rotve
     """Two edges of the true pose leave a vertex nearly in line in the image
     (one face seen obliquely): the image edge runs on past the end of one
     because it is the other. Such an end is not evidence of a smaller copy;
-    counted, it rejected the true pose of 7% of random box views (> 25% of
-    the ends)."""
+    counted, it rejected the true pose of 11% of random box views (test
+    renderer, 32 of 300: > 25% of the ends)."""
     import vespro.init.search as search
 
     mf = model_features(box)
@@ -434,7 +439,7 @@ def test_an_edge_the_pose_itself_continues_is_no_overrun(box, monkeypatch, rotve
     img = render(box, invert_transform(T_wc) @ T_wo, np.random.default_rng(seed), clutter=10)
     views = [CameraView(extract_features("c", img, K, EdgeOptions()), T_wc)]
     chk = check_pose(T_wo, views, mf)
-    assert chk.overrun_frac <= 0.1
+    assert chk.overrun_frac <= InitOptions().max_overrun_frac_single
     assert "run on" not in _accept(chk, InitOptions())[1]
     monkeypatch.setattr(search, "_continued_in_view", lambda q, *a, **k: np.zeros(len(q), bool))
     assert check_pose(T_wo, views, mf).overrun_frac > InitOptions().max_overrun_frac_single
