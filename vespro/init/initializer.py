@@ -121,7 +121,10 @@ class InitOptions:
         ``confirm_plain``). One face seen head-on is a common view of a part
         lying at random; its pose is less sure (the depth rests on the thin
         strips of the side faces), and a lucky fit of a rectangle in the
-        background does not survive a second frame.
+        background does not survive a second frame. For a part with
+        ``plain_faces`` such a pose must also have its face interiors clear
+        of image edges (a bracket pose 71% off, fitted over clutter with 5% of
+        its face interiors on edges, was confirmed on a fresh seed).
     min_size_px : float
         Least projected size of the part (bounding-box diagonal, px) in every
         judging camera: tiny far-away fits of background texture are rejected,
@@ -196,6 +199,9 @@ class InitOptions:
         A pose accepted under the looser limits is returned only when the
         next call finds it again (within ``confirm_frac`` of the diameter,
         ADD-S): one more attempt, a few frames later, instead of a lucky fit.
+        That call searches as well, and the pose found again must still come
+        first among its candidates (a fit to static clutter is found again on
+        every frame; the search may find the part).
     confirm_frac, confirm_speed : float
         Found again means within ``confirm_frac`` of the diameter plus
         ``confirm_speed`` (m/s) times the time since the previous call
@@ -404,7 +410,8 @@ def _verdict(chk, opt: InitOptions) -> tuple[bool, bool, str]:
     okp, _ = _accept_plain(chk, opt)
     if okp:
         return True, True, ""
-    if chk.n_cameras == 1 and opt.min_open_faces_confirm <= chk.open_faces < opt.min_open_faces_single:
+    if chk.n_cameras == 1 and opt.min_open_faces_confirm <= chk.open_faces < opt.min_open_faces_single and \
+            not (opt.plain_faces and chk.interior_edge_frac > opt.plain_max_interior_edge_frac):
         if _accept(chk, replace(opt, min_open_faces_single=opt.min_open_faces_confirm))[0]:
             return True, True, ""
     return False, False, why
@@ -473,10 +480,10 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
         Predicted pose to try first (after a loss).
     rng : numpy Generator, optional
     pending_T_world_object : ndarray, shape (4, 4), optional
-        A pose the previous call accepted under the looser plain-face limits
-        only (its report's ``plain`` and first candidate): found again,
-        refined from here or by the search, the pose is returned (mode
-        ``"confirm"``).
+        A pose the previous call accepted only provisionally (its report's
+        ``plain`` and first candidate): found again, refined from here or by
+        the search, and still first among this call's candidates, the pose
+        is returned (mode ``"confirm"``).
     attempt : int
         Calls so far without a pose: selects the extra refinement window.
     pending_age_s : float
@@ -501,8 +508,11 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
             time.perf_counter() - t0, time.thread_time() - c0, mode, nh, True, chk.inlier_frac, chk.per_camera, chk.supported_edges,
             chk.visible_edges)
 
-    # A plain-face pose from the previous call: found again, it is confirmed.
-    Tp = None
+    # A provisional pose from the previous call, refined again here: it joins
+    # the search's candidates and is confirmed only if it still comes first
+    # (a pose fitted to static clutter is found again on every frame; the
+    # search may find the part this time).
+    Tp, pending = None, None
     if pending_T_world_object is not None:
         Tp = np.asarray(pending_T_world_object, float)
         near = (opt.confirm_frac * mf.diameter + opt.confirm_speed * max(pending_age_s, 0.0))
@@ -511,7 +521,7 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
             Tr = refine_subpixel(Tr, views, mf, setup.tree, shared_edge_px=opt.shared_edge_px)
         chk = check_pose(Tr, views, mf, setup.tree, opt.verify_tol_px, require_fixed=opt.require_fixed_view)
         if _verdict(chk, opt)[0] and _adds(mf, Tr, Tp) < near:
-            return finish(Tr, chk, "confirm", 1)
+            pending = (Tr, chk)
 
     # Seeded: refine from the prediction and a few perturbations of it.
     if seed_T_world_object is not None:
@@ -560,9 +570,9 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
         top = top[o2[sc2[o2] > 0]]
         for k in top:
             cand.append(v.T_world_camera @ transform_from_rt(R[k], t[k]))
-    if not cand:
+    if not cand and pending is None:
         return None, InitReport(time.perf_counter() - t0, time.thread_time() - c0, "none", nh, False, reason="no hypotheses")
-    cand = np.asarray(cand)
+    cand = np.asarray(cand).reshape(-1, 4, 4)
 
     # Re-rank in every camera: mean agreement over the cameras that can judge.
     total = np.zeros(len(cand))
@@ -601,13 +611,18 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
             continue
         chk = check_pose(Tr, views, mf, setup.tree, opt.verify_tol_px, require_fixed=opt.require_fixed_view)
         refined.append((Tr, chk))
+    if pending is not None and not any(_adds(mf, pending[0], T) < 0.02 * mf.diameter for T, _ in refined):
+        refined.append(pending)
     # Candidates that pass every check first, then by the image edge length
     # they explain (a smaller, farther copy fitted to part of the part
     # explains less), then by agreement.
     refined.sort(key=lambda r: (not _verdict(r[1], opt)[0], -r[1].inlier_px, -r[1].inlier_frac))
     T_best, chk = refined[0]
     ok, plain, why = _verdict(chk, opt)
-    if ok:
+    # The pending pose found again and still first: its own call looked for
+    # rivals already.
+    confirmed = ok and Tp is not None and _adds(mf, T_best, Tp) < near
+    if ok and not confirmed:
         for T2, c2 in refined[1:]:
             if c2.unseen_fixed or c2.n_cameras < chk.n_cameras or \
                     _adds(mf, T_best, T2) <= opt.distinct_frac * mf.diameter:
@@ -631,7 +646,7 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
                     c2.inlier_frac >= 0.5 and c2.inlier_px >= opt.plain_rival_px_frac * chk.inlier_px:
                 ok, why = False, f"ambiguous (plain faces): another pose explains {c2.inlier_px:.0f} px vs {chk.inlier_px:.0f}"
                 break
-    if ok and opt.probe_single and chk.n_cameras == 1:
+    if ok and not confirmed and opt.probe_single and chk.n_cameras == 1:
         ok, why = _probe(T_best, chk, views, setup)
     plain = plain and ok  # passed every check, under the looser limits
     if plain and opt.confirm_plain and not (Tp is not None and _adds(mf, T_best, Tp) < near):
