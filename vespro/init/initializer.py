@@ -649,7 +649,7 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
     if ok and not confirmed and opt.probe_single and chk.n_cameras == 1:
         ok, why = _probe(T_best, chk, views, setup)
     plain = plain and ok  # passed every check, under the looser limits
-    if plain and opt.confirm_plain and not (Tp is not None and _adds(mf, T_best, Tp) < near):
+    if plain and opt.confirm_plain and not confirmed:
         ok, why = False, "plain faces: to be confirmed on the next call"
     if not ok:
         return None, InitReport(time.perf_counter() - t0, time.thread_time() - c0, "none", nh, False, chk.inlier_frac, chk.per_camera,

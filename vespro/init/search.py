@@ -779,8 +779,8 @@ def check_pose(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFea
             q = np.asarray(ends_uv)[:, None, :] + s_[None, :, None] * np.asarray(dirs)[:, None, :]
             dq = lookup_dt(v.feat.dt, np.broadcast_to(np.asarray(ebins)[:, None], q.shape[:2]), q, np.inf)
             # An end at a vertex where another supported edge of the part
-            # leaves nearly straight on in this view says nothing: the image
-            # edge running on is the part's own.
+            # leaves nearly (not exactly) straight on in this view says
+            # nothing: the image edge running on is the part's own.
             own = _continued_in_view(np.asarray(ends_xyz), np.asarray(dirs), mf, ue, ub, np.asarray(sup_k, np.int64))
             n_over += int(np.sum((np.mean(dq <= 1.5, axis=1) >= 0.8) & ~own))
             n_ends += int(np.sum(~own))
