@@ -62,11 +62,14 @@ class InitOptions:
     max_image_paths : int
         Image corner paths kept per camera (shortest links first).
     one_end_paths : bool
-        On every other call after one without a pose, image corner paths
-        need only one of their two edges to end at the middle corner (the
-        other may run on along a background line in line with it: a bracket
-        flange against a rail had no path on its true corners). About twice
-        the hypotheses (and the ranking time) on those calls.
+        With one camera image, on every other call after one without a pose,
+        image corner paths need only one of their two edges to end at the
+        middle corner (the other may run on along a background line in line
+        with it: a bracket flange against a rail had no path on its true
+        corners). About twice the hypotheses (and the ranking time) on those
+        calls; with several cameras the others give the paths, and a call
+        that long delayed the demo's acquisition (the part entering the view
+        makes the first calls fail).
     keep_after_sparse : int
         Hypotheses kept per camera after the first (sparse) ranking pass.
     keep_per_camera : int
@@ -547,7 +550,8 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
     # Full search: P3P hypotheses per camera, ranked in that camera.
     cand, nh = [], 0
     for v in views:
-        ip = image_paths(v.feat, max_paths=opt.max_image_paths, one_end=opt.one_end_paths and attempt % 2 == 1)
+        ip = image_paths(v.feat, max_paths=opt.max_image_paths,
+                         one_end=opt.one_end_paths and attempt % 2 == 1 and len(views) == 1)
         R, t = p3p_hypotheses(v.feat, mf, setup.model.vertices, ip)
         nh += len(R)
         if len(R) == 0:
