@@ -709,7 +709,8 @@ def _continued_in_view(ends_xyz: np.ndarray, dirs: np.ndarray, mf: ModelFeatures
     d = d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-9)
     at_a = np.linalg.norm(ends_xyz[:, None, :] - A[None], axis=2) < 1e-9  # (n, k): edge leaves the vertex as a->b
     at_b = np.linalg.norm(ends_xyz[:, None, :] - B[None], axis=2) < 1e-9  # ... as b->a
-    cos_ = np.where(at_a, dirs @ d.T, -(dirs @ d.T))
+    cos_ = dirs @ d.T
+    cos_ = np.where(at_a, cos_, -cos_)
     lo, hi = np.cos(np.deg2rad(max_deg)), np.cos(np.deg2rad(min_deg))
     return np.any((at_a | at_b) & (cos_ >= lo) & (cos_ <= hi), axis=1)
 
