@@ -762,11 +762,22 @@ def check_pose(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFea
         ub, _ = _project(v.feat.K, T_co, mf.edge_b)
         elen = np.linalg.norm(ub - ue, axis=1)
         inl_px += float(np.sum((elen[e] / np.maximum(per_edge[e], 1))[inl]))
-        # Edge ends: look 3 to 8 px past each visible, supported end.
+        front = _front(T_co[None, :3, :3], T_co[None, :3, 3], mf)[0]
+        crease = front[mf.edge_faces[:, 0]] & front[mf.edge_faces[:, 1]]
+        # Visible edges (long enough, sampled), which are supported, and the
+        # supported ends to look 3 to 8 px past.
         ends_uv, dirs, ebins, ends_xyz, sup_k = [], [], [], [], []
         for k in np.unique(e):
             m = np.flatnonzero(e == k)
-            if elen[k] < min_edge_px or len(m) < 3 or inl[m].mean() < 0.5:
+            if elen[k] < min_edge_px or len(m) < 3:
+                continue
+            vis_e += 1
+            s_k = bool(inl[m].mean() >= 0.5)
+            sup_e += s_k
+            if crease[k]:
+                cr_e += 1
+                cr_sup += s_k
+            if not s_k:
                 continue
             sup_k.append(k)
             allk = np.flatnonzero(mf.sample_edge == k)
@@ -785,20 +796,6 @@ def check_pose(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFea
             own = _continued_in_view(np.asarray(ends_xyz), np.asarray(dirs), mf, ue, ub, np.asarray(sup_k, np.int64))
             n_over += int(np.sum((np.mean(dq <= 1.5, axis=1) >= 0.8) & ~own))
             n_ends += int(np.sum(~own))
-        front = _front(T_co[None, :3, :3], T_co[None, :3, 3], mf)[0]
-        crease = front[mf.edge_faces[:, 0]] & front[mf.edge_faces[:, 1]]
-        for k in np.unique(e):
-            if elen[k] < min_edge_px:
-                continue
-            m = e == k
-            if m.sum() < 3:
-                continue
-            vis_e += 1
-            s_k = int(inl[m].mean() >= 0.5)
-            sup_e += s_k
-            if crease[k]:
-                cr_e += 1
-                cr_sup += s_k
     return PoseCheck(n_in / n_all if n_all else 0.0, per, n_all, sup_e, vis_e, ncam,
                      dsum / n_all if n_all else float("inf"), unseen, size if np.isfinite(size) else 0.0,
                      inl_px, open_min if ncam else 0, n_over / n_ends if n_ends else 0.0, clutter, cr_e, cr_sup)
