@@ -19,6 +19,16 @@ initialiser is called on frames 0, stride, 2 stride, ... up to ``--frames``
   time-to-first-pose a background thread would need);
 - position / rotation error of the successful poses (median, max).
 
+With ``--track N`` the trial also runs the tracker the server runs (the
+same initialiser as its starting-pose hook, called on the same frames) for N
+frames, and scores what the issue's user sees: the status. A trial is then
+*initialised* when the tracker publishes ``tracking`` within ``--frames``
+frames with ADD below 10%, and a *wrong lock* when any frame of the N is
+published ``tracking`` with ADD at or above 10%. The tracker confirms a
+started filter on consecutive well-supported frames before it publishes
+(``TrackerConfig.confirm_*``), so the published time lags the initialiser's
+pose, and a near miss of the initialiser can be put right by the filter.
+
 The baseline runs in the same process on the same frames: the same corner-path
 P3P hypotheses and chamfer ranking, but from the rig's first camera alone,
 without sub-pixel refinement and with only the inlier-fraction check (no
@@ -47,6 +57,7 @@ from vespro.metrics import add  # noqa: E402
 from vespro.model import load_model  # noqa: E402
 from vespro.sim.cell import SimCell  # noqa: E402
 from vespro.sim.trials import model_symmetries, random_rig, trial_config  # noqa: E402
+from vespro.tracker import Tracker  # noqa: E402
 from vespro.cmd_record import object_mesh_path  # noqa: E402
 
 BASELINE = dict(min_supported_edges=0, min_supported_edges_single=0, min_size_px=0.0, ambiguity_margin=-1.0,
@@ -57,14 +68,72 @@ def sym_add(T_est, T_true, model, syms):
     return min(add(T_est, T_true @ S, model.vertices) for S in syms)
 
 
-def run_trial(obj, model, syms, rig_kind, seed, frames, stride, baseline):
+class _Gated:
+    """The initialiser called only on every ``stride``-th frame (as the stand-alone trial calls it)."""
+
+    def __init__(self, ini, stride):
+        self.ini, self.stride, self.results = ini, stride, []
+
+    def __call__(self, fs):
+        if fs.index % self.stride:
+            return None
+        res = self.ini(fs)
+        self.results.append((fs.index, res, self.ini.last_report))
+        return res
+
+
+def run_tracked(obj, model, syms, rig_kind, seed, frames, stride, track_frames):
+    """One trial through the tracker: the initialiser as its hook; status and ADD per frame."""
+    rig = _trial_rig(rig_kind, seed)
+    config, motion, _ = trial_config(obj, rig, seed)
+    gate = _Gated(make_initializer(rig, model), stride)
+    tracker = Tracker(rig, model, initializer=gate)
+    o = dict(frame=None, add=None, calls=[], cpu=[], to_first=0.0, err_p=None, err_r=None,
+             track_frame=None, track_add=None, wrong_frame=None, wrong_add=None, max_track_add=None)
+    with SimCell(config, motion) as cell:
+        cell.settle_arm()
+        for k in range(track_frames):
+            fs = cell.next_frameset()
+            n_before = len(gate.results)
+            out = tracker.process(fs)
+            T_true = cell.true_object_pose()
+            for idx, res, r in gate.results[n_before:]:
+                o["calls"].append(r.wall_s)
+                o["cpu"].append(r.cpu_s)
+                if o["frame"] is None:
+                    o["to_first"] += r.wall_s
+                    if res is not None:
+                        _score(o, k, res.T_world_object, T_true, model, syms)
+            if out.status == "tracking":
+                e = sym_add(out.T_world_object, T_true, model, syms) / model.diameter
+                o["max_track_add"] = max(e, o["max_track_add"] or 0.0)
+                if o["track_frame"] is None:
+                    o["track_frame"], o["track_add"] = k, e
+                if e >= 0.1 and o["wrong_frame"] is None:
+                    o["wrong_frame"], o["wrong_add"] = k, e
+    return o
+
+
+def _trial_rig(rig_kind, seed):
     rng = np.random.default_rng(10_000 + seed)
     if rig_kind == "hybrid":
-        rig = random_rig(rng, 2, hand=True)
-    elif rig_kind == "hand":
-        rig = random_rig(rng, 0, hand=True)
-    else:
-        rig = random_rig(rng, int(rig_kind))
+        return random_rig(rng, 2, hand=True)
+    if rig_kind == "hand":
+        return random_rig(rng, 0, hand=True)
+    return random_rig(rng, int(rig_kind))
+
+
+def _score(o, k, T_est, T_true, model, syms):
+    e = sym_add(T_est, T_true, model, syms)
+    o["frame"], o["add"] = k, e / model.diameter
+    Ts = min((T_true @ S for S in syms), key=lambda Ts: add(T_est, Ts, model.vertices))
+    o["err_p"] = float(np.linalg.norm(T_est[:3, 3] - Ts[:3, 3]))
+    Rd = T_est[:3, :3].T @ Ts[:3, :3]
+    o["err_r"] = float(np.arccos(np.clip((np.trace(Rd) - 1) / 2, -1, 1)))
+
+
+def run_trial(obj, model, syms, rig_kind, seed, frames, stride, baseline):
+    rig = _trial_rig(rig_kind, seed)
     config, motion, _ = trial_config(obj, rig, seed)
     methods = {"ours": make_initializer(rig, model)}
     if baseline:
@@ -92,12 +161,7 @@ def run_trial(obj, model, syms, rig_kind, seed, frames, stride, baseline):
                 o["cpu"].append(r.cpu_s)
                 o["to_first"] += r.wall_s
                 if res is not None:
-                    e = sym_add(res.T_world_object, T_true, model, syms)
-                    o["frame"], o["add"] = k, e / model.diameter
-                    Ts = min((T_true @ S for S in syms), key=lambda Ts: add(res.T_world_object, Ts, model.vertices))
-                    o["err_p"] = float(np.linalg.norm(res.T_world_object[:3, 3] - Ts[:3, 3]))
-                    Rd = res.T_world_object[:3, :3].T @ Ts[:3, :3]
-                    o["err_r"] = float(np.arccos(np.clip((np.trace(Rd) - 1) / 2, -1, 1)))
+                    _score(o, k, res.T_world_object, T_true, model, syms)
                     done.add(m)
     return out
 
@@ -111,17 +175,27 @@ def main(argv=None):
     ap.add_argument("--stride", type=int, default=5)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--no-baseline", action="store_true")
+    ap.add_argument("--track", type=int, default=0, metavar="N",
+                    help="also run the tracker for N frames and score its published status (no baseline)")
     ap.add_argument("--verbose", action="store_true")
     a = ap.parse_args(argv)
+    if a.track:
+        a.no_baseline = True
+        a.track = max(a.track, a.frames)
     rows = []
     totals = {"ours": [0, 0, 0], "base": [0, 0, 0]}
+    track_totals = [0, 0, 0]
     t_start = time.perf_counter()
     for obj in a.objects.split(","):
         model = load_model(object_mesh_path(obj))
         syms = model_symmetries(model.vertices)
         for rk in a.rigs.split(","):
-            res = [run_trial(obj, model, syms, rk, a.seed + i, a.frames, a.stride, not a.no_baseline)
-                   for i in range(a.trials)]
+            if a.track:
+                res = [{"ours": run_tracked(obj, model, syms, rk, a.seed + i, a.frames, a.stride, a.track)}
+                       for i in range(a.trials)]
+            else:
+                res = [run_trial(obj, model, syms, rk, a.seed + i, a.frames, a.stride, not a.no_baseline)
+                       for i in range(a.trials)]
             row = [obj, rk, a.trials]
             for m in (["ours"] if a.no_baseline else ["ours", "base"]):
                 ok = [r[m] for r in res if r[m]["add"] is not None and r[m]["add"] < 0.1]
@@ -139,25 +213,45 @@ def main(argv=None):
                     row += [float(np.median(ep)) if ep else float("nan"), float(np.max(ep)) if ep else float("nan"),
                             float(np.median(er)) if er else float("nan"), float(np.max(er)) if er else float("nan"),
                             float(np.median(first)) * 1e3 if first else float("nan")]
+                if m == "ours" and a.track:
+                    t_ok = [r[m] for r in res if r[m]["track_frame"] is not None and r[m]["track_frame"] < a.frames
+                            and r[m]["track_add"] < 0.1]
+                    t_wrong = [r[m] for r in res if r[m]["wrong_frame"] is not None]
+                    t_at = [r[m]["track_frame"] for r in res if r[m]["track_frame"] is not None]
+                    row += [len(t_ok) / a.trials, len(t_wrong),
+                            float(np.median(t_at)) if t_at else float("nan"),
+                            float(np.max(t_at)) if t_at else float("nan")]
+                    track_totals[0] += len(t_ok)
+                    track_totals[1] += len(t_wrong)
+                    track_totals[2] += a.trials
                 totals[m][0] += len(ok)
                 totals[m][1] += len(wrong)
                 totals[m][2] += a.trials
                 if a.verbose:
                     for i, r in enumerate(res):
+                        tr = (f" tracking from frame {r[m]['track_frame']} ADD/d {r[m]['track_add']} "
+                              f"max {r[m]['max_track_add']} wrong at {r[m]['wrong_frame']}" if a.track else "")
                         print(f"  {obj} {rk} trial {i} {m}: frame {r[m]['frame']} ADD/d {r[m]['add']} calls "
-                              f"{[round(c, 2) for c in r[m]['calls']]}", flush=True)
+                              f"{[round(c, 2) for c in r[m]['calls']]}{tr}", flush=True)
             rows.append(row)
             print(f"done {obj} {rk} ({time.perf_counter() - t_start:.0f} s)", flush=True)
     headers = ["object", "rig", "n", "success", "wrong", "call ms med", "call ms p99", "cpu ms med", "cpu ms p99",
                "dp mm med", "dp mm max",
                "dR deg med", "dR deg max", "to-pose ms med"]
+    if a.track:
+        headers += ["tracking", "trk wrong", "trk frame med", "trk frame max"]
     if not a.no_baseline:
         headers += ["base succ", "base wrong", "base ms med", "base ms p99"]
     print_table(headers, rows, title=f"Initialisation within {a.frames} frames (attempts every {a.stride}), "
-                                       f"success = ADD < 10% diameter")
+                                       f"success = ADD < 10% diameter"
+                                       + (f"; tracker run {a.track} frames" if a.track else ""))
     for m, (ok, wrong, n) in totals.items():
         if n:
             print(f"{m}: success {ok}/{n} = {ok / n:.3f}, wrong locks {wrong}")
+    if a.track:
+        ok, wrong, n = track_totals
+        print(f"tracker: published tracking within {a.frames} frames (ADD < 10%) {ok}/{n} = {ok / n:.3f}, "
+              f"wrong locks (a tracking frame with ADD >= 10% in {a.track} frames) {wrong}")
     if not a.no_baseline and totals["base"][2]:
         so, sb = totals["ours"][0] / totals["ours"][2], totals["base"][0] / totals["base"][2]
         print(f"success ratio ours/base = {so / sb if sb else float('inf'):.2f}; wrong locks ours {totals['ours'][1]} "
