@@ -269,15 +269,14 @@ class PoseServer:
             f = q.popleft()
             if not q:  # the live frame set: confirmed again on live frames before publishing
                 self._catching = None
-                self.tracker.confirmed = False
-                self.tracker._good = 0
+                self.tracker.require_confirmation(f.t_ns)
                 return self.tracker.process(f)
             self.tracker.process(f)
             self.caught_up_frames += 1
             n += 1
-        if self.tracker.ekf is None:  # lost on the way: the initialiser starts over
+        if self.tracker.ekf is None:  # lost (or not confirmed in time) on the way: the initialiser starts over
             self._catching = None
-            return TrackerOutput(fs.index, fs.t_ns, "lost")
+            return TrackerOutput(fs.index, fs.t_ns, self.tracker.status)
         return TrackerOutput(fs.index, fs.t_ns, "initializing")
 
     # -- the loop -------------------------------------------------------------------

@@ -128,6 +128,13 @@ class TrackerConfig:
         When a frame's largest search window is at least this half-size (px),
         the frame is measured a second time after the first update (see
         ``Tracker._track``).
+    confirm_within_s : float
+        A started filter not confirmed within this time (s, from the frame it
+        started on) is dropped and the initialiser runs again. Seen on a
+        one-camera bracket: the first update after a good start (0.9% of the
+        diameter) found no corner, the filter slid with 3-4 of 8 corners
+        accepted per frame (not few enough to count as bad) and, 38 frames
+        on, confirmed a pose 28% off. A fresh start is cheaper than waiting.
     confirm_max_pos_std, confirm_max_rot_std : float
         ...and the filter must be confident: largest position std, as a fraction
         of the object's diameter, and orientation std (rad) below these, so a
@@ -181,6 +188,7 @@ class TrackerConfig:
     confirm_min_camera_fraction: float = 0.5
     disagree_frames: int = 3
     refine_window_px: int = 12
+    confirm_within_s: float = 0.75
     confirm_max_pos_std: float = 0.04
     confirm_max_rot_std: float = 0.035
     adaptive_noise: bool = True
@@ -340,6 +348,8 @@ class Tracker:
         self._noise_updates = 0
         self.frames = 0
         self.lost_events = 0
+        self.unconfirmed_drops = 0  # started filters dropped for not confirming in time
+        self._start_t_ns: int | None = None
         self.last_good = None  # (T_world_object, velocity (6,), t_ns) of the last tracking frame
         self._reseeded = True
         self._warm_up()
@@ -402,11 +412,19 @@ class Tracker:
         self.ekf = PoseEKF(init.T_world_object, P0, q_acc=c.q_acc, q_alpha=c.q_alpha, sigma_px=c.sigma_px,
                            gate_prob=c.gate_prob, v=v, w=w, robust_nis=c.robust_nis)
         self._t_ns = t_ns
+        self._start_t_ns = t_ns
         self._bad = 0
         self._good = 0
         self._disagree = 0
         self.confirmed = False
         self.status = STATUS_INITIALIZING
+
+    def require_confirmation(self, t_ns: int) -> None:
+        """Publish ``initializing`` until the filter is confirmed again, from the frame at
+        ``t_ns`` on (and within ``confirm_within_s`` of it)."""
+        self.confirmed = False
+        self._good = 0
+        self._start_t_ns = t_ns
 
     def _lose(self) -> None:
         self.ekf = None
@@ -691,6 +709,10 @@ class Tracker:
                                  mean_nis=mean_nis, stage_ms=stage_ms)
         if not self.confirmed:
             self.status = STATUS_INITIALIZING
+            if fs.t_ns - self._start_t_ns >= c.confirm_within_s * 1e9:
+                # Not confirmed in time: start again from the images (see confirm_within_s).
+                self.ekf = None
+                self.unconfirmed_drops += 1
             return TrackerOutput(fs.index, fs.t_ns, STATUS_INITIALIZING, observations=tuple(obs), n_accepted=n_acc,
                                  mean_nis=mean_nis, stage_ms=stage_ms)
         self.status = STATUS_TRACKING

@@ -305,3 +305,46 @@ def test_cameras_disagreeing_on_a_confirmed_track_reopen_the_windows(recs):
                        [c.init_sigma_pos**2] * 3 + [c.init_sigma_rot**2] * 3)
     tr, P0, _ = run(accepted_left=6)  # both cameras agree: nothing changes
     assert tr.reassociations == 0 and np.allclose(tr.ekf.pose_covariance, P0)
+
+
+def test_a_start_not_confirmed_in_time_is_dropped_for_a_fresh_initialisation(recs):
+    """A started filter whose frames never confirm it (here 4 of 8 corners accepted per
+    camera: not bad, not strong) is dropped once ``confirm_within_s`` has passed since its
+    start, and the initialiser runs again. Seen on a one-camera bracket trial: after a good
+    start the filter slid with 3-4 of 8 corners accepted and, 38 frames on, confirmed a pose
+    28% of the diameter off."""
+    from vespro.tracker import CameraObservation, InitResult
+
+    rec = Recording(recs["box_conveyor"])
+    _, _, T = read_groundtruth(recs["box_conveyor"])
+    ids = np.arange(8)
+
+    def ob(name, n_acc):
+        acc = np.zeros(8, bool)
+        acc[:n_acc] = True
+        return CameraObservation(name, True, 12, ids, np.zeros((8, 2)), np.full(8, 3.0), np.zeros((8, 2)), acc)
+
+    calls = []
+    tr = make_tracker(rec)
+    tr.initializer = lambda fs: calls.append(fs.index)  # finds nothing
+    t0 = rec.frameset(0).t_ns
+    tr.start(InitResult(T[0], cov6=np.diag([1e-6] * 6)), t0)
+    weak = [ob("cam_left", 4), ob("cam_right", 4)]
+    deadline = t0 + tr.config.confirm_within_s * 1e9
+    i = 0
+    while tr.ekf is not None:
+        fs = rec.frameset(i)
+        out = tr._status(fs, weak, 8, 8, 2.0, {"visibility": 0.0})
+        assert out.status == "initializing"
+        assert (fs.t_ns >= deadline) == (tr.ekf is None)
+        i += 1
+    assert tr.unconfirmed_drops == 1 and not calls
+    out = tr.process(rec.frameset(i))  # no filter: the initialiser is asked again
+    assert calls == [i] and out.status == "initializing"
+
+    # Strong frames confirm well before the deadline: nothing is dropped.
+    tr = make_tracker(rec)
+    tr.start(InitResult(T[0], cov6=np.diag([1e-6] * 6)), t0)
+    strong = [ob("cam_left", 8), ob("cam_right", 8)]
+    outs = [tr._status(rec.frameset(i), strong, 16, 16, 2.0, {"visibility": 0.0}).status for i in range(30)]
+    assert outs[-1] == "tracking" and tr.unconfirmed_drops == 0
