@@ -535,6 +535,50 @@ def update(
     return x_new, P_new, UpdateResult(Status.OK, accepted, nonfinite, nis, int(gated.sum()), Pp_post)
 
 
+def update_pose(x: np.ndarray, P: np.ndarray, T_meas: np.ndarray, R6: np.ndarray,
+                P_pub: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, float]:
+    """Update with a direct measurement of the pose (e.g. an edge fit).
+
+    Parameters
+    ----------
+    x : ndarray (13,), P : ndarray (12, 12)
+    T_meas : ndarray (4, 4)
+        Measured ``T_world_object``.
+    R6 : ndarray (6, 6)
+        Its covariance, of ``[dp, dtheta]`` (world, rotation on the left: the
+        error-state convention of ``P``).
+    P_pub : ndarray (12, 12), optional
+        The published covariance, updated with the same gain.
+
+    Returns
+    -------
+    x, P, P_pub (or None), nis : the updated state and covariances, and the
+    measurement's normalised innovation (6 dof).
+    """
+    T_meas = np.asarray(T_meas, dtype=float)
+    R6 = np.asarray(R6, dtype=float)
+    if T_meas.shape != (4, 4) or R6.shape != (6, 6):
+        raise ValueError(f"update_pose: expected T_meas (4, 4) and R6 (6, 6), got {T_meas.shape}, {R6.shape}")
+    R_est = matrix_from_quat(x[Q_])
+    y = np.concatenate([T_meas[:3, 3] - x[P_], log_so3(T_meas[:3, :3] @ R_est.T)])
+    H = np.zeros((6, 12))
+    H[:, :6] = np.eye(6)
+    S = P[:6, :6] + R6
+    nis = float(y @ np.linalg.solve(S, y))
+    dx, P_post = kf_update(np.zeros(12), P, y, R6, H)
+    Pp = None
+    if P_pub is not None:
+        K = P[:, :6] @ np.linalg.inv(S)
+        A = np.eye(12) - K @ H
+        Pp = A @ np.asarray(P_pub, dtype=float) @ A.T + K @ R6 @ K.T
+    G = reset_jacobian(dx)
+    P_new = G @ P_post @ G.T
+    if Pp is not None:
+        Pp = G @ Pp @ G.T
+        Pp = 0.5 * (Pp + Pp.T)
+    return inject(x, dx), 0.5 * (P_new + P_new.T), Pp, nis
+
+
 # --------------------------------------------------------------------------- consistency
 
 
@@ -620,6 +664,13 @@ class PoseEKF:
             self.P_pub = res.P_pub
         self.n_nonfinite += res.n_nonfinite
         return res
+
+    def update_pose(self, T_meas, R6) -> float:
+        """Direct pose measurement; see :func:`update_pose`. Returns its NIS (6 dof)."""
+        self.x, self.P, Pp, nis = update_pose(self.x, self.P, T_meas, R6, self.P_pub)
+        if Pp is not None:
+            self.P_pub = Pp
+        return nis
 
     @property
     def x(self) -> np.ndarray:

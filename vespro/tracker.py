@@ -36,7 +36,7 @@ from .ekf import PoseEKF
 from .ekf import Status as EKFStatus
 from .extraction import extract_corners, window_half_sizes
 from .features import salient_corners
-from .metrics import discrete_symmetries
+from .metrics import add, discrete_symmetries
 from .frames import FrameSet
 from .model import Model
 from .projection import project_with_jacobian
@@ -143,6 +143,18 @@ class TrackerConfig:
         camera sees depth several times worse than lateral position: 4% keeps the
         3-sigma bound near the 10% wrong-lock line while a lone camera (depth std
         4-5 mm on a 19 cm part) can still confirm.
+    edge_aid : str
+        ``"single"``: when one camera's corners are all a frame has, the part's
+        visible edges are fitted in that camera's image too
+        (:mod:`vespro.edgeaid`) and the fitted pose updates the filter; a lone
+        camera's 6-8 corners leave the depth and tilt loose (tracks slid to
+        10-20% of the diameter with every corner within 3 px). ``"always"``:
+        every camera with corners, each frame; ``"off"``: corners only.
+    edge_aid_max_move : float
+        An edge fit that lands further than this from the filter's pose (mean
+        model-vertex displacement, fraction of the diameter) is not used
+        (counted in ``Tracker.edge_rejects``): the fit searches a few px about
+        the filter's pose and has nothing to say about a pose that far off.
     adaptive_noise : bool
         Adapt the measurement noise to the innovations (covariance matching):
         the corner error differs between objects, backgrounds and lenses, and
@@ -191,6 +203,8 @@ class TrackerConfig:
     confirm_within_s: float = 0.75
     confirm_max_pos_std: float = 0.04
     confirm_max_rot_std: float = 0.035
+    edge_aid: str = "single"
+    edge_aid_max_move: float = 0.25
     adaptive_noise: bool = True
     sigma_min_px: float = 0.15
     sigma_max_px: float = 3.0
@@ -202,6 +216,8 @@ class TrackerConfig:
     def __post_init__(self):
         if self.selection not in ("information", "quality"):
             raise ValueError(f"selection must be 'information' or 'quality', got {self.selection!r}")
+        if self.edge_aid not in ("single", "always", "off"):
+            raise ValueError(f"edge_aid must be 'single', 'always' or 'off', got {self.edge_aid!r}")
         if self.features_per_camera < 3:
             raise ValueError("need at least 3 features per camera")
 
@@ -332,6 +348,13 @@ class Tracker:
         self.tree = load_or_build_bsp(model, cache_dir=bsp_cache_dir)
         self.scene = VisibilityScene([SceneBody(model.name, model, self.tree)])
         self.salient = salient_corners(model)
+        self.edge_aid = None
+        if config.edge_aid != "off":
+            from .edgeaid import EdgeAid  # here: vespro.init (its edge search) imports this module
+
+            self.edge_aid = EdgeAid(rig, model, self.tree)
+        self.edge_updates = 0  # edge-fitted poses the filter was updated with
+        self.edge_rejects = 0  # edge fits too far from the filter's pose to use
         # A symmetric part (a box) looks the same in several poses: pick one by a stated rule.
         self.symmetries = discrete_symmetries(model.vertices)
         self.ekf: PoseEKF | None = None
@@ -519,7 +542,31 @@ class Tracker:
             snap, self.sigma_px, self.feature_factor, self._noise_updates = saved
             ekf.restore(snap)
             obs, n_found, n_acc, mean_nis, max_half, ok = self._measure(fs, stage, assoc)
+        if self.edge_aid is not None:
+            self._edge_update(fs, obs, stage)
         return self._status(fs, obs, n_found, n_acc, mean_nis, stage)
+
+    def _edge_update(self, fs: FrameSet, obs: list, stage: dict) -> None:
+        """Update the filter with the pose the part's edges fit in the image (see ``edge_aid``)."""
+        t = time.perf_counter()
+        cams = [ob.name for ob in obs if ob.has_image and ob.feature_ids.size]
+        if self.config.edge_aid == "single" and len(cams) != 1:
+            return
+        for name in cams:
+            T_wc = self._camera_pose(fs, name)
+            img = fs.images.get(name)
+            if T_wc is None or img is None:
+                continue
+            T = self.ekf.pose
+            m = self.edge_aid.measure(name, img, T_wc, T)
+            if m is None:
+                continue
+            if add(m.T_world_object, T, self.model.vertices) > self.config.edge_aid_max_move * self.model.diameter:
+                self.edge_rejects += 1
+                continue
+            self.ekf.update_pose(m.T_world_object, m.cov6)
+            self.edge_updates += 1
+        stage["edges"] = time.perf_counter() - t
 
     def _measure(self, fs: FrameSet, stage: dict, assoc: tuple | None = None):
         """Visibility, selection, extraction and update.

@@ -476,3 +476,30 @@ def test_robust_nis_makes_the_covariance_honest_under_heavy_tailed_corner_errors
     # and on clean Gaussian corners it costs little: not turned conservative
     clean = _heavy_tailed_runs(3.0, seeds=(0,), contamination=0.0)
     assert inside(clean) >= 0.90 and 4.5 < clean.mean() < 7.5, (inside(clean), clean.mean())
+
+
+def test_pose_measurement_update_is_the_kalman_blend_in_the_error_state():
+    """update_pose: a measured pose with covariance R pulls the state by P (P + R)^-1 of the
+    error [dp, Log(R_meas R^T)]; equal covariances meet half-way, the pose block shrinks,
+    the velocities follow through their correlation, and the NIS is the 6-dof innovation."""
+    rng = np.random.default_rng(3)
+    x = _random_state(rng)
+    P = np.diag([1e-4] * 3 + [1e-3] * 3 + [1e-2] * 6)
+    P[0, 6] = P[6, 0] = 0.5 * np.sqrt(1e-4 * 1e-2)  # x position correlated with x velocity
+    e = np.array([0.01, -0.004, 0.002, 0.02, 0.0, -0.01])
+    T = ekf.pose_from_state(x)
+    T_meas = se3.transform_from_rt(se3.exp_so3(e[3:]) @ T[:3, :3], T[:3, 3] + e[:3])
+    R6 = np.diag(np.diag(P[:6, :6]))
+    x2, P2, Pp, nis = ekf.update_pose(x, P, T_meas, R6, P_pub=P.copy())
+    dx = ekf.boxminus(x2, x)
+    np.testing.assert_allclose(dx[1:6], e[1:6] / 2, rtol=1e-3, atol=1e-9)  # equal variances: half-way
+    assert dx[0] == pytest.approx(e[0] / 2, rel=1e-3)
+    assert dx[6] == pytest.approx(0.5 * np.sqrt(1e-2 / 1e-4) * e[0] / 2, rel=1e-3)  # velocity follows
+    assert np.all(np.diag(P2)[:6] < 0.51 * np.diag(P)[:6])
+    assert nis == pytest.approx(float(e @ np.linalg.solve(P[:6, :6] + R6, e)), rel=1e-9)
+    np.testing.assert_allclose(Pp, P2, atol=1e-12)  # same gain and noise: the published one agrees
+    # A far more certain measurement is taken (almost) as it is.
+    x3, _, _, _ = ekf.update_pose(x, P, T_meas, R6 * 1e-8)
+    np.testing.assert_allclose(ekf.boxminus(x3, x)[:6], e, atol=1e-6)
+    with pytest.raises(ValueError):
+        ekf.update_pose(x, P, T_meas[:3], R6)

@@ -456,9 +456,30 @@ def refine_pose(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFe
     return T
 
 
+@dataclass(frozen=True)
+class EdgeFit:
+    """How the last round of :func:`refine_subpixel` was supported.
+
+    Attributes
+    ----------
+    normal : ndarray (6, 6)
+        ``J^T W J`` of the edge residuals (px) in the perturbation ``x = [w, dp]``
+        (``R = R0 Exp(w)``, ``p = p0 + dp``) at the pose before the last step.
+    rms_px : float
+        Weighted RMS of those residuals, px.
+    n_samples, n_edges : int
+        Edge samples with an edge point found, and the model edges they lie on.
+    """
+
+    normal: np.ndarray
+    rms_px: float
+    n_samples: int
+    n_edges: int
+
+
 def refine_subpixel(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFeatures, tree=None,
                     rounds: int = 4, search_px: float = 3.0, min_grad: float = 40.0, f_scale: float = 0.7,
-                    shared_edge_px: float = 1.5) -> np.ndarray:
+                    shared_edge_px: float = 1.5, info: bool = False):
     """Final sub-pixel refinement by 1D edge search along the projected normals.
 
     Each visible edge sample looks along its projected edge normal (within
@@ -477,11 +498,14 @@ def refine_subpixel(T_world_object: np.ndarray, views: list[CameraView], mf: Mod
     Returns
     -------
     ndarray, shape (4, 4)
+        The refined pose; with ``info``, ``(pose, EdgeFit or None)`` (None when
+        too few samples found an edge point to fit).
     """
     T = np.array(T_world_object, float)
     offs = np.arange(-search_px, search_px + 1e-9, 0.5)
+    fit = None
     for _ in range(rounds):
-        rows_J, rows_r = [], []
+        rows_J, rows_r, rows_e = [], [], []
         for v in views:
             T_cw = invert_transform(v.T_world_camera)
             T_co = T_cw @ T
@@ -529,20 +553,22 @@ def refine_subpixel(T_world_object: np.ndarray, views: list[CameraView], mf: Mod
             R = T[:3, :3]
             rows_J.append(np.concatenate([np.cross(P @ R.T, g_w) @ R, g_w], 1))
             rows_r.append(-sstar)
+            rows_e.append(mf.sample_edge[idx[ok]] + len(mf.edge_a) * len(rows_e))
         if not rows_J:
-            return T
+            break
         J = np.concatenate(rows_J)
         r = np.concatenate(rows_r)
         if len(r) < 12:
-            return T
+            break
         w = np.where(np.abs(r) <= f_scale, 1.0, f_scale / np.maximum(np.abs(r), 1e-12))
         JW = J * w[:, None]
         A = JW.T @ J
+        fit = EdgeFit(A, float(np.sqrt(np.sum(w * r * r) / np.sum(w))), len(r), len(np.unique(np.concatenate(rows_e))))
         step = np.linalg.solve(A + 1e-6 * np.diag(np.diag(A) + 1e-9), -(JW.T @ r))
         T = _perturbed(T, step)
         if np.linalg.norm(step[:3]) < 1e-5 and np.linalg.norm(step[3:]) < 1e-6:
             break
-    return T
+    return (T, fit) if info else T
 
 
 def interior_clutter(T_camera_object: np.ndarray, feat: CameraFeatures, mf: ModelFeatures,

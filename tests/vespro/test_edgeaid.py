@@ -1,0 +1,89 @@
+"""Edge-aided pose measurements (vespro.edgeaid) and the one-camera tracker that uses them.
+
+Simulator frames; ground truth for scoring only.
+"""
+
+import numpy as np
+import pytest
+from scipy.stats import chi2
+
+from vespro.edgeaid import EdgeAid
+from vespro.ekf import nees
+from vespro.metrics import add
+from vespro.model import load_model
+from vespro.se3 import exp_so3, transform_from_rt
+from vespro.sim.cell import SimCell
+from vespro.sim.trials import model_symmetries, random_rig, trial_config
+from vespro.tracker import Tracker, TrackerConfig
+
+
+def _one_camera_frames(obj, seed, n):
+    rig = random_rig(np.random.default_rng(10_000 + seed), 1)
+    config, motion, mesh = trial_config(obj, rig, seed)
+    model = load_model(mesh)
+    out = []
+    with SimCell(config, motion) as cell:
+        cell.settle_arm()
+        for _ in range(n):
+            out.append((cell.next_frameset(), cell.true_object_pose()))
+    return rig, model, out
+
+
+@pytest.mark.parametrize("obj,seed", [("box", 6), ("lblock", 12)])
+def test_edges_fit_the_pose_a_lone_camera_sees_loosely(obj, seed):
+    """From the true pose, or moved 2.5% of the diameter along the line of sight and
+    tilted 2 deg, the edge fit lands on the same pose (within 0.2% of the diameter),
+    within 3% of the truth (measured 2.2-2.3%: one view's edges fix the depth to a few
+    mm), with a covariance its error agrees with (NEES 5-8; under the 0.999 chi-square)."""
+    rig, model, frames = _one_camera_frames(obj, seed, 1)
+    fs, T_true = frames[0]
+    cam = rig.cameras[0]
+    T_wc = cam.T_world_camera
+    ray = T_true[:3, 3] - T_wc[:3, 3]
+    ray /= np.linalg.norm(ray)
+    syms = model_symmetries(model.vertices)
+    aid = EdgeAid(rig, model)
+    fits = []
+    for tilt_deg, along in [(0.0, 0.0), (0.0, 0.025), (2.0, 0.0), (2.0, 0.025)]:
+        T0 = transform_from_rt(exp_so3([0.0, np.deg2rad(tilt_deg), 0.0]) @ T_true[:3, :3],
+                               T_true[:3, 3] + along * model.diameter * ray)
+        m = aid.measure(cam.name, fs.images[cam.name], T_wc, T0)
+        assert m is not None
+        Ts = min((T_true @ S for S in syms), key=lambda X: add(m.T_world_object, X, model.vertices))
+        assert add(m.T_world_object, Ts, model.vertices) < 0.03 * model.diameter
+        assert nees(m.T_world_object, Ts, m.cov6) < chi2.ppf(0.999, 6)
+        fits.append(m.T_world_object)
+    for T in fits[1:]:
+        assert add(T, fits[0], model.vertices) < 0.002 * model.diameter
+    # Nothing to fit in a blank image.
+    assert aid.measure(cam.name, np.zeros_like(fs.images[cam.name]), T_wc, fits[0]) is None
+
+
+def test_one_camera_track_held_by_the_edges():
+    """Bracket, rig seed 3, one camera, started from the initialiser's pose (3% of the
+    diameter off): on corners alone the track slid to 11-20% in its first frames and was
+    published there (every corner within 3 px); with the edge fits every published frame is
+    within 10% (measured 0.3-4.5%)."""
+    from vespro.init import make_initializer
+
+    rig, model, frames = _one_camera_frames("bracket", 3, 12)
+    ini = make_initializer(rig, model)
+    res = ini(frames[0][0])
+    assert res is not None
+    syms = model_symmetries(model.vertices)
+
+    def run(mode):
+        tr = Tracker(rig, model, TrackerConfig(edge_aid=mode))
+        tr.start(res, frames[0][0].t_ns)
+        errs = []
+        for fs, T_true in frames:
+            out = tr.process(fs)
+            if out.status == "tracking":
+                errs.append(min(add(out.T_world_object, T_true @ S, model.vertices) for S in syms) / model.diameter)
+        return tr, errs
+
+    tr, errs = run("single")
+    assert tr.edge_updates >= len(frames) - 1 and len(errs) >= len(frames) - 2
+    assert max(errs) < 0.1, errs
+    _, errs_off = run("off")
+    assert max(errs_off) > 0.1, errs_off  # the premise: corners alone let it slide
