@@ -8,6 +8,11 @@ per-frame baseline run in this process on the same detections (OpenCV
 solvePnP per camera, no filter), and the ratio. Accuracy (position RMSE) is
 printed too, so speed is never read without it.
 
+With one camera the filter is also updated with the pose the part's edges fit
+(``TrackerConfig.edge_aid``, stage "edges"); that rig is tracked a second time
+on corners alone, and the rows "whole frame, corners only" give its time and
+accuracy for comparison.
+
 With ``--mono`` the cameras are monochrome (8-bit grey, as in the demo's cell and most
 industrial cameras): the tracker then has no colour conversion to do.
 
@@ -37,6 +42,7 @@ from vespro.sim.record import record  # noqa: E402
 from vespro.sim.rigs import CAMERAS_DIR  # noqa: E402
 from vespro.sim.scene import MODELS_DIR  # noqa: E402
 from vespro.track import make_tracker, track_recording  # noqa: E402
+from vespro.tracker import TrackerConfig  # noqa: E402
 
 
 def main() -> None:
@@ -67,11 +73,20 @@ def main() -> None:
             base.append((time.perf_counter() - t) * 1e3)
         b_med = float(np.median(base))
         tot = np.array([o.time_ms for o in outs])
-        for stage in ("visibility", "selection", "extraction", "update"):
+        for stage in ("visibility", "selection", "extraction", "update", "edges"):
             v = np.array([o.stage_ms.get(stage, np.nan) for o in outs])
+            if np.all(np.isnan(v)):
+                continue
             rows.append([rig_name, stage, float(np.nanmedian(v)), float(np.nanpercentile(v, 99)), "", ""])
         rows.append([rig_name, "whole frame", float(np.median(tot)), float(np.percentile(tot, 99)),
                      f"{s['position_rmse_mm']:.2f}", ""])
+        if any("edges" in o.stage_ms for o in outs):
+            tr0 = make_tracker(rec, TrackerConfig(edge_aid="off"))
+            outs0 = track_recording(rec, tr0, T[0])
+            s0 = score([o.T_world_object for o in outs0], [o.status for o in outs0], T, rec.t, tr0.model)
+            tot0 = np.array([o.time_ms for o in outs0])
+            rows.append([rig_name, "whole frame, corners only", float(np.median(tot0)), float(np.percentile(tot0, 99)),
+                         f"{s0['position_rmse_mm']:.2f}", f"{np.median(tot) / np.median(tot0):.1f}x (edges/off)"])
         rows.append([rig_name, "baseline solvePnP", b_med, float(np.percentile(base, 99)), "",
                      f"{np.median(tot) / b_med:.1f}x"])
         _ = t0

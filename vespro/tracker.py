@@ -155,6 +155,15 @@ class TrackerConfig:
         model-vertex displacement, fraction of the diameter) is not used
         (counted in ``Tracker.edge_rejects``): the fit searches a few px about
         the filter's pose and has nothing to say about a pose that far off.
+    confirm_edge_min_found, confirm_edge_min_edges : float, int
+        A frame whose edge fit was used, found an edge point for at least
+        ``confirm_edge_min_found`` of the visible edge samples, on at least
+        ``confirm_edge_min_edges`` model edges, and agreed with the filter
+        (NIS at most the 0.99 quantile of chi-square, 6 dof) counts towards
+        confirmation with ``min_accepted`` corners instead of
+        ``confirm_min_accepted``: a lone camera often sees only 6-7 of a
+        box's corners, finds 4-5 of them, and held an accurate track (0.5-3%
+        of the diameter) unpublished for a second.
     adaptive_noise : bool
         Adapt the measurement noise to the innovations (covariance matching):
         the corner error differs between objects, backgrounds and lenses, and
@@ -205,6 +214,8 @@ class TrackerConfig:
     confirm_max_rot_std: float = 0.035
     edge_aid: str = "single"
     edge_aid_max_move: float = 0.25
+    confirm_edge_min_found: float = 0.6
+    confirm_edge_min_edges: int = 6
     adaptive_noise: bool = True
     sigma_min_px: float = 0.15
     sigma_max_px: float = 3.0
@@ -324,6 +335,10 @@ class _Candidates:
         return cls(vis.indices[keep], vis.points[keep], vis.view_angle[keep], vis.silhouette_distance[keep])
 
 
+#: 0.99 quantile of chi-square with 6 dof (an edge-fitted pose agreeing with the filter).
+_CHI2_6_99 = 16.811893829770927
+
+
 class Tracker:
     """Multi-camera model-based pose tracker.
 
@@ -355,6 +370,7 @@ class Tracker:
             self.edge_aid = EdgeAid(rig, model, self.tree)
         self.edge_updates = 0  # edge-fitted poses the filter was updated with
         self.edge_rejects = 0  # edge fits too far from the filter's pose to use
+        self._edge_ok = False  # this frame's edge fits support the filter (see confirm_edge_*)
         # A symmetric part (a box) looks the same in several poses: pick one by a stated rule.
         self.symmetries = discrete_symmetries(model.vertices)
         self.ekf: PoseEKF | None = None
@@ -549,9 +565,12 @@ class Tracker:
     def _edge_update(self, fs: FrameSet, obs: list, stage: dict) -> None:
         """Update the filter with the pose the part's edges fit in the image (see ``edge_aid``)."""
         t = time.perf_counter()
+        c = self.config
+        self._edge_ok = False
         cams = [ob.name for ob in obs if ob.has_image and ob.feature_ids.size]
-        if self.config.edge_aid == "single" and len(cams) != 1:
+        if c.edge_aid == "single" and len(cams) != 1:
             return
+        support = []
         for name in cams:
             T_wc = self._camera_pose(fs, name)
             img = fs.images.get(name)
@@ -561,11 +580,15 @@ class Tracker:
             m = self.edge_aid.measure(name, img, T_wc, T)
             if m is None:
                 continue
-            if add(m.T_world_object, T, self.model.vertices) > self.config.edge_aid_max_move * self.model.diameter:
+            if add(m.T_world_object, T, self.model.vertices) > c.edge_aid_max_move * self.model.diameter:
                 self.edge_rejects += 1
+                support.append(False)
                 continue
-            self.ekf.update_pose(m.T_world_object, m.cov6)
+            nis = self.ekf.update_pose(m.T_world_object, m.cov6)
             self.edge_updates += 1
+            support.append(nis <= _CHI2_6_99 and m.fit.n_edges >= c.confirm_edge_min_edges
+                           and m.fit.n_samples >= c.confirm_edge_min_found * m.fit.n_searched)
+        self._edge_ok = bool(support) and all(support)
         stage["edges"] = time.perf_counter() - t
 
     def _measure(self, fs: FrameSet, stage: dict, assoc: tuple | None = None):
@@ -720,7 +743,8 @@ class Tracker:
         P6_now = ekf.pose_covariance
         pos_std = float(np.sqrt(np.max(np.linalg.eigvalsh(P6_now[:3, :3]))))
         rot_std = float(np.sqrt(np.max(np.linalg.eigvalsh(P6_now[3:, 3:]))))
-        strong = (not bad and n_acc >= c.confirm_min_accepted
+        enough = n_acc >= c.confirm_min_accepted or (self._edge_ok and n_acc >= c.min_accepted)
+        strong = (not bad and enough
                   and n_acc >= c.confirm_min_inlier_fraction * max(n_found, 1)
                   and n_acc >= c.confirm_min_selected_fraction * n_sel
                   and all(int(ob.accepted.sum()) >= c.confirm_min_camera_fraction * ob.feature_ids.size

@@ -469,12 +469,15 @@ class EdgeFit:
         Weighted RMS of those residuals, px.
     n_samples, n_edges : int
         Edge samples with an edge point found, and the model edges they lie on.
+    n_searched : int
+        Visible edge samples searched (``n_samples`` of them found an edge point).
     """
 
     normal: np.ndarray
     rms_px: float
     n_samples: int
     n_edges: int
+    n_searched: int = 0
 
 
 def refine_subpixel(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFeatures, tree=None,
@@ -506,12 +509,14 @@ def refine_subpixel(T_world_object: np.ndarray, views: list[CameraView], mf: Mod
     fit = None
     for _ in range(rounds):
         rows_J, rows_r, rows_e = [], [], []
+        n_searched = 0
         for v in views:
             T_cw = invert_transform(v.T_world_camera)
             T_co = T_cw @ T
             idx = visible_samples(T_co, mf, tree)
             if idx.size == 0:
                 continue
+            n_searched += idx.size
             K = v.feat.K
             ua, _ = _project(K, T_co, mf.edge_a)
             ub, _ = _project(K, T_co, mf.edge_b)
@@ -563,7 +568,8 @@ def refine_subpixel(T_world_object: np.ndarray, views: list[CameraView], mf: Mod
         w = np.where(np.abs(r) <= f_scale, 1.0, f_scale / np.maximum(np.abs(r), 1e-12))
         JW = J * w[:, None]
         A = JW.T @ J
-        fit = EdgeFit(A, float(np.sqrt(np.sum(w * r * r) / np.sum(w))), len(r), len(np.unique(np.concatenate(rows_e))))
+        fit = EdgeFit(A, float(np.sqrt(np.sum(w * r * r) / np.sum(w))), len(r), len(np.unique(np.concatenate(rows_e))),
+                      n_searched)
         step = np.linalg.solve(A + 1e-6 * np.diag(np.diag(A) + 1e-9), -(JW.T @ r))
         T = _perturbed(T, step)
         if np.linalg.norm(step[:3]) < 1e-5 and np.linalg.norm(step[3:]) < 1e-6:
