@@ -85,11 +85,14 @@ class EdgeAid:
         Floor of the per-sample noise, px.
     max_independent_edges : int
         At most this many edges count as independent (see the module notes).
+    rounds : int
+        Gauss-Newton rounds (each searches the image again); the filter's
+        pose is close, and each round costs 2-3 ms on the bracket.
     """
 
     def __init__(self, rig: Rig, model: Model, tree=None, blur_sigma: float = 0.8, search_px: float = 3.0,
                  min_samples: int = 40, min_edges: int = 5, min_sigma_px: float = 0.3,
-                 max_independent_edges: int = 12):
+                 max_independent_edges: int = 12, rounds: int = 2):
         self.mf = model_features(model)
         self.tree = None if self.mf.convex else tree
         self.undistort = {c.name: Undistorter(c.intrinsics) for c in rig}
@@ -100,6 +103,7 @@ class EdgeAid:
         self.min_edges = min_edges
         self.min_sigma_px = min_sigma_px
         self.max_independent_edges = max_independent_edges
+        self.rounds = rounds
 
     def measure(self, name: str, image: np.ndarray, T_world_camera: np.ndarray,
                 T_world_object: np.ndarray) -> EdgeMeasurement | None:
@@ -111,7 +115,8 @@ class EdgeAid:
         dx, dy = _gradient(img, self.blur_sigma)
         view = CameraView(_GradientImage(self.K[name], np.stack([dx, dy]).astype(np.float32)),
                           np.asarray(T_world_camera, float), True)
-        T, fit = refine_subpixel(T_world_object, [view], self.mf, self.tree, search_px=self.search_px, info=True)
+        T, fit = refine_subpixel(T_world_object, [view], self.mf, self.tree, search_px=self.search_px, info=True,
+                                 rounds=self.rounds)
         if fit is None or fit.n_samples < self.min_samples or fit.n_edges < self.min_edges:
             return None
         try:

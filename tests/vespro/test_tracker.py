@@ -348,3 +348,29 @@ def test_a_start_not_confirmed_in_time_is_dropped_for_a_fresh_initialisation(rec
     strong = [ob("cam_left", 8), ob("cam_right", 8)]
     outs = [tr._status(rec.frameset(i), strong, 16, 16, 2.0, {"visibility": 0.0}).status for i in range(30)]
     assert outs[-1] == "tracking" and tr.unconfirmed_drops == 0
+
+
+def test_an_agreeing_edge_fit_lets_fewer_corners_confirm(recs):
+    """Five of six corners accepted (fewer than confirm_min_accepted = 6) confirm a start only
+    on frames whose edge fit agreed with the filter (``Tracker._edge_ok``, set by the edge
+    update): a lone camera often finds 4-5 of a box's corners while its edges hold the pose."""
+    from vespro.tracker import CameraObservation, InitResult
+
+    rec = Recording(recs["box_conveyor"])
+    _, _, T = read_groundtruth(recs["box_conveyor"])
+    fs = rec.frameset(0)
+    ids = np.arange(6)
+    acc = np.array([True] * 5 + [False])
+    ob = CameraObservation("cam_left", True, 6, ids, np.zeros((6, 2)), np.full(6, 3.0), np.zeros((6, 2)), acc)
+
+    def statuses(edge_ok):
+        tr = make_tracker(rec)
+        tr.start(InitResult(T[0], cov6=np.diag([1e-6] * 6)), fs.t_ns)
+        out = []
+        for _ in range(4):
+            tr._edge_ok = edge_ok
+            out.append(tr._status(fs, [ob], 5, 5, 2.0, {"visibility": 0.0}).status)
+        return out
+
+    assert "tracking" not in statuses(edge_ok=False)
+    assert statuses(edge_ok=True)[-1] == "tracking"
