@@ -105,16 +105,40 @@ class EdgeAid:
         self.max_independent_edges = max_independent_edges
         self.rounds = rounds
 
+    def _roi(self, K, T_world_camera, T_world_object, width, height):
+        """Pixel box (x0, y0, x1, y1) around the model's projection, with room for the search."""
+        T_co = np.linalg.inv(T_world_camera) @ T_world_object
+        X = self.mf.vertices @ T_co[:3, :3].T + T_co[:3, 3]
+        if np.any(X[:, 2] <= 1e-6):
+            return None
+        uv = X[:, :2] / X[:, 2:3] * K[[0, 1], [0, 1]] + K[:2, 2]
+        m = self.search_px + 8.0  # search, gradient and blur kernels, a pose a few px off
+        x0, y0 = np.floor(uv.min(0) - m).astype(int)
+        x1, y1 = np.ceil(uv.max(0) + m).astype(int)
+        x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, width), min(y1, height)
+        if x1 - x0 < 8 or y1 - y0 < 8:
+            return None
+        return int(x0), int(y0), int(x1), int(y1)
+
     def measure(self, name: str, image: np.ndarray, T_world_camera: np.ndarray,
                 T_world_object: np.ndarray) -> EdgeMeasurement | None:
         """The pose near ``T_world_object`` that fits camera ``name``'s image edges, or None.
 
-        ``image``: the camera's image as captured (grey or colour; undistorted here).
+        ``image``: the camera's image as captured, 8-bit grey (undistorted here); the
+        gradient is taken in a box around the model's projection only.
         """
-        img = self.undistort[name](image)
+        T_wc = np.asarray(T_world_camera, float)
+        K = self.K[name]
+        roi = self._roi(K, T_wc, T_world_object, image.shape[1], image.shape[0])
+        if roi is None:
+            return None
+        x0, y0, x1, y1 = roi
+        img = self.undistort[name](image)[y0:y1, x0:x1]
         dx, dy = _gradient(img, self.blur_sigma)
-        view = CameraView(_GradientImage(self.K[name], np.stack([dx, dy]).astype(np.float32)),
-                          np.asarray(T_world_camera, float), True)
+        K_roi = K.copy()  # the crop is a camera whose principal point moved by (-x0, -y0)
+        K_roi[0, 2] -= x0
+        K_roi[1, 2] -= y0
+        view = CameraView(_GradientImage(K_roi, np.stack([dx, dy]).astype(np.float32)), T_wc, True)
         T, fit = refine_subpixel(T_world_object, [view], self.mf, self.tree, search_px=self.search_px, info=True,
                                  rounds=self.rounds)
         if fit is None or fit.n_samples < self.min_samples or fit.n_edges < self.min_edges:

@@ -573,7 +573,7 @@ class Tracker:
         support = []
         for name in cams:
             T_wc = self._camera_pose(fs, name)
-            img = fs.images.get(name)
+            img = fs.grey(name)
             if T_wc is None or img is None:
                 continue
             T = self.ekf.pose
