@@ -155,15 +155,18 @@ class TrackerConfig:
         model-vertex displacement, fraction of the diameter) is not used
         (counted in ``Tracker.edge_rejects``): the fit searches a few px about
         the filter's pose and has nothing to say about a pose that far off.
-    confirm_edge_min_found, confirm_edge_min_edges : float, int
+    confirm_edge_min_accepted, confirm_edge_min_found, confirm_edge_min_edges : int, float, int
         A frame whose edge fit was used, found an edge point for at least
         ``confirm_edge_min_found`` of the visible edge samples, on at least
         ``confirm_edge_min_edges`` model edges, and agreed with the filter
         (NIS at most the 0.99 quantile of chi-square, 6 dof) counts towards
-        confirmation with ``min_accepted`` corners instead of
+        confirmation with ``confirm_edge_min_accepted`` corners instead of
         ``confirm_min_accepted``: a lone camera often sees only 6-7 of a
-        box's corners, finds 4-5 of them, and held an accurate track (0.5-3%
-        of the diameter) unpublished for a second.
+        box's corners, finds 5 of them, and held an accurate track (0.5-3%
+        of the diameter) unpublished for a second. Not 4: a box face seen
+        head-on (4 corners, its edges in one plane) and an L-block whose
+        dark face lost its outer edge were confirmed from 4 and slid to
+        12-26% of the diameter.
     adaptive_noise : bool
         Adapt the measurement noise to the innovations (covariance matching):
         the corner error differs between objects, backgrounds and lenses, and
@@ -214,6 +217,7 @@ class TrackerConfig:
     confirm_max_rot_std: float = 0.035
     edge_aid: str = "single"
     edge_aid_max_move: float = 0.25
+    confirm_edge_min_accepted: int = 5
     confirm_edge_min_found: float = 0.6
     confirm_edge_min_edges: int = 6
     adaptive_noise: bool = True
@@ -743,7 +747,7 @@ class Tracker:
         P6_now = ekf.pose_covariance
         pos_std = float(np.sqrt(np.max(np.linalg.eigvalsh(P6_now[:3, :3]))))
         rot_std = float(np.sqrt(np.max(np.linalg.eigvalsh(P6_now[3:, 3:]))))
-        enough = n_acc >= c.confirm_min_accepted or (self._edge_ok and n_acc >= c.min_accepted)
+        enough = n_acc >= c.confirm_min_accepted or (self._edge_ok and n_acc >= c.confirm_edge_min_accepted)
         strong = (not bad and enough
                   and n_acc >= c.confirm_min_inlier_fraction * max(n_found, 1)
                   and n_acc >= c.confirm_min_selected_fraction * n_sel
