@@ -100,7 +100,7 @@ def run_tracked(obj, model, syms, rig_kind, seed, frames, stride, track_frames):
             for idx, res, r in gate.results[n_before:]:
                 o["calls"].append(r.wall_s)
                 o["cpu"].append(r.cpu_s)
-                if o["frame"] is None:
+                if o["frame"] is None and k < frames:  # the initialiser's own score: within the budget
                     o["to_first"] += r.wall_s
                     if res is not None:
                         _score(o, k, res.T_world_object, T_true, model, syms)
