@@ -128,6 +128,8 @@ class EdgeAid:
         gradient is taken in a box around the model's projection only.
         """
         T_wc = np.asarray(T_world_camera, float)
+        if not (np.all(np.isfinite(T_wc)) and np.all(np.isfinite(T_world_object))):
+            return None
         K = self.K[name]
         roi = self._roi(K, T_wc, T_world_object, image.shape[1], image.shape[0])
         if roi is None:

@@ -56,8 +56,12 @@ def test_edges_fit_the_pose_a_lone_camera_sees_loosely(obj, seed):
         fits.append(m.T_world_object)
     for T in fits[1:]:
         assert add(T, fits[0], model.vertices) < 0.005 * model.diameter
-    # Nothing to fit in a blank image.
+    # Nothing to fit in a blank image, nor from a pose behind the camera or not finite.
     assert aid.measure(cam.name, np.zeros_like(fs.images[cam.name]), T_wc, fits[0]) is None
+    behind = fits[0].copy()
+    behind[:3, 3] = T_wc[:3, 3] - 0.5 * ray
+    assert aid.measure(cam.name, fs.images[cam.name], T_wc, behind) is None
+    assert aid.measure(cam.name, fs.images[cam.name], T_wc, np.full((4, 4), np.nan)) is None
 
 
 def test_one_camera_track_held_by_the_edges():
