@@ -32,9 +32,10 @@ import numpy as np
 
 from .init.features import Undistorter, _gradient
 from .init.modelfeat import model_features
-from .init.search import CameraView, EdgeFit, refine_subpixel
+from .init.search import CameraView, EdgeFit, _project, refine_subpixel
 from .model import Model
 from .rig import Rig
+from .se3 import invert_transform
 
 __all__ = ["EdgeAid", "EdgeMeasurement"]
 
@@ -107,11 +108,9 @@ class EdgeAid:
 
     def _roi(self, K, T_world_camera, T_world_object, width, height):
         """Pixel box (x0, y0, x1, y1) around the model's projection, with room for the search."""
-        T_co = np.linalg.inv(T_world_camera) @ T_world_object
-        X = self.mf.vertices @ T_co[:3, :3].T + T_co[:3, 3]
-        if np.any(X[:, 2] <= 1e-6):
+        uv, z = _project(K, invert_transform(T_world_camera) @ T_world_object, self.mf.vertices)
+        if np.any(z <= 1e-6):
             return None
-        uv = X[:, :2] / X[:, 2:3] * K[[0, 1], [0, 1]] + K[:2, 2]
         m = self.search_px + 8.0  # search, gradient and blur kernels, a pose a few px off
         x0, y0 = np.floor(uv.min(0) - m).astype(int)
         x1, y1 = np.ceil(uv.max(0) + m).astype(int)
@@ -135,7 +134,7 @@ class EdgeAid:
         if roi is None:
             return None
         x0, y0, x1, y1 = roi
-        img = self.undistort[name](image)[y0:y1, x0:x1]
+        img = self.undistort[name](image, roi)
         dx, dy = _gradient(img, self.blur_sigma)
         K_roi = K.copy()  # the crop is a camera whose principal point moved by (-x0, -y0)
         K_roi[0, 2] -= x0

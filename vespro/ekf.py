@@ -563,12 +563,12 @@ def update_pose(x: np.ndarray, P: np.ndarray, T_meas: np.ndarray, R6: np.ndarray
     y = np.concatenate([T_meas[:3, 3] - x[P_], log_so3(T_meas[:3, :3] @ R_est.T)])
     H = np.zeros((6, 12))
     H[:, :6] = np.eye(6)
-    S = P[:6, :6] + R6
-    nis = float(y @ np.linalg.solve(S, y))
+    S_inv = np.linalg.inv(P[:6, :6] + R6)
+    nis = float(y @ S_inv @ y)
     dx, P_post = kf_update(np.zeros(12), P, y, R6, H)
     Pp = None
     if P_pub is not None:
-        K = P[:, :6] @ np.linalg.inv(S)
+        K = P[:, :6] @ S_inv
         A = np.eye(12) - K @ H
         Pp = A @ np.asarray(P_pub, dtype=float) @ A.T + K @ R6 @ K.T
     G = reset_jacobian(dx)

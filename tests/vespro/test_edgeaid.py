@@ -92,3 +92,18 @@ def test_one_camera_track_held_by_the_edges():
     assert max(errs) < 0.1, errs
     _, errs_off = run("off")
     assert max(errs_off) > 0.1, errs_off  # the premise: corners alone let it slide
+
+
+def test_undistorting_a_box_gives_the_crop_of_the_whole():
+    """The edge fit remaps only a box around the part: the same pixels as remapping the
+    whole image and cropping (and a camera without distortion passes the crop through)."""
+    from vespro.camera import CameraIntrinsics
+    from vespro.init.features import Undistorter
+
+    K = np.array([[600.0, 0, 320], [0, 600.0, 240], [0, 0, 1]])
+    rng = np.random.default_rng(0)
+    img = rng.integers(0, 255, (480, 640), dtype=np.uint8)
+    box = (100, 50, 260, 170)
+    for dist in (np.array([-0.2, 0.05, 0.001, -0.001, 0.0]), np.zeros(5)):
+        und = Undistorter(CameraIntrinsics(640, 480, K, dist))
+        np.testing.assert_array_equal(und(img, box), und(img)[50:170, 100:260])

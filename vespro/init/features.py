@@ -150,10 +150,16 @@ class Undistorter:
             self.maps = cv2.initUndistortRectifyMap(intr.K, intr.dist, None, intr.K,
                                                     (intr.width, intr.height), cv2.CV_16SC2)
 
-    def __call__(self, img: np.ndarray) -> np.ndarray:
+    def __call__(self, img: np.ndarray, box: tuple[int, int, int, int] | None = None) -> np.ndarray:
+        """The undistorted image, or only its pixels ``[y0:y1, x0:x1]`` for ``box = (x0, y0, x1, y1)``
+        (the remap of those pixels alone: the same values as cropping the whole)."""
         if self.maps is None:
-            return img
-        return cv2.remap(img, self.maps[0], self.maps[1], cv2.INTER_LINEAR)
+            return img if box is None else img[box[1]:box[3], box[0]:box[2]]
+        m0, m1 = self.maps
+        if box is not None:
+            x0, y0, x1, y1 = box
+            m0, m1 = m0[y0:y1, x0:x1], m1[y0:y1, x0:x1]
+        return cv2.remap(img, m0, m1, cv2.INTER_LINEAR)
 
 
 def normal_bins(angle: np.ndarray, n_bins: int) -> np.ndarray:
