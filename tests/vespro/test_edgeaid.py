@@ -14,6 +14,7 @@ from vespro.model import load_model
 from vespro.se3 import exp_so3, transform_from_rt
 from vespro.sim.cell import SimCell
 from vespro.sim.trials import model_symmetries, random_rig, trial_config
+from vespro.startpose import InitResult
 from vespro.tracker import Tracker, TrackerConfig
 
 
@@ -92,6 +93,35 @@ def test_one_camera_track_held_by_the_edges():
     assert max(errs) < 0.1, errs
     _, errs_off = run("off")
     assert max(errs_off) > 0.1, errs_off  # the premise: corners alone let it slide
+
+
+def test_four_corners_and_the_whole_outline_confirm_a_lone_camera():
+    """Box, rig seed 18, one camera: the top face's 4 corners are all it can select (the
+    side face is dark on the dark belt). From a start 2.7% of the diameter off, the edge
+    fits find 92-96% of the visible edge samples, so the track is published from the
+    second frame on and stays within 10% of the diameter (measured 0.4-5.4%); asking for
+    more than the whole outline (``confirm_outline_min_found`` above 1) leaves it
+    unpublished: 4 corners alone never confirm."""
+    rig, model, frames = _one_camera_frames("box", 18, 14)
+    syms = model_symmetries(model.vertices)
+    rng = np.random.default_rng(0)
+    fs0, T0_true = frames[0]
+    # A start 2-3% of the diameter off, as the initialiser's on this trial (2.8%).
+    T0 = transform_from_rt(exp_so3(rng.normal(0, 0.01, 3)) @ T0_true[:3, :3], T0_true[:3, 3] + [0.002, -0.002, 0.003])
+
+    def run(cfg):
+        tr = Tracker(rig, model, cfg)
+        tr.start(InitResult(T0), fs0.t_ns)
+        out = [(tr.process(fs), T) for fs, T in frames]
+        errs = [min(add(o.T_world_object, T @ S, model.vertices) for S in syms) / model.diameter
+                for o, T in out if o.status == "tracking"]
+        return tr, [o.n_accepted for o, _ in out], errs
+
+    tr, n_acc, errs = run(TrackerConfig())
+    assert max(n_acc) == 4  # the premise: never more than four corners
+    assert len(errs) >= len(frames) - 4 and max(errs) < 0.1, errs
+    _, _, errs_off = run(TrackerConfig(confirm_outline_min_found=1.01))
+    assert errs_off == []
 
 
 def test_undistorting_a_box_gives_the_crop_of_the_whole():

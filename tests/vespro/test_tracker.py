@@ -354,7 +354,8 @@ def test_an_agreeing_edge_fit_lets_fewer_corners_confirm(recs):
     """Five of six corners accepted (fewer than confirm_min_accepted = 6) confirm a start only
     on frames whose edge fit agreed with the filter (``Tracker._edge_ok``, set by the edge
     update): a lone camera often finds 5 of a box's corners while its edges hold the pose.
-    Four never do (``confirm_edge_min_accepted``)."""
+    Four do only when the fit found edge points for 90% of the visible samples
+    (``confirm_outline_*``); three never."""
     from vespro.tracker import CameraObservation, InitResult
 
     rec = Recording(recs["box_conveyor"])
@@ -364,17 +365,21 @@ def test_an_agreeing_edge_fit_lets_fewer_corners_confirm(recs):
     acc = np.array([True] * 5 + [False])
     ob = CameraObservation("cam_left", True, 6, ids, np.zeros((6, 2)), np.full(6, 3.0), np.zeros((6, 2)), acc)
 
-    def statuses(edge_ok):
+    def statuses(edge_ok, found=0.7):
         tr = make_tracker(rec)
         tr.start(InitResult(T[0], cov6=np.diag([1e-6] * 6)), fs.t_ns)
         out = []
         for _ in range(4):
             tr._edge_ok = edge_ok
+            tr._edge_found = found if edge_ok else 0.0
             n = int(acc.sum())
             out.append(tr._status(fs, [ob], n, n, 2.0, {"visibility": 0.0}).status)
         return out
 
     assert "tracking" not in statuses(edge_ok=False)
     assert statuses(edge_ok=True)[-1] == "tracking"
-    acc[4] = False  # four corners: a face seen head-on; its edges do not confirm it
-    assert "tracking" not in statuses(edge_ok=True)
+    acc[4] = False  # four corners: only when the edge fit found the whole outline
+    assert "tracking" not in statuses(edge_ok=True, found=0.86)
+    assert statuses(edge_ok=True, found=0.93)[-1] == "tracking"
+    acc[3] = False  # three: never
+    assert "tracking" not in statuses(edge_ok=True, found=1.0)

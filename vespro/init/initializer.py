@@ -42,7 +42,7 @@ from ..frames import FrameSet
 from ..model import Model
 from ..rig import Rig
 from ..se3 import exp_so3, invert_transform, transform_from_rt
-from ..tracker import InitResult
+from ..startpose import InitResult
 from .features import EdgeOptions, Undistorter, extract_features
 from .modelfeat import ModelFeatures, model_features
 from .search import (CameraView, check_pose, image_paths, p3p_hypotheses, rank_in_camera, refine_pose,

@@ -1,0 +1,26 @@
+"""A starting pose handed to the tracker: by an initialiser, a user or a recovery."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["InitResult"]
+
+
+@dataclass(frozen=True)
+class InitResult:
+    """A starting pose from an initialiser (or a user).
+
+    Attributes
+    ----------
+    T_world_object : ndarray (4, 4)
+    cov6 : ndarray (6, 6) or None
+        Pose covariance; the config's initial sigmas when None.
+    velocity : ndarray (6,) or None
+    """
+
+    T_world_object: np.ndarray
+    cov6: np.ndarray | None = None
+    velocity: np.ndarray | None = None
