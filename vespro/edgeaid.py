@@ -144,17 +144,7 @@ class EdgeAid:
                                  rounds=self.rounds)
         if fit is None or fit.n_samples < self.min_samples or fit.n_edges < self.min_edges:
             return None
-        try:
-            C_x = np.linalg.inv(fit.normal)
-        except np.linalg.LinAlgError:
+        cov = fit.covariance(T[:3, :3], self.min_sigma_px, self.max_independent_edges)
+        if cov is None:
             return None
-        n_indep = 2.0 * min(fit.n_edges, self.max_independent_edges)
-        s2 = max(fit.rms_px, self.min_sigma_px) ** 2 * max(fit.n_samples / n_indep, 1.0)
-        # x = [w, dp] with R = R0 Exp(w): dtheta (left, world) = R0 w.
-        M = np.zeros((6, 6))
-        M[:3, 3:] = np.eye(3)
-        M[3:, :3] = T[:3, :3]
-        cov = s2 * (M @ C_x @ M.T)
-        if not np.all(np.isfinite(cov)):
-            return None
-        return EdgeMeasurement(T, 0.5 * (cov + cov.T), fit)
+        return EdgeMeasurement(T, cov, fit)

@@ -479,6 +479,33 @@ class EdgeFit:
     n_edges: int
     n_searched: int = 0
 
+    def covariance(self, R_world_object: np.ndarray, min_sigma_px: float = 0.3,
+                   max_independent_edges: int = 12) -> np.ndarray | None:
+        """Covariance of the fitted pose, ``s^2 (J^T W J)^-1``, in the filter's ``[dp, dtheta]``.
+
+        ``s`` is the weighted residual RMS (at least ``min_sigma_px``), raised by
+        the number of samples per edge over two: samples along one straight edge
+        share its errors (an edge measures an offset and an angle, not one
+        independent distance per sample); edges beyond ``max_independent_edges``
+        count as no more information (see :mod:`vespro.edgeaid`). ``dtheta`` is a
+        rotation on the left in the world frame (``R = Exp(dtheta) R0``), for the
+        pose's rotation ``R_world_object``. None when the fit leaves a direction free.
+        """
+        try:
+            C_x = np.linalg.inv(self.normal)
+        except np.linalg.LinAlgError:
+            return None
+        n_indep = 2.0 * min(self.n_edges, max_independent_edges)
+        s2 = max(self.rms_px, min_sigma_px) ** 2 * max(self.n_samples / n_indep, 1.0)
+        # x = [w, dp] with R = R0 Exp(w): dtheta (left, world) = R0 w.
+        M = np.zeros((6, 6))
+        M[:3, 3:] = np.eye(3)
+        M[3:, :3] = R_world_object
+        cov = s2 * (M @ C_x @ M.T)
+        if not np.all(np.isfinite(cov)):
+            return None
+        return 0.5 * (cov + cov.T)
+
 
 def refine_subpixel(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFeatures, tree=None,
                     rounds: int = 4, search_px: float = 3.0, min_grad: float = 40.0, f_scale: float = 0.7,
