@@ -169,6 +169,19 @@ class TrackerConfig:
         head-on (4 corners, its edges in one plane) and an L-block whose
         dark face lost its outer edge were confirmed from 4 and slid to
         12-26% of the diameter.
+    confirm_edge_veto : bool
+        A frame whose edge fits were made but did not support the filter (see
+        above) does not count towards confirmation, however many corners it
+        accepted: on a one-camera bracket trial a start 1.8% of the diameter
+        off took six wrong corners 3-7 px off on its second frame (the part's
+        many similar corners, a depth shift mapping one onto the next) and slid
+        to 38%, where 6-7 corners kept agreeing and confirmed it; its edge fits
+        there found 39-40% of the visible samples (71% at the start).
+    veto_drop_frames : int
+        A started filter not yet confirmed whose edge fits vetoed this many
+        frames in a row is dropped (as at ``confirm_within_s``) and the
+        initialiser runs again: that start has slid (the bracket above was
+        still vetoed 19 frames on, 12-38% off).
     confirm_outline_min_accepted, confirm_outline_min_found : int, float
         ... and with ``confirm_outline_min_accepted`` corners when the edge fit
         found an edge point for at least ``confirm_outline_min_found`` of the
@@ -230,6 +243,8 @@ class TrackerConfig:
     confirm_edge_min_accepted: int = 5
     confirm_edge_min_found: float = 0.6
     confirm_edge_min_edges: int = 6
+    confirm_edge_veto: bool = True
+    veto_drop_frames: int = 5
     confirm_outline_min_accepted: int = 4
     confirm_outline_min_found: float = 0.9
     adaptive_noise: bool = True
@@ -369,6 +384,8 @@ class Tracker:
         self.edge_rejects = 0  # edge fits too far from the filter's pose to use
         self._edge_ok = False  # this frame's edge fits support the filter (see confirm_edge_*)
         self._edge_found = 0.0  # least fraction of visible edge samples found by this frame's fits
+        self._edge_veto = False  # this frame's edge fits were made and did not support the filter
+        self._vetoes = 0  # vetoed frames in a row
         # A symmetric part (a box) looks the same in several poses: pick one by a stated rule.
         self.symmetries = discrete_symmetries(model.vertices)
         self.ekf: PoseEKF | None = None
@@ -452,6 +469,7 @@ class Tracker:
         self._start_t_ns = t_ns
         self._bad = 0
         self._good = 0
+        self._vetoes = 0
         self._disagree = 0
         self.confirmed = False
         self.status = STATUS_INITIALIZING
@@ -461,6 +479,7 @@ class Tracker:
         ``t_ns`` on (and within ``confirm_within_s`` of it)."""
         self.confirmed = False
         self._good = 0
+        self._vetoes = 0
         self._start_t_ns = t_ns
 
     def _lose(self) -> None:
@@ -566,6 +585,7 @@ class Tracker:
         c = self.config
         self._edge_ok = False
         self._edge_found = 0.0
+        self._edge_veto = False
         cams = [ob.name for ob in obs if ob.has_image and ob.feature_ids.size]
         if c.edge_aid == "single" and len(cams) != 1:
             return
@@ -590,6 +610,7 @@ class Tracker:
             found.append(m.fit.n_samples / max(m.fit.n_searched, 1))
         self._edge_ok = bool(support) and all(support)
         self._edge_found = min(found) if self._edge_ok else 0.0
+        self._edge_veto = bool(support) and not self._edge_ok
         stage["edges"] = time.perf_counter() - t
 
     def _measure(self, fs: FrameSet, stage: dict, assoc: tuple | None = None):
@@ -747,13 +768,14 @@ class Tracker:
         enough = (n_acc >= c.confirm_min_accepted
                   or (self._edge_ok and n_acc >= c.confirm_edge_min_accepted)
                   or (self._edge_found >= c.confirm_outline_min_found and n_acc >= c.confirm_outline_min_accepted))
-        strong = (not bad and enough
+        strong = (not bad and enough and not (c.confirm_edge_veto and self._edge_veto)
                   and n_acc >= c.confirm_min_inlier_fraction * max(n_found, 1)
                   and n_acc >= c.confirm_min_selected_fraction * n_sel
                   and all(int(ob.accepted.sum()) >= c.confirm_min_camera_fraction * ob.feature_ids.size
                           for ob in obs if ob.feature_ids.size >= c.min_accepted)
                   and pos_std < c.confirm_max_pos_std * self.model.diameter and rot_std < c.confirm_max_rot_std)
         self._good = self._good + 1 if strong else 0
+        self._vetoes = self._vetoes + 1 if self._edge_veto else 0
         if self.confirmed and not bad:
             # Cameras disagreeing: one accepts under half of the corners selected in it while
             # another accepts at least half of its own.
@@ -783,8 +805,10 @@ class Tracker:
                                  mean_nis=mean_nis, stage_ms=stage_ms)
         if not self.confirmed:
             self.status = STATUS_INITIALIZING
-            if fs.t_ns - self._start_t_ns >= c.confirm_within_s * 1e9:
-                # Not confirmed in time: start again from the images (see confirm_within_s).
+            if fs.t_ns - self._start_t_ns >= c.confirm_within_s * 1e9 or \
+                    (c.confirm_edge_veto and self._vetoes >= c.veto_drop_frames):
+                # Not confirmed in time, or the edges keep saying the start slid: start again
+                # from the images (see confirm_within_s, veto_drop_frames).
                 self.ekf = None
                 self.unconfirmed_drops += 1
             return TrackerOutput(fs.index, fs.t_ns, STATUS_INITIALIZING, observations=tuple(obs), n_accepted=n_acc,

@@ -383,3 +383,40 @@ def test_an_agreeing_edge_fit_lets_fewer_corners_confirm(recs):
     assert statuses(edge_ok=True, found=0.93)[-1] == "tracking"
     acc[3] = False  # three: never
     assert "tracking" not in statuses(edge_ok=True, found=1.0)
+
+
+def test_an_edge_fit_that_disagrees_vetoes_confirmation_and_drops_a_slid_start(recs):
+    """Six of six corners accepted confirm a start, unless the frame's edge fit was made
+    and did not support the filter (``Tracker._edge_veto``): a one-camera bracket start
+    slid to 38% of the diameter on wrong corners that kept agreeing, while its edges found
+    under half the outline. ``veto_drop_frames`` vetoed frames in a row drop the start for
+    a fresh initialisation; a frame without a veto resets the count."""
+    from vespro.tracker import CameraObservation, InitResult
+
+    rec = Recording(recs["box_conveyor"])
+    _, _, T = read_groundtruth(recs["box_conveyor"])
+    ids = np.arange(6)
+    ob = CameraObservation("cam_left", True, 6, ids, np.zeros((6, 2)), np.full(6, 3.0), np.zeros((6, 2)),
+                           np.ones(6, bool))
+
+    def run(vetoes, **cfg):
+        tr = make_tracker(rec, TrackerConfig(**cfg))
+        tr.initializer = lambda fs: None
+        tr.start(InitResult(T[0], cov6=np.diag([1e-6] * 6)), rec.frameset(0).t_ns)
+        out = []
+        for i, v in enumerate(vetoes):
+            tr._edge_veto = v
+            out.append(tr._status(rec.frameset(i), [ob], 6, 6, 2.0, {"visibility": 0.0}).status)
+            if tr.ekf is None:
+                break
+        return tr, out
+
+    tr, out = run([False, False])
+    assert out[-1] == "tracking"
+    n = TrackerConfig().veto_drop_frames
+    tr, out = run([True] * (n - 1) + [False, True])  # interrupted: kept, never confirmed
+    assert "tracking" not in out and tr.ekf is not None and tr.unconfirmed_drops == 0
+    tr, out = run([True] * n)
+    assert "tracking" not in out and tr.ekf is None and tr.unconfirmed_drops == 1
+    tr, out = run([True] * n, confirm_edge_veto=False)  # off: the corners confirm
+    assert out[1] == "tracking"
