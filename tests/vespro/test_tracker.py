@@ -386,10 +386,10 @@ def test_an_agreeing_edge_fit_lets_fewer_corners_confirm(recs):
 
 
 def test_an_edge_fit_that_disagrees_vetoes_confirmation_and_drops_a_slid_start(recs):
-    """Six of six corners accepted confirm a start, unless the frame's edge fit was made
-    and did not support the filter (``Tracker._edge_veto``): a one-camera bracket start
-    slid to 38% of the diameter on wrong corners that kept agreeing, while its edges found
-    under half the outline. ``veto_drop_frames`` vetoed frames in a row drop the start for
+    """Six of six corners accepted confirm a start, unless the frame's edge fit found far
+    less of the outline than the filter's first fit did (``Tracker._edge_veto``): a
+    one-camera bracket start slid to 38% of the diameter on wrong corners that kept
+    agreeing, while its edges went from 71% of the outline found to 35-40%. ``veto_drop_frames`` vetoed frames in a row drop the start for
     a fresh initialisation; a frame without a veto resets the count."""
     from vespro.tracker import CameraObservation, InitResult
 
