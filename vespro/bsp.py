@@ -229,27 +229,26 @@ class BSPTree:
         Returns
         -------
         ndarray, shape (K,), bool
+
+        Notes
+        -----
+        A compiled depth-first walk per segment (:func:`_blocked_kernel`) with
+        the arithmetic of the breadth-first NumPy walk it replaced: the box clip
+        of :meth:`clip_to_bounds`, then per piece the plane distances ``A . n -
+        d`` and ``B . n - d`` (summed in ``np.einsum``'s order), the crossing
+        and the sides. The same answers (``tests/vespro/test_init_kernels.py``
+        keeps that walk as the reference).
         """
-        B = np.asarray(B, dtype=float).reshape(-1, 3)
+        B = np.ascontiguousarray(B, dtype=float).reshape(-1, 3)
         A = np.asarray(A, dtype=float)
-        N, D = self.normal, self.offset
+        k = B.shape[0]
         if A.shape == (3,):
-            h_start = N @ A - D  # the common start's distance to every node plane
-
-            def ha_of(seg, node):
-                return h_start[node]
-
+            h_start = self.normal @ A - self.offset  # the common start's distance to every node plane
+            a, A_rows = A, np.empty((0, 3))
         else:
-            A = A.reshape(-1, 3)
-
-            def ha_of(seg, node):
-                return np.einsum("ij,ij->i", A[seg], N[node]) - D[node]
-
-        def hb_of(seg, node):
-            return np.einsum("ij,ij->i", B[seg], N[node]) - D[node]
-
-        t_lo, t_hi = self.clip_to_bounds(A, B, t_lo, t_hi)
-        return self._traverse(B.shape[0], np.arange(B.shape[0]), ha_of, hb_of, t_lo, t_hi, min_length)
+            h_start, a, A_rows = self.offset, np.zeros(3), np.ascontiguousarray(A.reshape(-1, 3))  # (h_start, a unused)
+        return _blocked_kernel(a, A_rows, B, self.bounds, h_start, self.normal, self.offset, _per_segment(t_lo, k),
+                               _per_segment(t_hi, k), float(min_length), self._children, float(self.plane_eps))
 
     def segments_blocked_from(
         self, a: np.ndarray, B: np.ndarray, end_dist: np.ndarray, rows: np.ndarray, t_lo=0.0, t_hi=1.0
@@ -274,9 +273,9 @@ class BSPTree:
 
         Notes
         -----
-        A compiled depth-first walk per segment (:func:`_blocked_from_kernel`);
-        same arithmetic per piece as the breadth-first :meth:`_traverse`, so the
-        same answers (checked against it and against ray casting in the tests).
+        The walk of :meth:`segments_blocked` (:func:`_blocked_from_kernel`), with
+        the ends' plane distances read from ``end_dist``; the same answers
+        (checked against it and against ray casting in the tests).
         """
         a = np.asarray(a, dtype=float).reshape(3)
         B = np.ascontiguousarray(B, dtype=float).reshape(-1, 3)
@@ -287,57 +286,6 @@ class BSPTree:
         return _blocked_from_kernel(a, B, self.bounds, h_start, self.node_sign, self.node_plane,
                                     np.ascontiguousarray(end_dist, dtype=float), rows, t0, t1, self._children,
                                     float(self.plane_eps))
-
-    def _traverse(self, n_ids, ids, ha_of, hb_of, t_lo, t_hi, min_length):
-        """Core of the segment queries; ``ids`` (K,) distinct segment ids < n_ids."""
-        k = ids.shape[0]
-        pe = self.plane_eps
-        CHf = self._children.reshape(-1)  # child of node i on side s at 2 i + s
-        blocked = np.zeros(n_ids, dtype=bool)
-        t0 = np.broadcast_to(np.asarray(t_lo, dtype=float), (k,)).copy()
-        t1 = np.broadcast_to(np.asarray(t_hi, dtype=float), (k,)).copy()
-        live = t1 - t0 > min_length
-        seg, t0, t1 = ids[live], t0[live], t1[live]
-        node = np.zeros(seg.size, dtype=np.int64)
-        # Breadth-first over (segment, node, t-interval) items, one vectorised
-        # step per tree level. A piece on one side of the node plane moves to
-        # that child; a straddling piece splits at the crossing. A piece that
-        # reaches an IN leaf blocks its segment.
-        while seg.size:
-            ha = ha_of(seg, node)
-            dh = hb_of(seg, node) - ha
-            h0 = ha + t0 * dh
-            h1 = ha + t1 * dh
-            # Within plane_eps of the plane counts as on it, so a piece that
-            # only touches a plane at an end is not split into a sliver.
-            b0, b1 = h0 < -pe, h1 < -pe
-            f0, f1 = h0 > pe, h1 > pe
-            # Side of the first part of the piece (True: back). A piece lying
-            # in the plane is a grazing view and goes front.
-            side0 = b0 | (~f0 & b1)
-            sp = np.flatnonzero((b0 & f1) | (f0 & b1))
-            node2 = node + node
-            new_node = CHf.take(node2 + side0)
-            if sp.size:
-                ts = -ha[sp] / dh[sp]
-                other = CHf.take(node2[sp] + ~side0[sp])
-                t1_sp = t1[sp]
-                t1[sp] = ts
-                seg = np.concatenate([seg, seg[sp]])
-                node = np.concatenate([new_node, other])
-                t0 = np.concatenate([t0, ts])
-                t1 = np.concatenate([t1, t1_sp])
-            else:
-                node = new_node
-            leaf = node < 0
-            if leaf.any():
-                inside = node == IN
-                if min_length > 0:
-                    inside &= t1 - t0 > min_length
-                blocked[seg[inside]] = True
-                keep = ~leaf & ~blocked[seg]
-                seg, node, t0, t1 = seg[keep], node[keep], t0[keep], t1[keep]
-        return blocked
 
     @property
     def _children(self) -> np.ndarray:
@@ -376,10 +324,9 @@ def _blocked_from_kernel(a, B, bounds, h_start, sign, plane, end_dist, rows, t_l
 def _segment_blocked(a, bx, by, bz, bounds, h_start, sign, plane, end_dist, row, t0, t1, children, pe, st_node, st_t):
     """Whether the segment ``a -> (bx, by, bz)``, ``t in [t0, t1]``, passes through the solid.
 
-    Clip to ``bounds`` (as :meth:`BSPTree.clip_to_bounds`), then walk the tree depth
-    first with a stack of ``(node, t0, t1)`` pieces (``st_node``, ``st_t``: room for
-    depth + 1 of them), with the per-piece arithmetic of :meth:`BSPTree._traverse`.
-    The end's plane distances are row ``row`` of ``end_dist``.
+    Clip to ``bounds`` (as :meth:`BSPTree.clip_to_bounds`), then walk the tree
+    (:func:`_walk`) with the start's plane distances ``h_start`` and the end's
+    in row ``row`` of ``end_dist``.
     """
     for ax in range(3):
         bv = bx if ax == 0 else (by if ax == 1 else bz)
@@ -396,7 +343,89 @@ def _segment_blocked(a, bx, by, bz, bounds, h_start, sign, plane, end_dist, row,
             t0 = lo
         if hi < t1:
             t1 = hi
-    if not (t1 - t0 > 0.0):
+    # (A, B, normal, offset: unused with the tabled end distances; any arrays of their types)
+    return _walk(t0, t1, 0.0, 0, False, end_dist, h_start, end_dist, end_dist, h_start, True, sign, plane, end_dist,
+                 row, children, pe, st_node, st_t)
+
+
+@njit
+def _blocked_kernel(a, A, B, bounds, h_start, normal, offset, t_lo, t_hi, min_length, children, pe):
+    """Compiled core of :meth:`BSPTree.segments_blocked`; returns (K,) bool.
+
+    Segments start at the rows of ``A`` (K, 3), or with ``A`` empty all at ``a``
+    (3,), whose plane distances are ``h_start``."""
+    k = B.shape[0]
+    out = np.zeros(k, dtype=np.bool_)
+    st_node = np.empty(children.shape[0] + 2, dtype=np.int64)
+    st_t = np.empty((children.shape[0] + 2, 2))
+    own_a = A.shape[0] > 0
+    sign, plane, end_dist = np.empty(0), np.empty(0, dtype=np.int64), np.empty((0, 0))  # (no tabled ends)
+    for i in range(k):
+        if own_a:
+            t0, t1 = _clip_to_bounds(A[i, 0], A[i, 1], A[i, 2], B[i], bounds, t_lo[i], t_hi[i])
+        else:
+            t0, t1 = _clip_to_bounds(a[0], a[1], a[2], B[i], bounds, t_lo[i], t_hi[i])
+        out[i] = _walk(t0, t1, min_length, i, own_a, A, h_start, B, normal, offset, False, sign, plane, end_dist, 0,
+                       children, pe, st_node, st_t)
+    return out
+
+
+@njit
+def _nan_max(x, y):
+    """``np.maximum`` of two floats (a NaN wins)."""
+    return x if (np.isnan(x) or x > y) else y
+
+
+@njit
+def _nan_min(x, y):
+    """``np.minimum`` of two floats (a NaN wins)."""
+    return x if (np.isnan(x) or x < y) else y
+
+
+@njit
+def _clip_to_bounds(a0, a1, a2, b, bounds, t0, t1):
+    """:meth:`BSPTree.clip_to_bounds` of one segment ``a -> b`` with its NaN rules: the new ``(t0, t1)``."""
+    lo_all, hi_all = -np.inf, np.inf
+    for ax in range(3):
+        av = a0 if ax == 0 else (a1 if ax == 1 else a2)
+        d = b[ax] - av
+        if d == 0.0:
+            if av < bounds[0, ax] or av > bounds[1, ax]:
+                lo, hi = np.inf, -np.inf  # parallel to the slab and outside it: empty
+            else:
+                lo, hi = -np.inf, np.inf
+        else:
+            ta = (bounds[0, ax] - av) / d
+            tb = (bounds[1, ax] - av) / d
+            # np.fmin / np.fmax: a NaN loses to a number
+            lo = tb if np.isnan(ta) else (ta if (np.isnan(tb) or ta < tb) else tb)
+            hi = tb if np.isnan(ta) else (ta if (np.isnan(tb) or ta > tb) else tb)
+        lo_all = _nan_max(lo_all, lo)
+        hi_all = _nan_min(hi_all, hi)
+    return _nan_max(t0, lo_all), _nan_min(t1, hi_all)
+
+
+@njit
+def _plane_dist(P, i, normal, offset, node):
+    """``P[i] . normal[node] - offset[node]``, the products summed as ``np.einsum("ij,ij->i")``
+    sums them (its two-lane SIMD loop: ``(x0 n0 + x2 n2) + x1 n1``)."""
+    return ((P[i, 0] * normal[node, 0] + P[i, 2] * normal[node, 2]) + P[i, 1] * normal[node, 1]) - offset[node]
+
+
+@njit
+def _walk(t0, t1, min_length, i, own_a, A, h_start, B, normal, offset, tabled_b, sign, plane, end_dist, row, children,
+          pe, st_node, st_t):
+    """Whether segment ``i``, ``t in [t0, t1]`` (clipped to the bounds), passes through the solid.
+
+    Walks the tree depth first with a stack of ``(node, t0, t1)`` pieces
+    (``st_node``, ``st_t``: room for depth + 1 of them). Per piece: the
+    start's distance to the node plane (with ``own_a`` from ``A[i]``, else
+    ``h_start[node]``), the end's (with ``tabled_b`` ``sign[node] *
+    end_dist[row, plane[node]]``, else from ``B[i]``), the crossing and the
+    side of each part; a part longer than ``min_length`` (in ``t``) in an
+    inside leaf blocks.
+    """
+    if not (t1 - t0 > min_length):
         return False
     st_node[0] = 0
     st_t[0, 0] = t0
@@ -407,20 +436,25 @@ def _segment_blocked(a, bx, by, bz, bounds, h_start, sign, plane, end_dist, row,
         node = st_node[top]
         p0 = st_t[top, 0]
         p1 = st_t[top, 1]
-        ha = h_start[node]
-        dh = sign[node] * end_dist[row, plane[node]] - ha
+        ha = _plane_dist(A, i, normal, offset, node) if own_a else h_start[node]
+        hb = sign[node] * end_dist[row, plane[node]] if tabled_b else _plane_dist(B, i, normal, offset, node)
+        dh = hb - ha
         h0 = ha + p0 * dh
         h1 = ha + p1 * dh
+        # Within plane_eps of the plane counts as on it, so a piece that only
+        # touches a plane at an end is not split into a sliver.
         b0 = h0 < -pe
         b1 = h1 < -pe
         f0 = h0 > pe
         f1 = h1 > pe
+        # Side of the first part of the piece (1: back). A piece lying in the
+        # plane is a grazing view and goes front.
         side0 = 1 if (b0 or ((not f0) and b1)) else 0
         c0 = children[node, side0]
         if (b0 and f1) or (f0 and b1):
             ts = -ha / dh
             c1 = children[node, 1 - side0]
-            if c1 == -2:
+            if c1 == IN and (min_length <= 0.0 or p1 - ts > min_length):
                 return True
             if c1 >= 0:
                 st_node[top] = c1
@@ -428,7 +462,7 @@ def _segment_blocked(a, bx, by, bz, bounds, h_start, sign, plane, end_dist, row,
                 st_t[top, 1] = p1
                 top += 1
             p1 = ts
-        if c0 == -2:
+        if c0 == IN and (min_length <= 0.0 or p1 - p0 > min_length):
             return True
         if c0 >= 0:
             st_node[top] = c0

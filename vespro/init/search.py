@@ -6,6 +6,12 @@ supported when ``dt[k][v, u]`` is small. Visibility of model edges comes from
 back-face culling (a convex edge is seen when one of its faces faces the
 camera, a concave edge when both do) and, for non-convex models, from the BSP
 line-of-sight query (edge samples hidden by the part itself are dropped).
+
+The inner loops (the ranking of many poses, the edge residuals and their
+Jacobian, the sub-pixel edge search, the pose perturbation) are compiled
+kernels (:mod:`vespro.jit`) that repeat the NumPy formulation's arithmetic
+operation for operation: their results are the NumPy code's, bit for bit
+(``tests/vespro/test_init_kernels.py`` keeps that code as the reference).
 """
 
 from __future__ import annotations
@@ -14,9 +20,13 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+from llvmlite import ir
+from numba import types
+from numba.extending import intrinsic
 from scipy.spatial import cKDTree
 
-from ..se3 import invert_transform, transform_from_rt
+from ..jit import njit
+from ..se3 import invert_transform
 from .features import CameraFeatures, lookup_dt, normal_bins
 from .modelfeat import ModelFeatures
 from .p3p import p3p_grunert
@@ -118,6 +128,243 @@ def _edge_visible(front, mf):
     return np.where(mf.edge_convex[None, :], f0 | f1, f0 & f1)
 
 
+# -- compiled kernels ----------------------------------------------------------
+#
+# The kernels keep the NumPy code's arithmetic operation for operation. Its
+# small matrix products (points times a 3x3 rotation) go to OpenBLAS, whose
+# gemm kernels accumulate each entry as an FMA chain over k in order,
+# ``fma(a2, b2, fma(a1, b1, fma(a0, b0, 0)))`` (x86-64 with FMA, as here); ``_dot3``
+# does the same, so projections agree to the last bit. Products with a single
+# row (one point) go to gemv instead and round differently: there the
+# kernels agree to rounding only.
+
+def _fma_codegen(context, builder, sig, args):
+    lt = context.get_value_type(sig.return_type)
+    fn = builder.module.declare_intrinsic("llvm.fma", [lt], ir.FunctionType(lt, [lt, lt, lt]))
+    return builder.call(fn, list(args) + [ir.Constant(lt, 0.0)] * (3 - len(args)))
+
+
+@intrinsic
+def _fma(typingctx, a, b, c):
+    """``a * b + c`` rounded once (``llvm.fma``), for three floats of one type."""
+    if isinstance(a, types.Float) and a == b and b == c:
+        return a(a, b, c), _fma_codegen
+
+
+@intrinsic
+def _fma0(typingctx, a, b):
+    """``fma(a, b, +0)``: ``a * b``, except that -0 becomes +0."""
+    if isinstance(a, types.Float) and a == b:
+        return a(a, b), _fma_codegen
+
+
+@njit
+def _dot3(a0, a1, a2, b0, b1, b2):
+    """A 3-term dot product as OpenBLAS's gemm forms one entry of a matrix product (from a
+    zero accumulator: a zero sum is +0, never -0)."""
+    return _fma(a2, b2, _fma(a1, b1, _fma0(a0, b0)))
+
+
+@njit
+def _pairwise_block_f32(a, lo, n):
+    """One leaf of NumPy's pairwise summation: ``n <= 128`` terms, eight accumulators."""
+    if n < 8:
+        res = np.float32(0.0)
+        for k in range(n):
+            res += a[lo + k]
+        return res
+    r0, r1, r2, r3 = a[lo], a[lo + 1], a[lo + 2], a[lo + 3]
+    r4, r5, r6, r7 = a[lo + 4], a[lo + 5], a[lo + 6], a[lo + 7]
+    k = 8
+    m = n - n % 8
+    while k < m:
+        r0 += a[lo + k]
+        r1 += a[lo + k + 1]
+        r2 += a[lo + k + 2]
+        r3 += a[lo + k + 3]
+        r4 += a[lo + k + 4]
+        r5 += a[lo + k + 5]
+        r6 += a[lo + k + 6]
+        r7 += a[lo + k + 7]
+        k += 8
+    res = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
+    while k < n:
+        res += a[lo + k]
+        k += 1
+    return res
+
+
+@njit
+def _pairwise_sum_f32(a, n):
+    """``a[:n].sum()`` of a float32 array with NumPy's pairwise summation (halves split
+    at multiples of 8 down to blocks of at most 128, float32): the same rounding as
+    ``ndarray.sum`` along a row. The recursion is unrolled into a stack (numba's cache
+    does not keep recursive functions)."""
+    if n <= 128:
+        return _pairwise_block_f32(a, 0, n)
+    st_lo = np.empty(192, np.int64)
+    st_n = np.empty(192, np.int64)
+    st_up = np.empty(192, np.bool_)  # both halves done: add them
+    vals = np.empty(64, np.float32)
+    st_lo[0], st_n[0], st_up[0] = 0, n, False
+    top, nv = 1, 0
+    while top > 0:
+        top -= 1
+        lo, m, up = st_lo[top], st_n[top], st_up[top]
+        if up:
+            vals[nv - 2] = vals[nv - 2] + vals[nv - 1]
+            nv -= 1
+        elif m <= 128:
+            vals[nv] = _pairwise_block_f32(a, lo, m)
+            nv += 1
+        else:
+            m2 = m // 2
+            m2 -= m2 % 8
+            st_lo[top], st_n[top], st_up[top] = lo, m, True
+            st_lo[top + 1], st_n[top + 1], st_up[top + 1] = lo + m2, m - m2, False
+            st_lo[top + 2], st_n[top + 2], st_up[top + 2] = lo, m2, False
+            top += 3
+    return vals[0]
+
+
+@njit
+def _project_all_f32(Rc, tc, i, Pt, f, c, u, v, z):
+    """Pixel (u, v) and depth z of object points ``Pt`` (3, n) at pose ``i``, float32, into
+    ``u, v, z`` (n,): ``X = P R^T + t``, ``uv = X[:2] / z * f + c``, as the NumPy code of
+    :func:`rank_in_camera`. Branch-free, so the loop vectorises."""
+    r00, r01, r02 = Rc[i, 0, 0], Rc[i, 0, 1], Rc[i, 0, 2]
+    r10, r11, r12 = Rc[i, 1, 0], Rc[i, 1, 1], Rc[i, 1, 2]
+    r20, r21, r22 = Rc[i, 2, 0], Rc[i, 2, 1], Rc[i, 2, 2]
+    t0, t1, t2 = tc[i, 0], tc[i, 1], tc[i, 2]
+    f0, f1, c0, c1 = f[0], f[1], c[0], c[1]
+    for s in range(Pt.shape[1]):
+        p0, p1, p2 = Pt[0, s], Pt[1, s], Pt[2, s]
+        zs = _dot3(p0, p1, p2, r20, r21, r22) + t2
+        u[s] = (_dot3(p0, p1, p2, r00, r01, r02) + t0) / zs * f0 + c0
+        v[s] = (_dot3(p0, p1, p2, r10, r11, r12) + t1) / zs * f1 + c1
+        z[s] = zs
+
+
+@njit
+def _rank_edge_dirs(Rc, tc, ends_t, f, c):
+    """Projected edge directions ``d = uv(b) - uv(a)`` at every pose, as ``d[..., 0]`` and
+    ``-d[..., 1]`` (h, E) float32 (the arguments of ``_edge_bins``'s ``arctan2``).
+
+    ``ends_t`` (3, 2E) float32: the edges' first ends, then their second ends."""
+    h, E = Rc.shape[0], ends_t.shape[1] // 2
+    dx = np.empty((h, E), np.float32)
+    ndy = np.empty((h, E), np.float32)
+    u = np.empty(2 * E, np.float32)
+    v = np.empty(2 * E, np.float32)
+    z = np.empty(2 * E, np.float32)
+    for i in range(h):
+        _project_all_f32(Rc, tc, i, ends_t, f, c, u, v, z)
+        for e in range(E):
+            dx[i, e] = u[E + e] - u[e]
+            ndy[i, e] = -(v[E + e] - v[e])
+    return dx, ndy
+
+
+@njit
+def _normal_bin_i32(angle, n_bins):
+    """``normal_bins`` of one float32 angle (``np.mod`` by pi, times ``n_bins / pi``, in
+    float32 as NumPy does with Python floats), as the int32 the NumPy code indexes with:
+    a NaN angle, cast to int64's minimum there, keeps its low 32 bits, 0."""
+    pi32 = np.float32(np.pi)
+    m = angle if abs(angle) < pi32 else np.fmod(angle, pi32)  # fmod(a, p) is a when |a| < p: arctan2's range
+    if m != 0:
+        if m < 0:  # Python's (and np.mod's) sign convention
+            m = m + pi32
+    else:
+        m = np.float32(0.0)
+    x = m * np.float32(n_bins / np.pi)
+    if np.isnan(x):
+        return np.int32(0)
+    return np.int32(min(np.int64(x), n_bins - 1))
+
+
+@njit
+def _edges_seen(front, i, ef_l, convex, vis_e):
+    """Visible edges at pose ``i`` from its front-facing faces (``_edge_visible``) into ``vis_e``."""
+    for e in range(ef_l.shape[0]):
+        a = front[i, ef_l[e, 0]]
+        b = front[i, ef_l[e, 1]]
+        vis_e[e] = (a or b) if convex[e] else (a and b)
+
+
+@njit
+def _rank_seen(Rc, tc, Pt, se_l, front, ef_l, convex, f, c, H_img, W_img):
+    """(h, S) bool: the samples on a visible edge that project inside the image (``vis & inside``)."""
+    h, S = Rc.shape[0], Pt.shape[1]
+    out = np.zeros((h, S), np.bool_)
+    vis_e = np.empty(ef_l.shape[0], np.bool_)
+    u = np.empty(S, np.float32)
+    v = np.empty(S, np.float32)
+    z = np.empty(S, np.float32)
+    for i in range(h):
+        _edges_seen(front, i, ef_l, convex, vis_e)
+        _project_all_f32(Rc, tc, i, Pt, f, c, u, v, z)
+        for s in range(S):
+            if vis_e[se_l[s]]:
+                ui, vi = np.rint(u[s]), np.rint(v[s])
+                out[i, s] = ui >= 0 and ui <= W_img - 1 and vi >= 0 and vi <= H_img - 1 and z[s] > 0
+    return out
+
+
+@njit
+def _rank_score(Rc, tc, Pt, se_l, front, ef_l, convex, angle, n_bins, f, c, dt_flat, H_img, W_img, tol, min_inside,
+                blocked, score, inside_frac):
+    """Compiled body of :func:`rank_in_camera` for one chunk of poses.
+
+    Per pose: edge visibility from ``front``, less the ``blocked`` (h, S)
+    samples (an empty array: none); orientation bins from the edges'
+    ``angle`` (h, E); projection, rounding to the pixel and the oriented
+    distance lookup in float32; agreement ``max(0, 1 - d / tol)`` summed with
+    NumPy's pairwise float32 summation. Writes ``score`` and ``inside_frac``
+    (h,); the same bits as the NumPy code (``tol`` float32, as a Python float
+    becomes in that code).
+    """
+    h, S, E = Rc.shape[0], Pt.shape[1], ef_l.shape[0]
+    vis_e = np.empty(E, np.bool_)
+    bin_e = np.zeros(E, np.int32)
+    agree = np.empty(S, np.float32)
+    u = np.empty(S, np.float32)
+    v = np.empty(S, np.float32)
+    z = np.empty(S, np.float32)
+    one, zero = np.float32(1.0), np.float32(0.0)
+    use_blocked = blocked.shape[0] > 0
+    for i in range(h):
+        _edges_seen(front, i, ef_l, convex, vis_e)
+        for e in range(E):
+            if vis_e[e]:
+                bin_e[e] = _normal_bin_i32(angle[i, e], n_bins)
+        _project_all_f32(Rc, tc, i, Pt, f, c, u, v, z)
+        behind = False
+        for s in range(S):
+            behind |= z[s] <= 0
+        nvis, nins = 0, 0
+        for s in range(S):
+            agree[s] = zero
+            e = se_l[s]
+            if not vis_e[e] or (use_blocked and blocked[i, s]):
+                continue
+            nvis += 1
+            ui, vi = np.rint(u[s]), np.rint(v[s])
+            if ui >= 0 and ui <= W_img - 1 and vi >= 0 and vi <= H_img - 1 and z[s] > 0:
+                nins += 1
+                k = (bin_e[e] * np.int32(H_img) + np.int32(vi)) * np.int32(W_img) + np.int32(ui)
+                q = one - dt_flat[k] / tol
+                agree[s] = zero if q < zero else q
+        if nvis > 0:
+            fr = nins / nvis
+            inside_frac[i] = fr
+            ok = not behind and fr >= min_inside
+            score[i] = np.float64(_pairwise_sum_f32(agree, S)) / nvis if ok else np.nan
+        else:
+            inside_frac[i] = 0.0
+            score[i] = np.nan
+
+
 def rank_in_camera(R: np.ndarray, t: np.ndarray, feat: CameraFeatures, mf: ModelFeatures, tol_px: float = 3.0,
                    chunk: int = 8192, min_inside: float = 0.3, samples: np.ndarray | None = None, tree=None
                    ) -> tuple[np.ndarray, np.ndarray]:
@@ -133,6 +380,11 @@ def rank_in_camera(R: np.ndarray, t: np.ndarray, feat: CameraFeatures, mf: Model
     sample is ``max(0, 1 - d / tol_px)`` with ``d`` its oriented edge distance;
     the score is the mean over visible samples.
 
+    Projections, pixel rounding and the agreement sums are float32. The
+    per-pose loops are compiled (``_rank_edge_dirs``, ``_rank_score``); the
+    face culling, the edges' image angles (NumPy's ``arctan2``) and the line of
+    sight stay in NumPy.
+
     Returns
     -------
     score : ndarray, shape (H,)
@@ -146,68 +398,46 @@ def rank_in_camera(R: np.ndarray, t: np.ndarray, feat: CameraFeatures, mf: Model
     score = np.full(H, np.nan)
     inside_frac = np.zeros(H)
     samples = mf.coarse if samples is None else samples
-    P = mf.sample_p[samples].astype(np.float32)
+    Pt = np.ascontiguousarray(mf.sample_p[samples].astype(np.float32).T)  # (3, S)
     se = mf.sample_edge[samples]
     used_e = np.unique(se)
     remap = np.zeros(len(mf.edge_a), np.int64)
     remap[used_e] = np.arange(len(used_e))
     se_l = remap[se]
-    ends = np.concatenate([mf.edge_a[used_e], mf.edge_b[used_e]]).astype(np.float32)
-    E = len(used_e)
+    ends_t = np.ascontiguousarray(np.concatenate([mf.edge_a[used_e], mf.edge_b[used_e]]).astype(np.float32).T)
     f = np.array([feat.K[0, 0], feat.K[1, 1]], np.float32)
     c = feat.K[:2, 2].astype(np.float32)
     nb = feat.dt.shape[0]
     # Faces and edges the samples need; front-facing test n.(R^T t) + d < 0.
     ef = mf.edge_faces[used_e]
     faces_u, ef_l = np.unique(ef, return_inverse=True)
-    ef_l = ef_l.reshape(-1, 2)
+    ef_l = np.ascontiguousarray(ef_l.reshape(-1, 2))
     n_f = mf.face_normals[faces_u].astype(np.float32)
     d_f = mf.face_offsets[faces_u].astype(np.float32)
-    convex_u = mf.edge_convex[used_e]
+    convex_u = np.ascontiguousarray(mf.edge_convex[used_e])
     H_img, W_img = feat.dt.shape[1:]
-    dt_flat = feat.dt.reshape(-1)
+    dt_flat = np.ascontiguousarray(feat.dt, dtype=np.float32).reshape(-1)
+    # As a Python float meets the float32 distances in NumPy (NEP 50).
+    tol = np.float32(tol_px)
+    no_block = np.zeros((0, 0), bool)
     for s in range(0, H, chunk):
-        Rc = R[s:s + chunk].astype(np.float32)
-        tc = t[s:s + chunk].astype(np.float32)
-        RT = Rc.transpose(0, 2, 1)
-        w = np.matmul(RT, tc[:, :, None])[..., 0]  # R^T t, (h, 3)
+        Rc = np.ascontiguousarray(R[s:s + chunk].astype(np.float32))
+        tc = np.ascontiguousarray(t[s:s + chunk].astype(np.float32))
+        w = np.matmul(Rc.transpose(0, 2, 1), tc[:, :, None])[..., 0]  # R^T t, (h, 3)
         front = (w @ n_f.T + d_f) < 0
-        f0, f1 = front[:, ef_l[:, 0]], front[:, ef_l[:, 1]]
-        vis_e = np.where(convex_u, f0 | f1, f0 & f1)
-        Xe = np.matmul(ends[None], RT) + tc[:, None]
-        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-            ue = Xe[..., :2] / Xe[..., 2:3] * f + c
-        bins = _edge_bins(ue[:, :E], ue[:, E:], nb)
-        X = np.matmul(P[None], RT) + tc[:, None]
-        z = X[..., 2]
-        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-            uv = X[..., :2] / z[..., None] * f + c
-            ui = np.rint(uv[..., 0])
-            vi = np.rint(uv[..., 1])
-        vis = vis_e[:, se_l]
-        inside = (ui >= 0) & (ui <= W_img - 1) & (vi >= 0) & (vi <= H_img - 1) & (z > 0)
+        angle = np.arctan2(*_rank_edge_dirs(Rc, tc, ends_t, f, c))  # NumPy's (SIMD) arctan2, as _edge_bins
+        blocked = no_block
         if tree is not None and not mf.convex:
-            hh, ss = np.nonzero(vis & inside)
+            hh, ss = np.nonzero(_rank_seen(Rc, tc, Pt, se_l, front, ef_l, convex_u, f, c, H_img, W_img))
             if hh.size:
                 A = mf.sample_p[samples[ss]]
                 cam = -w[hh].astype(float)  # camera centre, object frame
                 seg = np.linalg.norm(cam - A, axis=1)
-                blocked = tree.segments_blocked(A, cam, t_lo=np.minimum(2e-4 / seg, 0.1), t_hi=1.0, min_length=1e-9)
-                vis = vis.copy()
-                vis[hh[blocked], ss[blocked]] = False
-        flat = (bins[:, se_l].astype(np.int32) * H_img + np.where(inside, vi, 0).astype(np.int32)) * W_img \
-            + np.where(inside, ui, 0).astype(np.int32)
-        d = dt_flat[flat]
-        ins = inside & vis
-        nvis = vis.sum(1)
-        agree = np.where(ins, np.maximum(0.0, 1.0 - d / tol_px), 0.0).sum(1)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            fr = ins.sum(1) / nvis
-            sc = agree / nvis
-        behind = np.any(z <= 0, axis=1)
-        ok = (nvis > 0) & ~behind & (fr >= min_inside)
-        score[s:s + chunk] = np.where(ok, sc, np.nan)
-        inside_frac[s:s + chunk] = np.where(nvis > 0, fr, 0.0)
+                hit = tree.segments_blocked(A, cam, t_lo=np.minimum(2e-4 / seg, 0.1), t_hi=1.0, min_length=1e-9)
+                blocked = np.zeros((len(Rc), Pt.shape[1]), bool)
+                blocked[hh[hit], ss[hit]] = True
+        _rank_score(Rc, tc, Pt, se_l, front, ef_l, convex_u, angle, nb, f, c, dt_flat, H_img, W_img, tol,
+                    float(min_inside), blocked, score[s:s + chunk], inside_frac[s:s + chunk])
     return score, inside_frac
 
 
@@ -256,25 +486,51 @@ def _project(K, T_camera_object, P):
         return X[:, :2] / X[:, 2:3] * K[[0, 1], [0, 1]] + K[:2, 2], X[:, 2]
 
 
-def _bilinear(img2d_stack, bins, uv, outside, grad=False):
-    """Bilinear lookup in ``img2d_stack[bins]`` at ``uv``; optionally its (d/du, d/dv)."""
-    _, H, W = img2d_stack.shape
-    u, v = uv[:, 0], uv[:, 1]
-    ok = np.isfinite(u) & np.isfinite(v) & (u >= 0) & (v >= 0) & (u <= W - 1.001) & (v <= H - 1.001)
-    u0 = np.where(ok, np.floor(u), 0).astype(np.int64)
-    v0 = np.where(ok, np.floor(v), 0).astype(np.int64)
-    fu = np.where(ok, u - u0, 0.0)
-    fv = np.where(ok, v - v0, 0.0)
-    a = img2d_stack[bins, v0, u0]
-    b = img2d_stack[bins, v0, u0 + 1]
-    c = img2d_stack[bins, v0 + 1, u0]
-    d = img2d_stack[bins, v0 + 1, u0 + 1]
-    val = np.where(ok, (a * (1 - fu) + b * fu) * (1 - fv) + (c * (1 - fu) + d * fu) * fv, outside)
-    if not grad:
-        return val
-    gu = np.where(ok, (b - a) * (1 - fv) + (d - c) * fv, 0.0)
-    gv = np.where(ok, (c - a) * (1 - fu) + (d - b) * fu, 0.0)
-    return val, gu, gv
+@njit
+def _normal_search(grad, uv, n, offs, min_grad):
+    """The 1D edge search of :func:`refine_subpixel` for each sample, compiled.
+
+    At ``q = uv + offs[o] n`` the bilinear gradient ``(gx, gy)`` of ``grad``
+    (2, H, W) float32 (NaN outside ``[0, W - 1.001] x [0, H - 1.001]``) gives
+    ``g = |gx n_u + gy n_v|`` (0 where not finite); its first maximum over the
+    offsets, and a parabola through it and its neighbours, give the edge
+    point's offset ``sstar`` (S,); ``ok`` (S,) where the peak is at least
+    ``min_grad`` and not at either end. The NumPy code's operations in its
+    order: the same bits.
+    """
+    _, H, W = grad.shape
+    umax, vmax = W - 1.001, H - 1.001
+    S, O = uv.shape[0], offs.shape[0]
+    sstar = np.empty(S)
+    ok = np.empty(S, np.bool_)
+    g = np.empty(O)
+    for s in range(S):
+        n0, n1 = n[s, 0], n[s, 1]
+        for o in range(O):
+            u = uv[s, 0] + offs[o] * n0
+            v = uv[s, 1] + offs[o] * n1
+            if np.isfinite(u) and np.isfinite(v) and u >= 0 and v >= 0 and u <= umax and v <= vmax:
+                u0, v0 = np.int64(np.floor(u)), np.int64(np.floor(v))
+                fu, fv = u - u0, v - v0
+                gx = (grad[0, v0, u0] * (1 - fu) + grad[0, v0, u0 + 1] * fu) * (1 - fv) \
+                    + (grad[0, v0 + 1, u0] * (1 - fu) + grad[0, v0 + 1, u0 + 1] * fu) * fv
+                gy = (grad[1, v0, u0] * (1 - fu) + grad[1, v0, u0 + 1] * fu) * (1 - fv) \
+                    + (grad[1, v0 + 1, u0] * (1 - fu) + grad[1, v0 + 1, u0 + 1] * fu) * fv
+                go = abs(gx * n0 + gy * n1)
+                g[o] = go if np.isfinite(go) else 0.0
+            else:
+                g[o] = 0.0  # NaN outside the image, then not finite
+        k = 0
+        for o in range(1, O):
+            if g[o] > g[k]:
+                k = o
+        ok[s] = g[k] >= min_grad and k > 0 and k < O - 1
+        kk = min(max(k, 1), O - 2)
+        gm, g0, gp = g[kk - 1], g[kk], g[kk + 1]
+        den = gm - 2 * g0 + gp
+        frac = 0.5 * (gm - gp) / den if abs(den) > 1e-9 else 0.0
+        sstar[s] = offs[kk] + min(max(frac, -0.5), 0.5) * 0.5
+    return sstar, ok
 
 
 def shared_edge_losers(uv: np.ndarray, edge: np.ndarray, edge_dir: np.ndarray, cost: np.ndarray,
@@ -332,17 +588,42 @@ def _camera_setup(T_world_object, view: CameraView, mf, tree):
     return idx, bins
 
 
-def _rodrigues(w):
-    """``exp_so3`` in closed form (SciPy's Rotation costs more than the rest of a residual)."""
-    th = float(np.sqrt(w @ w))
-    Kx = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
-    if th < 1e-8:
-        return np.eye(3) + Kx
-    return np.eye(3) + np.sin(th) / th * Kx + (1.0 - np.cos(th)) / th ** 2 * (Kx @ Kx)
-
-
 def _perturbed(T0, x):
-    return transform_from_rt(T0[:3, :3] @ _rodrigues(x[:3]), T0[:3, 3] + x[3:])
+    """``T0`` with its rotation times ``Exp(x[:3])`` and ``x[3:]`` added to its translation, (4, 4).
+
+    ``Exp`` in closed form (Rodrigues; SciPy's Rotation costs more than the
+    rest of a residual). The scalars are Python/NumPy floats as they always
+    were (``th ** 2`` is libm's ``pow``, which LLVM would turn into ``th *
+    th``); the matrices are built by :func:`_perturbed_kernel`.
+    """
+    w = x[:3]
+    th = float(np.sqrt(w @ w))
+    if th < 1e-8:
+        return _perturbed_kernel(T0, x, 1.0, 0.0)
+    return _perturbed_kernel(T0, x, np.sin(th) / th, (1.0 - np.cos(th)) / th ** 2)
+
+
+@njit
+def _perturbed_kernel(T0, x, a, b):
+    """``transform_from_rt(T0[:3, :3] @ R, T0[:3, 3] + x[3:])`` with ``R = I + a Kx + b Kx Kx``
+    (``Kx`` the cross-product matrix of ``x[:3]``), matrix products as ``_dot3``: the NumPy
+    code's bits. ``a = 1, b = 0`` gives the small-angle ``I + Kx`` exactly (``1 * k`` is
+    ``k``; ``I + Kx`` holds no -0, so adding a signed zero changes nothing)."""
+    Kx = np.zeros((3, 3))
+    Kx[0, 1], Kx[0, 2] = -x[2], x[1]
+    Kx[1, 0], Kx[1, 2] = x[2], -x[0]
+    Kx[2, 0], Kx[2, 1] = -x[1], x[0]
+    R = np.empty((3, 3))
+    for i in range(3):
+        for j in range(3):
+            e = 1.0 if i == j else 0.0
+            R[i, j] = (e + a * Kx[i, j]) + b * _dot3(Kx[i, 0], Kx[i, 1], Kx[i, 2], Kx[0, j], Kx[1, j], Kx[2, j])
+    T = np.eye(4)
+    for i in range(3):
+        for j in range(3):
+            T[i, j] = _dot3(T0[i, 0], T0[i, 1], T0[i, 2], R[0, j], R[1, j], R[2, j])
+        T[i, 3] = T0[i, 3] + x[3 + i]
+    return T
 
 
 def edge_residuals(x: np.ndarray, T0: np.ndarray, setups: list, want_jac: bool, dmax: float = 20.0) -> np.ndarray:
@@ -363,29 +644,85 @@ def edge_residuals(x: np.ndarray, T0: np.ndarray, setups: list, want_jac: bool, 
     Returns
     -------
     ndarray, shape (N,) or (N, 6)
+
+    Notes
+    -----
+    One compiled pass per camera (:func:`_edge_residuals_kernel`). A camera
+    with a single sample is the one case that rounds differently from the
+    NumPy formulation (its one-row products went to BLAS's gemv).
     """
     Tx = _perturbed(T0, x)
-    rs, js = [], []
-    Rwo = Tx[:3, :3]
+    Rwo = np.ascontiguousarray(Tx[:3, :3])
+    n = sum(len(P) for _, _, P, _ in setups)
+    r = np.empty(0 if want_jac else n)
+    J = np.empty((n if want_jac else 0, 6))
+    k = 0
     for v, T_cw, P, bins in setups:
         K = v.feat.K
         T_co = T_cw @ Tx
-        X = P @ T_co[:3, :3].T + T_co[:3, 3]
-        z = X[:, 2]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            uv = X[:, :2] / z[:, None] * K[[0, 1], [0, 1]] + K[:2, 2]
-        uv[z <= 1e-6] = np.nan
+        m = len(P)
+        _edge_residuals_kernel(T_co, T_cw, Rwo, P, bins, v.feat.dt, K[0, 0], K[1, 1], K[0, 2], K[1, 2], float(dmax),
+                               want_jac, r if want_jac else r[k:k + m], J[k:k + m])
+        k += m
+    return J if want_jac else r
+
+
+@njit
+def _edge_residuals_kernel(T_co, T_cw, R_wo, P, bins, dt, fx, fy, cx, cy, dmax, want_jac, r, J):
+    """Compiled body of :func:`edge_residuals` for one camera, one sample at a time.
+
+    Projection ``X = P R_co^T + t_co``, ``uv = X[:2] / z * f + c`` (NaN for
+    ``z <= 1e-6``); the bilinear distance ``dt[bin]`` at ``uv`` (``dmax``
+    outside ``[0, W - 1.001] x [0, H - 1.001]``) into ``r`` (S,), or with
+    ``want_jac`` its slope through the pinhole, ``g = (gu du + gv dv) R_cw``,
+    and ``[(P R_wo^T x g) R_wo, g]`` into ``J`` (S, 6). The NumPy code's
+    operations in its order (matrix products as ``_dot3``): the same bits.
+    """
+    _, H, W = dt.shape
+    umax, vmax = W - 1.001, H - 1.001
+    for i in range(P.shape[0]):
+        p0, p1, p2 = P[i, 0], P[i, 1], P[i, 2]
+        X0 = _dot3(p0, p1, p2, T_co[0, 0], T_co[0, 1], T_co[0, 2]) + T_co[0, 3]
+        X1 = _dot3(p0, p1, p2, T_co[1, 0], T_co[1, 1], T_co[1, 2]) + T_co[1, 3]
+        z = _dot3(p0, p1, p2, T_co[2, 0], T_co[2, 1], T_co[2, 2]) + T_co[2, 3]
+        u = X0 / z * fx + cx
+        v = X1 / z * fy + cy
+        if z <= 1e-6:
+            u = np.nan
+            v = np.nan
+        val, gu, gv = dmax, 0.0, 0.0
+        if np.isfinite(u) and np.isfinite(v) and u >= 0 and v >= 0 and u <= umax and v <= vmax:
+            u0, v0 = np.int64(np.floor(u)), np.int64(np.floor(v))
+            fu, fv = u - u0, v - v0
+            b = bins[i]
+            a, bb = dt[b, v0, u0], dt[b, v0, u0 + 1]
+            c, d = dt[b, v0 + 1, u0], dt[b, v0 + 1, u0 + 1]
+            val = (a * (1 - fu) + bb * fu) * (1 - fv) + (c * (1 - fu) + d * fu) * fv
+            gu = (bb - a) * (1 - fv) + (d - c) * fv  # differences of the float32 maps in float32
+            gv = (c - a) * (1 - fu) + (d - bb) * fu
         if not want_jac:
-            rs.append(_bilinear(v.feat.dt, bins, uv, dmax))
+            r[i] = val
             continue
-        _, gu, gv = _bilinear(v.feat.dt, bins, uv, dmax, grad=True)
-        zz = np.where(z > 1e-6, z, 1.0)
-        du = np.stack([K[0, 0] / zz, np.zeros_like(zz), -K[0, 0] * X[:, 0] / zz ** 2], 1)
-        dv = np.stack([np.zeros_like(zz), K[1, 1] / zz, -K[1, 1] * X[:, 1] / zz ** 2], 1)
-        g_w = (gu[:, None] * du + gv[:, None] * dv) @ T_cw[:3, :3]  # dr/dX_world
+        zz = z if z > 1e-6 else 1.0
+        du0, du2 = fx / zz, -fx * X0 / (zz * zz)
+        dv1, dv2 = fy / zz, -fy * X1 / (zz * zz)
+        m0 = gu * du0 + gv * 0.0
+        m1 = gu * 0.0 + gv * dv1
+        m2 = gu * du2 + gv * dv2
+        g0 = _dot3(m0, m1, m2, T_cw[0, 0], T_cw[1, 0], T_cw[2, 0])  # dr/dX_world
+        g1 = _dot3(m0, m1, m2, T_cw[0, 1], T_cw[1, 1], T_cw[2, 1])
+        g2 = _dot3(m0, m1, m2, T_cw[0, 2], T_cw[1, 2], T_cw[2, 2])
         # X_w = R0 Exp(w) p + p0 + dp: dr/dw = p x (R^T g), dr/ddp = g.
-        js.append(np.concatenate([np.cross(P @ Rwo.T, g_w) @ Rwo, g_w], 1))
-    return np.concatenate(js) if want_jac else np.concatenate(rs)
+        q0 = _dot3(p0, p1, p2, R_wo[0, 0], R_wo[0, 1], R_wo[0, 2])
+        q1 = _dot3(p0, p1, p2, R_wo[1, 0], R_wo[1, 1], R_wo[1, 2])
+        q2 = _dot3(p0, p1, p2, R_wo[2, 0], R_wo[2, 1], R_wo[2, 2])
+        c0 = q1 * g2 - q2 * g1
+        c1 = q2 * g0 - q0 * g2
+        c2 = q0 * g1 - q1 * g0
+        J[i, 0] = _dot3(c0, c1, c2, R_wo[0, 0], R_wo[1, 0], R_wo[2, 0])
+        J[i, 1] = _dot3(c0, c1, c2, R_wo[0, 1], R_wo[1, 1], R_wo[2, 1])
+        J[i, 2] = _dot3(c0, c1, c2, R_wo[0, 2], R_wo[1, 2], R_wo[2, 2])
+        J[i, 3], J[i, 4], J[i, 5] = g0, g1, g2
 
 
 def refine_pose(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFeatures, tree=None,
@@ -554,22 +891,7 @@ def refine_subpixel(T_world_object: np.ndarray, views: list[CameraView], mf: Mod
             X = P @ T_co[:3, :3].T + T_co[:3, 3]
             z = X[:, 2]
             uv = X[:, :2] / z[:, None] * K[[0, 1], [0, 1]] + K[:2, 2]
-            q = uv[:, None, :] + offs[None, :, None] * n[:, None, :]  # (S, O, 2)
-            S, O = q.shape[:2]
-            zeros = np.zeros(S * O, np.int64)
-            gx = _bilinear(v.feat.grad, zeros, q.reshape(-1, 2), np.nan).reshape(S, O)
-            gy = _bilinear(v.feat.grad, zeros + 1, q.reshape(-1, 2), np.nan).reshape(S, O)
-            g = np.abs(gx * n[:, 0:1] + gy * n[:, 1:2])
-            g = np.where(np.isfinite(g), g, 0.0)
-            k = np.argmax(g, axis=1)
-            peak = g[np.arange(S), k]
-            ok = (peak >= min_grad) & (k > 0) & (k < O - 1)
-            kk = np.clip(k, 1, O - 2)
-            gm, g0, gp = g[np.arange(S), kk - 1], g[np.arange(S), kk], g[np.arange(S), kk + 1]
-            den = gm - 2 * g0 + gp
-            with np.errstate(divide="ignore", invalid="ignore"):
-                frac = np.where(np.abs(den) > 1e-9, 0.5 * (gm - gp) / den, 0.0)
-            sstar = offs[kk] + np.clip(frac, -0.5, 0.5) * 0.5
+            sstar, ok = _normal_search(v.feat.grad, uv, n, offs, float(min_grad))
             if not ok.any():
                 continue
             if shared_edge_px > 0:

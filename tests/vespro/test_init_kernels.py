@@ -1,0 +1,493 @@
+"""The initialiser's compiled kernels against the NumPy code they replaced.
+
+The NumPy implementations of ``rank_in_camera``, ``edge_residuals`` (with
+``_bilinear``), ``_perturbed`` (``_rodrigues``), the sub-pixel edge search of
+``refine_subpixel`` and the breadth-first walk of ``BSPTree.segments_blocked``
+are kept here, verbatim, as the references. Inputs are realistic: the
+project's parts (``models/objects``), their edge samples, features of images
+rendered by ``test_init_search.render`` and P3P hypotheses from them.
+
+Every comparison is to the last bit (signs of zeros and NaN positions
+included): the kernels repeat the NumPy code's operations in its order. Two
+facts of this platform make that possible, and are checked first: NumPy's
+small matrix products (OpenBLAS gemm) accumulate each entry as an FMA chain
+over k (``_dot3``), and ``np.einsum("ij,ij->i")`` sums three products as
+``(x0 y0 + x2 y2) + x1 y1``. On a BLAS that accumulates otherwise those two
+tests fail first and the kernels agree only to rounding.
+"""
+
+import numpy as np
+import pytest
+from test_init_search import CAMS, T_WO, K, _pose, render
+
+from vespro.bsp import IN, load_or_build_bsp
+from vespro.cmd_record import object_mesh_path
+from vespro.init import search
+from vespro.init.features import extract_features, normal_bins
+from vespro.init.modelfeat import model_features
+from vespro.model import load_model
+from vespro.se3 import exp_so3, invert_transform, transform_from_rt
+
+NAMES = ("box", "lblock", "bracket")
+
+
+def assert_same_bits(a, b):
+    """Equal to the last bit: shapes, dtypes, NaN positions and signs of zeros."""
+    a, b = np.atleast_1d(a), np.atleast_1d(b)
+    assert a.shape == b.shape and a.dtype == b.dtype, (a.shape, a.dtype, b.shape, b.dtype)
+    bad = ~np.all(a.view(np.uint8).reshape(a.shape + (-1,)) == b.view(np.uint8).reshape(b.shape + (-1,)), axis=-1)
+    assert not np.any(bad), f"{np.count_nonzero(bad)} of {a.size} differ, e.g. {a[bad][:5]} vs {b[bad][:5]}"
+
+
+# -- references: the NumPy code before the kernels ------------------------------
+
+def _edge_bins_ref(uv_a, uv_b, n_bins):
+    d = uv_b - uv_a
+    return normal_bins(np.arctan2(d[..., 0], -d[..., 1]), n_bins)
+
+
+def rank_in_camera_ref(R, t, feat, mf, tol_px=3.0, chunk=8192, min_inside=0.3, samples=None, tree=None):
+    H = len(R)
+    score = np.full(H, np.nan)
+    inside_frac = np.zeros(H)
+    samples = mf.coarse if samples is None else samples
+    P = mf.sample_p[samples].astype(np.float32)
+    se = mf.sample_edge[samples]
+    used_e = np.unique(se)
+    remap = np.zeros(len(mf.edge_a), np.int64)
+    remap[used_e] = np.arange(len(used_e))
+    se_l = remap[se]
+    ends = np.concatenate([mf.edge_a[used_e], mf.edge_b[used_e]]).astype(np.float32)
+    E = len(used_e)
+    f = np.array([feat.K[0, 0], feat.K[1, 1]], np.float32)
+    c = feat.K[:2, 2].astype(np.float32)
+    nb = feat.dt.shape[0]
+    ef = mf.edge_faces[used_e]
+    faces_u, ef_l = np.unique(ef, return_inverse=True)
+    ef_l = ef_l.reshape(-1, 2)
+    n_f = mf.face_normals[faces_u].astype(np.float32)
+    d_f = mf.face_offsets[faces_u].astype(np.float32)
+    convex_u = mf.edge_convex[used_e]
+    H_img, W_img = feat.dt.shape[1:]
+    dt_flat = feat.dt.reshape(-1)
+    for s in range(0, H, chunk):
+        Rc = R[s:s + chunk].astype(np.float32)
+        tc = t[s:s + chunk].astype(np.float32)
+        RT = Rc.transpose(0, 2, 1)
+        w = np.matmul(RT, tc[:, :, None])[..., 0]
+        front = (w @ n_f.T + d_f) < 0
+        f0, f1 = front[:, ef_l[:, 0]], front[:, ef_l[:, 1]]
+        vis_e = np.where(convex_u, f0 | f1, f0 & f1)
+        Xe = np.matmul(ends[None], RT) + tc[:, None]
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            ue = Xe[..., :2] / Xe[..., 2:3] * f + c
+        bins = _edge_bins_ref(ue[:, :E], ue[:, E:], nb)
+        X = np.matmul(P[None], RT) + tc[:, None]
+        z = X[..., 2]
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            uv = X[..., :2] / z[..., None] * f + c
+            ui = np.rint(uv[..., 0])
+            vi = np.rint(uv[..., 1])
+        vis = vis_e[:, se_l]
+        inside = (ui >= 0) & (ui <= W_img - 1) & (vi >= 0) & (vi <= H_img - 1) & (z > 0)
+        if tree is not None and not mf.convex:
+            hh, ss = np.nonzero(vis & inside)
+            if hh.size:
+                A = mf.sample_p[samples[ss]]
+                cam = -w[hh].astype(float)
+                seg = np.linalg.norm(cam - A, axis=1)
+                blocked = segments_blocked_ref(tree, A, cam, t_lo=np.minimum(2e-4 / seg, 0.1), t_hi=1.0,
+                                               min_length=1e-9)
+                vis = vis.copy()
+                vis[hh[blocked], ss[blocked]] = False
+        with np.errstate(invalid="ignore"):
+            flat = (bins[:, se_l].astype(np.int32) * H_img + np.where(inside, vi, 0).astype(np.int32)) * W_img \
+                + np.where(inside, ui, 0).astype(np.int32)
+        d = dt_flat[flat]
+        ins = inside & vis
+        nvis = vis.sum(1)
+        agree = np.where(ins, np.maximum(0.0, 1.0 - d / tol_px), 0.0).sum(1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            fr = ins.sum(1) / nvis
+            sc = agree / nvis
+        behind = np.any(z <= 0, axis=1)
+        ok = (nvis > 0) & ~behind & (fr >= min_inside)
+        score[s:s + chunk] = np.where(ok, sc, np.nan)
+        inside_frac[s:s + chunk] = np.where(nvis > 0, fr, 0.0)
+    return score, inside_frac
+
+
+def _rodrigues_ref(w):
+    th = float(np.sqrt(w @ w))
+    Kx = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+    if th < 1e-8:
+        return np.eye(3) + Kx
+    return np.eye(3) + np.sin(th) / th * Kx + (1.0 - np.cos(th)) / th ** 2 * (Kx @ Kx)
+
+
+def _perturbed_ref(T0, x):
+    return transform_from_rt(T0[:3, :3] @ _rodrigues_ref(x[:3]), T0[:3, 3] + x[3:])
+
+
+def _bilinear_ref(img2d_stack, bins, uv, outside, grad=False):
+    _, H, W = img2d_stack.shape
+    u, v = uv[:, 0], uv[:, 1]
+    ok = np.isfinite(u) & np.isfinite(v) & (u >= 0) & (v >= 0) & (u <= W - 1.001) & (v <= H - 1.001)
+    u0 = np.where(ok, np.floor(u), 0).astype(np.int64)
+    v0 = np.where(ok, np.floor(v), 0).astype(np.int64)
+    fu = np.where(ok, u - u0, 0.0)
+    fv = np.where(ok, v - v0, 0.0)
+    a = img2d_stack[bins, v0, u0]
+    b = img2d_stack[bins, v0, u0 + 1]
+    c = img2d_stack[bins, v0 + 1, u0]
+    d = img2d_stack[bins, v0 + 1, u0 + 1]
+    val = np.where(ok, (a * (1 - fu) + b * fu) * (1 - fv) + (c * (1 - fu) + d * fu) * fv, outside)
+    if not grad:
+        return val
+    gu = np.where(ok, (b - a) * (1 - fv) + (d - c) * fv, 0.0)
+    gv = np.where(ok, (c - a) * (1 - fu) + (d - b) * fu, 0.0)
+    return val, gu, gv
+
+
+def edge_residuals_ref(x, T0, setups, want_jac, dmax=20.0):
+    Tx = _perturbed_ref(T0, x)
+    rs, js = [], []
+    Rwo = Tx[:3, :3]
+    for v, T_cw, P, bins in setups:
+        K_ = v.feat.K
+        T_co = T_cw @ Tx
+        X = P @ T_co[:3, :3].T + T_co[:3, 3]
+        z = X[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            uv = X[:, :2] / z[:, None] * K_[[0, 1], [0, 1]] + K_[:2, 2]
+        uv[z <= 1e-6] = np.nan
+        if not want_jac:
+            rs.append(_bilinear_ref(v.feat.dt, bins, uv, dmax))
+            continue
+        _, gu, gv = _bilinear_ref(v.feat.dt, bins, uv, dmax, grad=True)
+        zz = np.where(z > 1e-6, z, 1.0)
+        du = np.stack([K_[0, 0] / zz, np.zeros_like(zz), -K_[0, 0] * X[:, 0] / zz ** 2], 1)
+        dv = np.stack([np.zeros_like(zz), K_[1, 1] / zz, -K_[1, 1] * X[:, 1] / zz ** 2], 1)
+        g_w = (gu[:, None] * du + gv[:, None] * dv) @ T_cw[:3, :3]
+        js.append(np.concatenate([np.cross(P @ Rwo.T, g_w) @ Rwo, g_w], 1))
+    return np.concatenate(js) if want_jac else np.concatenate(rs)
+
+
+def normal_search_ref(grad, uv, n, offs, min_grad):
+    """The edge search inside ``refine_subpixel``'s loop, as it was."""
+    q = uv[:, None, :] + offs[None, :, None] * n[:, None, :]
+    S, O = q.shape[:2]
+    zeros = np.zeros(S * O, np.int64)
+    gx = _bilinear_ref(grad, zeros, q.reshape(-1, 2), np.nan).reshape(S, O)
+    gy = _bilinear_ref(grad, zeros + 1, q.reshape(-1, 2), np.nan).reshape(S, O)
+    g = np.abs(gx * n[:, 0:1] + gy * n[:, 1:2])
+    g = np.where(np.isfinite(g), g, 0.0)
+    k = np.argmax(g, axis=1)
+    peak = g[np.arange(S), k]
+    ok = (peak >= min_grad) & (k > 0) & (k < O - 1)
+    kk = np.clip(k, 1, O - 2)
+    gm, g0, gp = g[np.arange(S), kk - 1], g[np.arange(S), kk], g[np.arange(S), kk + 1]
+    den = gm - 2 * g0 + gp
+    with np.errstate(divide="ignore", invalid="ignore"):
+        frac = np.where(np.abs(den) > 1e-9, 0.5 * (gm - gp) / den, 0.0)
+    sstar = offs[kk] + np.clip(frac, -0.5, 0.5) * 0.5
+    return sstar, ok
+
+
+def segments_blocked_ref(tree, A, B, t_lo=0.0, t_hi=1.0, min_length=0.0):
+    """``BSPTree.segments_blocked`` as the breadth-first NumPy walk it was."""
+    B = np.asarray(B, dtype=float).reshape(-1, 3)
+    A = np.asarray(A, dtype=float)
+    N, D = tree.normal, tree.offset
+    if A.shape == (3,):
+        h_start = N @ A - D
+
+        def ha_of(seg, node):
+            return h_start[node]
+    else:
+        A = A.reshape(-1, 3)
+
+        def ha_of(seg, node):
+            return np.einsum("ij,ij->i", A[seg], N[node]) - D[node]
+
+    def hb_of(seg, node):
+        return np.einsum("ij,ij->i", B[seg], N[node]) - D[node]
+
+    with np.errstate(invalid="ignore"):
+        t_lo, t_hi = tree.clip_to_bounds(A, B, t_lo, t_hi)
+    k = B.shape[0]
+    ids = np.arange(k)
+    pe = tree.plane_eps
+    CHf = tree._children.reshape(-1)
+    blocked = np.zeros(k, dtype=bool)
+    t0 = np.broadcast_to(np.asarray(t_lo, dtype=float), (k,)).copy()
+    t1 = np.broadcast_to(np.asarray(t_hi, dtype=float), (k,)).copy()
+    live = t1 - t0 > min_length
+    seg, t0, t1 = ids[live], t0[live], t1[live]
+    node = np.zeros(seg.size, dtype=np.int64)
+    while seg.size:
+        ha = ha_of(seg, node)
+        dh = hb_of(seg, node) - ha
+        h0 = ha + t0 * dh
+        h1 = ha + t1 * dh
+        b0, b1 = h0 < -pe, h1 < -pe
+        f0, f1 = h0 > pe, h1 > pe
+        side0 = b0 | (~f0 & b1)
+        sp = np.flatnonzero((b0 & f1) | (f0 & b1))
+        node2 = node + node
+        new_node = CHf.take(node2 + side0)
+        if sp.size:
+            ts = -ha[sp] / dh[sp]
+            other = CHf.take(node2[sp] + ~side0[sp])
+            t1_sp = t1[sp]
+            t1[sp] = ts
+            seg = np.concatenate([seg, seg[sp]])
+            node = np.concatenate([new_node, other])
+            t0 = np.concatenate([t0, ts])
+            t1 = np.concatenate([t1, t1_sp])
+        else:
+            node = new_node
+        leaf = node < 0
+        if leaf.any():
+            inside = node == IN
+            if min_length > 0:
+                inside &= t1 - t0 > min_length
+            blocked[seg[inside]] = True
+            keep = ~leaf & ~blocked[seg]
+            seg, node, t0, t1 = seg[keep], node[keep], t0[keep], t1[keep]
+    return blocked
+
+
+# -- scenes --------------------------------------------------------------------
+
+@pytest.fixture(scope="module", params=NAMES)
+def scene(request):
+    """(model, features, BSP tree, views of the part at T_WO in both CAMS)."""
+    model = load_model(object_mesh_path(request.param))
+    views = []
+    for i, T_wc in enumerate(CAMS):
+        img = render(model, invert_transform(T_wc) @ T_WO, np.random.default_rng(10 + i))
+        views.append(search.CameraView(extract_features(f"c{i}", img, K), T_wc))
+    return model, model_features(model), load_or_build_bsp(model), views
+
+
+def _hypotheses(scene, n_max=4000):
+    """P3P poses of the first camera's image (mostly wrong, off-image or behind), the true pose first."""
+    model, mf, _, views = scene
+    feat = views[0].feat
+    R, t = search.p3p_hypotheses(feat, mf, model.vertices, search.image_paths(feat))
+    keep = np.random.default_rng(0).permutation(len(R))[:n_max]
+    T_co = invert_transform(CAMS[0]) @ T_WO
+    R = np.concatenate([T_co[None, :3, :3], R[keep]])
+    t = np.concatenate([T_co[None, :3, 3], t[keep]])
+    # A few poses straddling the camera plane and far off the image.
+    t[1:40, 2] = np.linspace(-0.2, 0.05, 39)
+    t[40:60, 0] += 3.0
+    return R, t
+
+
+# -- the platform's arithmetic ---------------------------------------------------
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_dot3_is_how_numpy_multiplies_points_by_a_rotation(dtype):
+    rng = np.random.default_rng(0)
+    P = rng.normal(size=(500, 3)).astype(dtype)
+    R = rng.normal(size=(7, 3, 3)).astype(dtype)
+    P[rng.random(P.shape) < 0.2] = 0.0  # zero products: the sign of a zero sum
+    R[0, :, 1] = 0.0
+
+    import numba
+
+    @numba.njit
+    def by_dot3(P, R):
+        out = np.empty((R.shape[0], P.shape[0], 3), P.dtype)
+        for h in range(R.shape[0]):
+            for s in range(P.shape[0]):
+                for j in range(3):
+                    out[h, s, j] = search._dot3(P[s, 0], P[s, 1], P[s, 2], R[h, j, 0], R[h, j, 1], R[h, j, 2])
+        return out
+
+    # P @ R^T (the batched and the single products of the NumPy code).
+    assert_same_bits(np.matmul(P[None], R.transpose(0, 2, 1)), by_dot3(P, R))
+    assert_same_bits(P @ R[3].T, by_dot3(P, R[3:4])[0])
+
+
+def test_plane_distances_sum_as_einsum_does():
+    import numba
+
+    from vespro.bsp import _plane_dist
+
+    @numba.njit
+    def all_dist(P, N, D):
+        out = np.empty(P.shape[0])
+        for i in range(P.shape[0]):
+            out[i] = _plane_dist(P, i, N, D, i)
+        return out
+
+    rng = np.random.default_rng(1)
+    for n in (1, 2, 3, 7, 64, 1000):
+        P, N, D = rng.normal(size=(n, 3)), rng.normal(size=(n, 3)), rng.normal(size=n)
+        assert_same_bits(np.einsum("ij,ij->i", P, N) - D, all_dist(P, N, D))
+
+
+def test_pairwise_sum_is_numpys():
+    rng = np.random.default_rng(2)
+    for n in [*range(140), 255, 256, 257, 1057, 5000]:
+        a = (rng.random(n) * (rng.random(n) < 0.7)).astype(np.float32)
+        assert_same_bits(np.float32(a.sum()), np.float32(search._pairwise_sum_f32(a, n)))
+        A = np.tile(a, (3, 1))
+        assert_same_bits(A.sum(1)[1], np.float32(search._pairwise_sum_f32(a, n)))
+
+
+def test_normal_bin_is_normal_bins():
+    import numba
+
+    @numba.njit
+    def bins(a, nb):
+        out = np.empty(a.size, np.int32)
+        for i in range(a.size):
+            out[i] = search._normal_bin_i32(a[i], nb)
+        return out
+
+    rng = np.random.default_rng(3)
+    a = np.concatenate([rng.uniform(-4, 4, 200000), [0.0, -0.0, np.pi, -np.pi, 2 * np.pi, -1e-30, 1e-30, np.nan]])
+    a = a.astype(np.float32)
+    a = np.concatenate([a, np.float32(np.pi) * np.arange(-3, 4, dtype=np.float32),
+                        np.nextafter(np.float32(np.pi), np.float32(0)) * np.arange(-3, 4, dtype=np.float32)])
+    with np.errstate(invalid="ignore"):
+        ref = normal_bins(a, 12).astype(np.int32)  # the int32 the ranking indexes with
+    assert_same_bits(ref, bins(a, 12))
+
+
+# -- kernels ---------------------------------------------------------------------
+
+@pytest.mark.parametrize("kind", ["sparse", "coarse", "tree", "half_inside"])
+def test_rank_in_camera_matches_numpy(scene, kind):
+    _, mf, tree, views = scene
+    R, t = _hypotheses(scene, 600 if kind == "tree" else 4000)
+    feat = views[0].feat
+    kw = {"sparse": {"samples": mf.sparse}, "coarse": {"chunk": 1500}, "tree": {"tree": tree, "chunk": 250},
+          "half_inside": {"min_inside": 0.5, "tol_px": 2.0}}[kind]
+    ref = rank_in_camera_ref(R, t, feat, mf, **kw)
+    got = search.rank_in_camera(R, t, feat, mf, **kw)
+    assert_same_bits(ref[0], got[0])
+    assert_same_bits(ref[1], got[1])
+    # Real work: judged and unjudged poses, the true one among the best.
+    assert 0.2 < np.isfinite(ref[0]).mean() < 1.0
+    assert ref[0][0] > np.nanpercentile(ref[0], 95)
+
+
+def test_rank_with_the_tree_drops_samples_only_for_non_convex_parts(scene):
+    _, mf, tree, views = scene
+    R, t = _hypotheses(scene, 300)
+    with_tree = search.rank_in_camera(R, t, views[0].feat, mf, tree=tree)[0]
+    culled = search.rank_in_camera(R, t, views[0].feat, mf)[0]
+    if mf.convex:
+        assert_same_bits(with_tree, culled)
+    else:
+        assert np.nanmax(np.abs(with_tree - culled)) > 0.01
+
+
+def _setups(scene, T, n_views=2):
+    _, mf, tree, views = scene
+    out = []
+    for v in views[:n_views]:
+        idx, bins = search._camera_setup(T, v, mf, tree)
+        out.append((v, invert_transform(v.T_world_camera), mf.sample_p[idx], bins))
+    return out
+
+
+@pytest.mark.parametrize("want_jac", [False, True])
+def test_edge_residuals_match_numpy(scene, want_jac):
+    rng = np.random.default_rng(4)
+    T0 = T_WO @ _pose([0.01, -0.02, 0.015], [0.003, -0.002, 0.001])
+    setups = _setups(scene, T0)
+    # Large steps move samples off the image (dmax) and, the last, behind the camera.
+    steps = [np.zeros(6), np.r_[1e-9, 0, 0, 0, 0, 0]] + [np.r_[rng.normal(size=3) * s, rng.normal(size=3) * s / 10]
+                                                        for s in (1e-3, 0.05, 0.5, 2.0)]
+    steps.append(np.r_[0, 0, 0, invert_transform(CAMS[0])[:3, :3][2] * -1.0])
+    n_out = 0
+    for x in steps:
+        ref = edge_residuals_ref(x, T0, setups, want_jac)
+        got = search.edge_residuals(x, T0, setups, want_jac)
+        assert_same_bits(ref, got)
+        if not want_jac:
+            n_out += np.count_nonzero(ref == 20.0)
+    assert n_out > 0 or want_jac
+
+
+def test_perturbed_matches_numpy():
+    rng = np.random.default_rng(5)
+    for scale in (0.0, 1e-12, 5e-9, 1e-8, 2e-8, 1e-4, 0.05, 1.0, 3.0, 20.0):
+        for k in range(300):
+            T0 = transform_from_rt(exp_so3(rng.normal(size=3)), rng.normal(size=3))
+            x = np.r_[rng.normal(size=3) * scale, rng.normal(size=3) * 0.01]
+            if k % 5 == 0:
+                x[k % 3] = 0.0
+            assert_same_bits(_perturbed_ref(T0, x), search._perturbed(T0, x))
+
+
+def test_normal_search_matches_numpy(scene):
+    _, mf, tree, views = scene
+    v = views[0]
+    offs = np.arange(-3.0, 3.0 + 1e-9, 0.5)
+    for dp in ([0.0, 0.0, 0.0], [0.004, -0.003, 0.002], [0.3, 0.0, 0.0]):  # the last: mostly off the image
+        T_co = invert_transform(v.T_world_camera) @ T_WO @ _pose([0.02, 0.0, -0.01], dp)
+        idx = search.visible_samples(T_co, mf, tree)
+        ua, _ = search._project(K, T_co, mf.edge_a)
+        ub, _ = search._project(K, T_co, mf.edge_b)
+        d = (ub - ua)[mf.sample_edge[idx]]
+        n = np.stack([-d[:, 1], d[:, 0]], 1)
+        n /= np.linalg.norm(n, axis=1, keepdims=True) + 1e-12
+        uv, _ = search._project(K, T_co, mf.sample_p[idx])
+        for min_grad in (40.0, 0.0):
+            ref = normal_search_ref(v.feat.grad, uv, n, offs, min_grad)
+            got = search._normal_search(v.feat.grad, uv, n, offs, min_grad)
+            assert_same_bits(ref[0], got[0])
+            assert_same_bits(ref[1], got[1])
+
+
+def test_refinements_unchanged(scene, monkeypatch):
+    """``refine_pose`` and ``refine_subpixel`` with the reference pieces swapped in: the same bits."""
+    _, mf, tree, views = scene
+    rng = np.random.default_rng(6)
+    starts = [T_WO @ _pose(rng.normal(size=3) * 0.03, rng.normal(size=3) * 0.004) for _ in range(3)]
+    got = [(search.refine_pose(T, views[:1 + k % 2], mf, tree),
+            search.refine_subpixel(T, views[:1 + k % 2], mf, tree, info=True)) for k, T in enumerate(starts)]
+    monkeypatch.setattr(search, "edge_residuals", edge_residuals_ref)
+    monkeypatch.setattr(search, "_perturbed", _perturbed_ref)
+    monkeypatch.setattr(search, "_normal_search", normal_search_ref)
+    for k, (T, (Tr, (Ts, fit))) in enumerate(zip(starts, got)):
+        assert_same_bits(search.refine_pose(T, views[:1 + k % 2], mf, tree), Tr)
+        Ts_ref, fit_ref = search.refine_subpixel(T, views[:1 + k % 2], mf, tree, info=True)
+        assert_same_bits(Ts_ref, Ts)
+        assert_same_bits(fit_ref.normal, fit.normal)
+        assert (fit_ref.rms_px, fit_ref.n_samples, fit_ref.n_edges, fit_ref.n_searched) == \
+            (fit.rms_px, fit.n_samples, fit.n_edges, fit.n_searched)
+        assert not np.array_equal(Tr, T)  # the refinement moved
+
+
+def test_segments_blocked_matches_the_breadth_first_walk(scene):
+    model, mf, tree, _ = scene
+    rng = np.random.default_rng(7)
+    n = 6000
+    A = mf.sample_p[rng.integers(0, len(mf.sample_p), n)]  # edge samples to camera centres, as ranked
+    cams = rng.normal(size=(n, 3))
+    cams *= rng.uniform(0.05, 1.0, (n, 1)) / np.linalg.norm(cams, axis=1, keepdims=True)
+    lo, hi = model.bounds
+    A2 = np.concatenate([A, rng.uniform(lo - 0.02, hi + 0.02, size=(2000, 3))])
+    B2 = np.concatenate([cams, rng.uniform(lo - 0.02, hi + 0.02, size=(2000, 3))])
+    # Degenerate: along an axis (inside and outside a slab), zero length, NaN.
+    A2[-4:] = [[lo[0], 0.0, 0.0], [hi[0] + 1, 0.0, 0.0], [0.01, 0.01, 0.01], [np.nan, 0, 0]]
+    B2[-4:] = [[hi[0], 0.0, 0.0], [hi[0] + 1, 1.0, 0.0], [0.01, 0.01, 0.01], [1.0, 1.0, 1.0]]
+    seg = np.linalg.norm(B2 - A2, axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t_lo = np.minimum(2e-4 / seg, 0.1)
+    for min_length in (0.0, 1e-9, 0.05):
+        ref = segments_blocked_ref(tree, A2, B2, t_lo=t_lo, t_hi=1.0, min_length=min_length)
+        assert_same_bits(ref, tree.segments_blocked(A2, B2, t_lo=t_lo, t_hi=1.0, min_length=min_length))
+        assert 0.05 < ref.mean() < 0.95
+        c = cams[0]  # one common start
+        ref1 = segments_blocked_ref(tree, c, A, t_lo=0.0, t_hi=0.999, min_length=min_length)
+        assert_same_bits(ref1, tree.segments_blocked(c, A, t_lo=0.0, t_hi=0.999, min_length=min_length))
+        assert_same_bits(ref1[:50], tree.segments_blocked(c, A[:50], 0.0, 0.999, min_length))
