@@ -30,6 +30,16 @@ def _one_camera_frames(obj, seed, n):
     return rig, model, out
 
 
+def _published_errors(tr, frames, model, syms):
+    """Run a tracker over (frame set, true pose) pairs: ADD / diameter of every published frame."""
+    errs = []
+    for fs, T_true in frames:
+        out = tr.process(fs)
+        if out.status == "tracking":
+            errs.append(min(add(out.T_world_object, T_true @ S, model.vertices) for S in syms) / model.diameter)
+    return errs
+
+
 @pytest.mark.parametrize("obj,seed", [("box", 6), ("lblock", 12)])
 def test_edges_fit_the_pose_a_lone_camera_sees_loosely(obj, seed):
     """From the true pose, or moved 2.5% of the diameter along the line of sight and
@@ -81,12 +91,7 @@ def test_one_camera_track_held_by_the_edges():
     def run(mode):
         tr = Tracker(rig, model, TrackerConfig(edge_aid=mode))
         tr.start(res, frames[0][0].t_ns)
-        errs = []
-        for fs, T_true in frames:
-            out = tr.process(fs)
-            if out.status == "tracking":
-                errs.append(min(add(out.T_world_object, T_true @ S, model.vertices) for S in syms) / model.diameter)
-        return tr, errs
+        return tr, _published_errors(tr, frames, model, syms)
 
     tr, errs = run("single")
     assert tr.edge_updates >= len(frames) - 1 and len(errs) >= len(frames) - 2
@@ -148,12 +153,7 @@ def test_edges_veto_a_start_that_slid_on_wrong_corners():
 
     def run(cfg):
         tr = Tracker(rig, model, cfg, initializer=hook)
-        errs = []
-        for fs, T_true in frames:
-            out = tr.process(fs)
-            if out.status == "tracking":
-                errs.append(min(add(out.T_world_object, T_true @ S, model.vertices) for S in syms) / model.diameter)
-        return tr, errs
+        return tr, _published_errors(tr, frames, model, syms)
 
     tr, errs = run(TrackerConfig())
     assert tr.unconfirmed_drops >= 1

@@ -18,11 +18,12 @@ skipped and every comparison is to rounding instead (``assert_same_bits``):
 the kernels are still right there, only not bit for bit.
 """
 
+import numba
 import numpy as np
 import pytest
 from test_init_search import CAMS, T_WO, K, _pose, render
 
-from vespro.bsp import IN, load_or_build_bsp
+from vespro.bsp import IN, _plane_dist, load_or_build_bsp
 from vespro.cmd_record import object_mesh_path
 from vespro.init import search
 from vespro.init.features import extract_features, normal_bins
@@ -40,35 +41,34 @@ def _bits_equal(a, b):
     return bool(np.all(a.view(np.uint8) == b.view(np.uint8)))
 
 
+@numba.njit
+def _by_dot3(P, R):
+    """``P @ R[h]^T`` for every h, each entry by ``search._dot3``."""
+    out = np.empty((R.shape[0], P.shape[0], 3), P.dtype)
+    for h in range(R.shape[0]):
+        for s in range(P.shape[0]):
+            for j in range(3):
+                out[h, s, j] = search._dot3(P[s, 0], P[s, 1], P[s, 2], R[h, j, 0], R[h, j, 1], R[h, j, 2])
+    return out
+
+
+@numba.njit
+def _all_plane_dist(P, N, D):
+    """``einsum("ij,ij->i", P, N) - D`` by ``bsp._plane_dist``."""
+    out = np.empty(P.shape[0])
+    for i in range(P.shape[0]):
+        out[i] = _plane_dist(P, i, N, D, i)
+    return out
+
+
 def _platform_facts():
     """(small matrix products as ``_dot3``, einsum's three-term sums as ``_plane_dist``)."""
-    import numba
-
-    from vespro.bsp import _plane_dist
-
     rng = np.random.default_rng(11)
     P, R = rng.normal(size=(64, 3)), rng.normal(size=(3, 3, 3))
-
-    @numba.njit
-    def by_dot3(P, R):
-        out = np.empty((R.shape[0], P.shape[0], 3), P.dtype)
-        for h in range(R.shape[0]):
-            for s in range(P.shape[0]):
-                for j in range(3):
-                    out[h, s, j] = search._dot3(P[s, 0], P[s, 1], P[s, 2], R[h, j, 0], R[h, j, 1], R[h, j, 2])
-        return out
-
-    @numba.njit
-    def all_dist(P, N, D):
-        out = np.empty(P.shape[0])
-        for i in range(P.shape[0]):
-            out[i] = _plane_dist(P, i, N, D, i)
-        return out
-
-    gemm = all(_bits_equal(np.matmul(P.astype(d)[None], R.astype(d).transpose(0, 2, 1)), by_dot3(P.astype(d), R.astype(d)))
-               for d in (np.float32, np.float64))
+    gemm = all(_bits_equal(np.matmul(P.astype(d)[None], R.astype(d).transpose(0, 2, 1)),
+                           _by_dot3(P.astype(d), R.astype(d))) for d in (np.float32, np.float64))
     N, D = rng.normal(size=(64, 3)), rng.normal(size=64)
-    return gemm, _bits_equal(np.einsum("ij,ij->i", P, N) - D, all_dist(P, N, D))
+    return gemm, _bits_equal(np.einsum("ij,ij->i", P, N) - D, _all_plane_dist(P, N, D))
 
 
 _FACTS = None
@@ -357,41 +357,18 @@ def test_dot3_is_how_numpy_multiplies_points_by_a_rotation(dtype):
     R = rng.normal(size=(7, 3, 3)).astype(dtype)
     P[rng.random(P.shape) < 0.2] = 0.0  # zero products: the sign of a zero sum
     R[0, :, 1] = 0.0
-
-    import numba
-
-    @numba.njit
-    def by_dot3(P, R):
-        out = np.empty((R.shape[0], P.shape[0], 3), P.dtype)
-        for h in range(R.shape[0]):
-            for s in range(P.shape[0]):
-                for j in range(3):
-                    out[h, s, j] = search._dot3(P[s, 0], P[s, 1], P[s, 2], R[h, j, 0], R[h, j, 1], R[h, j, 2])
-        return out
-
     # P @ R^T (the batched and the single products of the NumPy code).
-    assert_same_bits(np.matmul(P[None], R.transpose(0, 2, 1)), by_dot3(P, R))
-    assert_same_bits(P @ R[3].T, by_dot3(P, R[3:4])[0])
+    assert_same_bits(np.matmul(P[None], R.transpose(0, 2, 1)), _by_dot3(P, R))
+    assert_same_bits(P @ R[3].T, _by_dot3(P, R[3:4])[0])
 
 
 def test_plane_distances_sum_as_einsum_does():
     if not bitwise():
         pytest.skip("this platform's NumPy sums otherwise: the kernels are compared to rounding")
-    import numba
-
-    from vespro.bsp import _plane_dist
-
-    @numba.njit
-    def all_dist(P, N, D):
-        out = np.empty(P.shape[0])
-        for i in range(P.shape[0]):
-            out[i] = _plane_dist(P, i, N, D, i)
-        return out
-
     rng = np.random.default_rng(1)
     for n in (1, 2, 3, 7, 64, 1000):
         P, N, D = rng.normal(size=(n, 3)), rng.normal(size=(n, 3)), rng.normal(size=n)
-        assert_same_bits(np.einsum("ij,ij->i", P, N) - D, all_dist(P, N, D))
+        assert_same_bits(np.einsum("ij,ij->i", P, N) - D, _all_plane_dist(P, N, D))
 
 
 def test_pairwise_sum_is_numpys():
@@ -404,8 +381,6 @@ def test_pairwise_sum_is_numpys():
 
 
 def test_normal_bin_is_normal_bins():
-    import numba
-
     @numba.njit
     def bins(a, nb):
         out = np.empty(a.size, np.int32)
