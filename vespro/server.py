@@ -54,6 +54,9 @@ def _worker_setup(factory) -> None:
     global _WORKER_INIT
     leave_realtime()  # free of the live loop's core and real-time class, if it had them
     _WORKER_INIT = factory()
+    warm_up = getattr(_WORKER_INIT, "warm_up", None)
+    if warm_up is not None:
+        warm_up()  # compiled kernels loaded now, not during the first search
 
 
 def _worker_ping() -> None:

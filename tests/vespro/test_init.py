@@ -11,6 +11,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from vespro.cmd_record import object_mesh_path
 from vespro.frames import FrameSet
 from vespro.groundtruth import read_groundtruth
 from vespro.init import InitOptions, make_initializer
@@ -494,3 +495,18 @@ def test_the_start_pose_comes_with_its_edge_fit_covariance():
     assert len(published) >= len(frames) - 2 and max(published) < 0.1, published
     errs_default, _ = run(InitResult(res.T_world_object))
     assert max(errs_default) > 0.1, errs_default
+
+
+@pytest.mark.parametrize("rig_file", ["hybrid", "hand"])
+def test_warm_up_loads_the_kernels_and_decides_nothing(rig_file):
+    """``Initializer.warm_up`` (called by the server's worker at start-up) runs the compiled
+    search kernels on a blank image of the first camera, fixed or eye-in-hand, and leaves
+    the initialiser as it was."""
+    from vespro.rig import load_rig
+    from vespro.sim.rigs import CAMERAS_DIR
+
+    rig = load_rig(CAMERAS_DIR / f"{rig_file}.yaml")
+    ini = make_initializer(rig, load_model(object_mesh_path("lblock")))
+    before = (ini._pending, ini._attempt, ini._seed, ini.last_report)
+    ini.warm_up()
+    assert (ini._pending, ini._attempt, ini._seed, ini.last_report) == before
