@@ -43,8 +43,8 @@ from .model import Model
 from .projection import project_with_jacobian
 from .rig import Rig
 from .se3 import check_transform
-from .startpose import InitResult
 from .selection import select_information_joint, select_quality
+from .startpose import InitResult
 from .visibility import SceneBody, VisibilityScene
 
 __all__ = ["TrackerConfig", "CameraObservation", "TrackerOutput", "InitResult", "Tracker"]
@@ -165,10 +165,18 @@ class TrackerConfig:
         confirmation with ``confirm_edge_min_accepted`` corners instead of
         ``confirm_min_accepted``: a lone camera often sees only 6-7 of a
         box's corners, finds 5 of them, and held an accurate track (0.5-3%
-        of the diameter) unpublished for a second. Not 4: a box face seen
-        head-on (4 corners, its edges in one plane) and an L-block whose
+        of the diameter) unpublished for a second. Not 4 on that alone: a box
+        face seen head-on (4 corners, its edges in one plane) and an L-block whose
         dark face lost its outer edge were confirmed from 4 and slid to
         12-26% of the diameter.
+    confirm_outline_min_accepted, confirm_outline_min_found : int, float
+        ... and with ``confirm_outline_min_accepted`` corners when the edge fit
+        found an edge point for at least ``confirm_outline_min_found`` of the
+        visible samples (the whole outline there, not a part of it): a box
+        seen with one dark side face shows only its top face's 4 corners; its
+        edge fits found 93-96% of 306 samples on 9 edges and the track held
+        1-5% of the diameter for a second, unpublished. The two tracks that
+        slid from 4 corners found 40-86% (the dark face's outer edge missing).
     confirm_edge_veto, veto_found_ratio : bool, float
         A frame whose edge fit, in some camera, found an edge point for fewer
         than ``veto_found_ratio`` times the fraction of the visible samples the
@@ -188,14 +196,6 @@ class TrackerConfig:
         frames in a row is dropped (as at ``confirm_within_s``) and the
         initialiser runs again: that start has slid (the bracket above was
         still vetoed 19 frames on, 12-38% off).
-    confirm_outline_min_accepted, confirm_outline_min_found : int, float
-        ... and with ``confirm_outline_min_accepted`` corners when the edge fit
-        found an edge point for at least ``confirm_outline_min_found`` of the
-        visible samples (the whole outline there, not a part of it): a box
-        seen with one dark side face shows only its top face's 4 corners; its
-        edge fits found 93-96% of 306 samples on 9 edges and the track held
-        1-5% of the diameter for a second, unpublished. The two tracks that
-        slid from 4 corners found 40-86% (the dark face's outer edge missing).
     adaptive_noise : bool
         Adapt the measurement noise to the innovations (covariance matching):
         the corner error differs between objects, backgrounds and lenses, and
@@ -391,7 +391,7 @@ class Tracker:
         self.edge_rejects = 0  # edge fits too far from the filter's pose to use
         self._edge_ok = False  # this frame's edge fits support the filter (see confirm_edge_*)
         self._edge_found = 0.0  # least fraction of visible edge samples found by this frame's fits
-        self._edge_veto = False  # this frame's edge fits were made and did not support the filter
+        self._edge_veto = False  # this frame's edge fits found far less than this filter's first (veto_found_ratio)
         self._vetoes = 0  # vetoed frames in a row
         self._start_found: dict[str, float] = {}  # per camera, the found fraction of this filter's first edge fit
         # A symmetric part (a box) looks the same in several poses: pick one by a stated rule.
