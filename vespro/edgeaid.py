@@ -158,5 +158,4 @@ class EdgeAid:
         cov = fit.covariance(T[:3, :3], self.min_sigma_px, self.max_independent_edges)
         if cov is None:
             return None
-        found = fit.n_samples / max(fit.n_searched, 1)
-        return EdgeMeasurement(T, cov / max(found, 0.05) ** self.found_power, fit)
+        return EdgeMeasurement(T, cov / max(fit.found_frac, 0.05) ** self.found_power, fit)

@@ -474,13 +474,9 @@ class Tracker:
         self.ekf = PoseEKF(init.T_world_object, P0, q_acc=c.q_acc, q_alpha=c.q_alpha, sigma_px=c.sigma_px,
                            gate_prob=c.gate_prob, v=v, w=w, robust_nis=c.robust_nis)
         self._t_ns = t_ns
-        self._start_t_ns = t_ns
         self._bad = 0
-        self._good = 0
-        self._vetoes = 0
-        self._start_found = {}
         self._disagree = 0
-        self.confirmed = False
+        self.require_confirmation(t_ns)
         self.status = STATUS_INITIALIZING
 
     def require_confirmation(self, t_ns: int) -> None:
@@ -616,7 +612,7 @@ class Tracker:
                 continue
             nis = self.ekf.update_pose(m.T_world_object, m.cov6)
             self.edge_updates += 1
-            frac = m.fit.n_samples / max(m.fit.n_searched, 1)
+            frac = m.fit.found_frac
             support.append(nis <= _CHI2_6_99 and m.fit.n_edges >= c.confirm_edge_min_edges
                            and frac >= c.confirm_edge_min_found)
             found.append(frac)

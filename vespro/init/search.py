@@ -816,6 +816,11 @@ class EdgeFit:
     n_edges: int
     n_searched: int = 0
 
+    @property
+    def found_frac(self) -> float:
+        """Fraction of the visible samples that found an edge point (0 when none searched)."""
+        return self.n_samples / max(self.n_searched, 1)
+
     def covariance(self, R_world_object: np.ndarray, min_sigma_px: float = 0.3,
                    max_independent_edges: int = 12) -> np.ndarray | None:
         """Covariance of the fitted pose, ``s^2 (J^T W J)^-1``, in the filter's ``[dp, dtheta]``.
