@@ -207,8 +207,10 @@ def test_scheduler_realtime_mode_runs():
     robot = MockRobot(q_above())
     sch = Scheduler.from_config(LoopConfig(), WallClock(), robot, None, realtime=True, cpu=0, fifo_priority=None)
     stats = sch.run(50)
-    # every tick either commands or (after a timing fault under load) stops the robot
-    assert stats.n_ticks == 50 and robot.commands + robot.stops == 50 and robot.steps == 50
+    # every tick commands the robot unless a timing fault under load stopped it (the loop then
+    # holds the robot stopped until a reset: those ticks command nothing)
+    assert stats.n_ticks == 50 and robot.steps == 50
+    assert robot.commands == 50 or (robot.stops >= 1 and robot.commands < 50)
     assert np.all(stats.period_ns[1:] > 0)
     assert stats.overruns >= 0
 

@@ -249,6 +249,26 @@ def test_single_camera_accidental_view_is_confirmed_not_locked_at_once(obj, seed
     assert res_without == [None, None]  # the accidental-view test alone rejects it
 
 
+def test_edges_running_on_past_true_corners_are_confirmed_not_rejected():
+    """L-block seed 201, one camera: its step seen edge-on lines two faces up,
+    so image edges run on past 44% of the true pose's corners (the strict
+    single-camera limit is 25%). Held back on frame 0, confirmed on frame 5;
+    rejected on both with the provisional overrun turned off."""
+    rig = _rig("1", 201)
+    config, motion, mesh = trial_config("lblock", rig, 201)
+    model = load_model(mesh)
+    syms = model_symmetries(model.vertices)
+    ini = make_initializer(rig, model)
+    without = make_initializer(rig, model, max_overrun_frac_confirm=0.25)
+    res_without = []
+    with SimCell(config, motion) as cell:
+        res, modes = _calls_until_pose(cell, ini, model, syms, before=lambda k, fs: res_without.append(without(fs)))
+    assert res is not None, modes
+    assert modes[0][:2] == ("none", True) and modes[-1][0] == "confirm", modes
+    assert res_without == [None, None]
+    assert "run on past" in without.last_report.reason
+
+
 def test_ranking_with_self_occlusion_lets_the_strict_limits_initialise():
     """Bracket, rig seed 16, one camera, strict limits: ranked with culling
     alone no refined candidate passes on frame 0 (the edges the bracket hides

@@ -191,3 +191,22 @@ def test_an_accidental_view_over_image_edges_is_not_provisional():
     cluttered = replace(clear, interior_edge_frac=0.05)
     assert not _verdict(cluttered, opt)[0]
     assert _verdict(cluttered, replace(opt, plain_faces=False)) == (True, True, "")
+
+
+def test_edges_running_on_past_some_corners_is_provisional_with_one_camera():
+    """Every other strict check passed, image edges running on past 25-50% of
+    the corners (a background line through a corner, two faces lined up in
+    the view): a pose to confirm on the next call; past more, or with several
+    cameras past more than their limit, a rejection. Combined with one open face
+    it is still provisional."""
+    opt = InitOptions()
+    strict_pass = dict(inlier_frac=0.95, per_camera={"c": 0.95}, mean_dist=0.6, supported_edges=11,
+                       visible_edges=11, open_faces=2, crease_supported=0, crease_edges=0)
+    assert _verdict(_check(**strict_pass, overrun_frac=0.2), opt) == (True, False, "")
+    assert _verdict(_check(**strict_pass, overrun_frac=0.44), opt) == (True, True, "")
+    assert _verdict(_check(**{**strict_pass, "open_faces": 1}, overrun_frac=0.44), opt) == (True, True, "")
+    assert not _verdict(_check(**strict_pass, overrun_frac=0.6), opt)[0]
+    assert not _verdict(_check(**strict_pass, overrun_frac=0.44), replace(opt, max_overrun_frac_confirm=0.25))[0]
+    assert not _verdict(_check(**strict_pass, overrun_frac=0.44, interior_edge_frac=0.05), opt)[0]
+    two = _check(**{**strict_pass, "per_camera": {"a": 0.95, "b": 0.95}}, n_cameras=2, overrun_frac=0.6)
+    assert not _verdict(two, opt)[0]

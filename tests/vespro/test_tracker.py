@@ -420,3 +420,47 @@ def test_an_edge_fit_that_disagrees_vetoes_confirmation_and_drops_a_slid_start(r
     assert "tracking" not in out and tr.ekf is None and tr.unconfirmed_drops == 1
     tr, out = run([True] * n, confirm_edge_veto=False)  # off: the corners confirm
     assert out[1] == "tracking"
+
+
+def test_after_a_coast_a_track_is_published_again_only_when_strong(recs):
+    """A confirmed track that had a bad frame (published ``lost``, coasting) is
+    published as ``tracking`` again only after ``recover_frames`` strong frames:
+    frames that are merely not bad (4 corners, no edge support) stay ``lost``
+    (a one-camera box track came back from a coast on 4 corners and slid to 11-21%
+    of the diameter), and with none strong within ``confirm_within_s`` the filter is
+    dropped for a fresh initialisation. ``recover_frames = 0`` publishes the first
+    frame that is not bad."""
+    from vespro.tracker import CameraObservation, InitResult
+
+    rec = Recording(recs["box_conveyor"])
+    _, _, T = read_groundtruth(recs["box_conveyor"])
+    ids = np.arange(6)
+
+    def ob(n_acc):
+        acc = np.zeros(6, bool)
+        acc[:n_acc] = True
+        return CameraObservation("cam_left", True, 6, ids, np.zeros((6, 2)), np.full(6, 3.0), np.zeros((6, 2)), acc)
+
+    def run(accepted, **cfg):
+        tr = make_tracker(rec, TrackerConfig(**cfg))
+        tr.initializer = lambda fs: None
+        tr.start(InitResult(T[0], cov6=np.diag([1e-6] * 6)), rec.frameset(0).t_ns)
+        out = []
+        for i, n in enumerate(accepted):
+            tr._edge_ok = tr._edge_veto = False
+            tr._edge_found = 0.0
+            out.append(tr._status(rec.frameset(i), [ob(n)], n, n, 2.0, {"visibility": 0.0}).status)
+            if tr.ekf is None:
+                break
+        return tr, out
+
+    # Confirmed on 6 corners, one bad frame (2 corners), then 4 corners a frame: not strong.
+    tr, out = run([6, 6, 6, 2, 4, 4, 4])
+    assert out == ["initializing", "tracking", "tracking", "lost", "lost", "lost", "lost"]
+    tr, out = run([6, 6, 6, 2, 4, 6, 4])  # a strong frame: published again
+    assert out[-3:] == ["lost", "tracking", "tracking"]
+    tr, out = run([6, 6, 6, 2, 4, 4, 4], recover_frames=0)  # off: the first frame not bad
+    assert out[-3:] == ["tracking"] * 3
+    n_deadline = int(np.ceil(TrackerConfig().confirm_within_s * 26)) + 2
+    tr, out = run([6, 6, 6, 2] + [4] * (n_deadline + 5))
+    assert "tracking" not in out[3:] and tr.ekf is None and tr.lost_events == 1
