@@ -233,20 +233,28 @@ def test_single_camera_plain_faces_initialise_without_wrong_lock(obj, seed):
 SINGLE_ACCIDENTAL = [("box", 18), ("lblock", 17)]
 
 
-@pytest.mark.parametrize("obj,seed", SINGLE_ACCIDENTAL)
-def test_single_camera_accidental_view_is_confirmed_not_locked_at_once(obj, seed):
+def _held_back_then_confirmed(obj, seed, **route_off):
+    """One-camera trial: a provisional pose on frame 0, confirmed on frame 5; an
+    initialiser with the provisional route turned off (``route_off``) returns
+    nothing on either. Returns that initialiser (its last report says why)."""
     rig = _rig("1", seed)
     config, motion, mesh = trial_config(obj, rig, seed)
     model = load_model(mesh)
     syms = model_symmetries(model.vertices)
     ini = make_initializer(rig, model)
-    without = make_initializer(rig, model, min_open_faces_confirm=2)
+    without = make_initializer(rig, model, **route_off)
     res_without = []
     with SimCell(config, motion) as cell:
         res, modes = _calls_until_pose(cell, ini, model, syms, before=lambda k, fs: res_without.append(without(fs)))
     assert res is not None, modes
     assert modes[0][:2] == ("none", True) and modes[-1][0] == "confirm", modes
-    assert res_without == [None, None]  # the accidental-view test alone rejects it
+    assert res_without == [None, None]
+    return without
+
+
+@pytest.mark.parametrize("obj,seed", SINGLE_ACCIDENTAL)
+def test_single_camera_accidental_view_is_confirmed_not_locked_at_once(obj, seed):
+    _held_back_then_confirmed(obj, seed, min_open_faces_confirm=2)  # the accidental-view test alone rejects it
 
 
 def test_edges_running_on_past_true_corners_are_confirmed_not_rejected():
@@ -254,18 +262,7 @@ def test_edges_running_on_past_true_corners_are_confirmed_not_rejected():
     so image edges run on past 44% of the true pose's corners (the strict
     single-camera limit is 25%). Held back on frame 0, confirmed on frame 5;
     rejected on both with the provisional overrun turned off."""
-    rig = _rig("1", 201)
-    config, motion, mesh = trial_config("lblock", rig, 201)
-    model = load_model(mesh)
-    syms = model_symmetries(model.vertices)
-    ini = make_initializer(rig, model)
-    without = make_initializer(rig, model, max_overrun_frac_confirm=0.25)
-    res_without = []
-    with SimCell(config, motion) as cell:
-        res, modes = _calls_until_pose(cell, ini, model, syms, before=lambda k, fs: res_without.append(without(fs)))
-    assert res is not None, modes
-    assert modes[0][:2] == ("none", True) and modes[-1][0] == "confirm", modes
-    assert res_without == [None, None]
+    without = _held_back_then_confirmed("lblock", 201, max_overrun_frac_confirm=0.25)
     assert "run on past" in without.last_report.reason
 
 
