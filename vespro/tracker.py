@@ -814,29 +814,31 @@ class Tracker:
         if not self.confirmed and self._good >= c.confirm_frames:
             self.confirmed = True
         T = ekf.pose
+        stage_ms = {k: v * 1e3 for k, v in stage.items()}
+
+        def unpublished(status):
+            return TrackerOutput(fs.index, fs.t_ns, status, observations=tuple(obs), n_accepted=n_acc,
+                                 mean_nis=mean_nis, stage_ms=stage_ms)
+
         if not np.all(np.isfinite(T)) or pos_std > c.max_pos_std or self._bad >= c.lost_after:
             self._lose()
-            return TrackerOutput(fs.index, fs.t_ns, STATUS_LOST, observations=tuple(obs), n_accepted=n_acc,
-                                 mean_nis=mean_nis, stage_ms={k: v * 1e3 for k, v in stage.items()})
-        stage_ms = {k: v * 1e3 for k, v in stage.items()}
+            return unpublished(STATUS_LOST)
         if self.confirmed and bad:
             # Too little support this frame: the filter coasts (up to lost_after frames) but the
             # estimate is not published as tracking, nor after it until strong again (recover_frames).
             if c.recover_frames > 0 and self._recover_t_ns is None:
                 self._recover_t_ns = fs.t_ns
             self.status = STATUS_LOST
-            return TrackerOutput(fs.index, fs.t_ns, STATUS_LOST, observations=tuple(obs), n_accepted=n_acc,
-                                 mean_nis=mean_nis, stage_ms=stage_ms)
+            return unpublished(STATUS_LOST)
         if self.confirmed and self._recover_t_ns is not None:
             if self._good >= c.recover_frames:
                 self._recover_t_ns = None
+            elif fs.t_ns - self._recover_t_ns >= c.confirm_within_s * 1e9:
+                self._lose()  # not strong again in time: a fresh (seeded) initialisation
+                return unpublished(STATUS_LOST)
             else:
-                if fs.t_ns - self._recover_t_ns >= c.confirm_within_s * 1e9:
-                    self._lose()  # not strong again in time: a fresh (seeded) initialisation
-                else:
-                    self.status = STATUS_LOST
-                return TrackerOutput(fs.index, fs.t_ns, STATUS_LOST, observations=tuple(obs), n_accepted=n_acc,
-                                     mean_nis=mean_nis, stage_ms=stage_ms)
+                self.status = STATUS_LOST
+                return unpublished(STATUS_LOST)
         if not self.confirmed:
             self.status = STATUS_INITIALIZING
             if fs.t_ns - self._start_t_ns >= c.confirm_within_s * 1e9 or \
@@ -845,8 +847,7 @@ class Tracker:
                 # from the images (see confirm_within_s, veto_drop_frames).
                 self.ekf = None
                 self.unconfirmed_drops += 1
-            return TrackerOutput(fs.index, fs.t_ns, STATUS_INITIALIZING, observations=tuple(obs), n_accepted=n_acc,
-                                 mean_nis=mean_nis, stage_ms=stage_ms)
+            return unpublished(STATUS_INITIALIZING)
         self.status = STATUS_TRACKING
         vel = np.concatenate([ekf.velocity, ekf.angular_velocity])
         self.last_good = (T, vel, fs.t_ns)
