@@ -266,25 +266,32 @@ def test_edges_running_on_past_true_corners_are_confirmed_not_rejected():
     assert "run on past" in without.last_report.reason
 
 
+def _bracket_frame_0_found_only_with(seed, without, max_add=0.1, **base):
+    """One-camera bracket trial, frame 0: an initialiser with options ``base``
+    plus ``without`` returns nothing; with ``base`` alone it returns a pose
+    within ``max_add`` of the diameter (symmetry-aware ADD)."""
+    rig = _rig("1", seed)
+    config, motion, mesh = trial_config("bracket", rig, seed)
+    model = load_model(mesh)
+    ini = make_initializer(rig, model, **base)
+    lacking = make_initializer(rig, model, **base, **without)
+    with SimCell(config, motion) as cell:
+        cell.settle_arm()
+        fs = cell.next_frameset()
+        assert lacking(fs) is None
+        res = ini(fs)
+        assert res is not None, ini.last_report.reason
+        assert _sym_add_frac(res.T_world_object, cell.true_object_pose(), model,
+                             model_symmetries(model.vertices)) < max_add
+
+
 def test_ranking_with_self_occlusion_lets_the_strict_limits_initialise():
     """Bracket, rig seed 16, one camera, strict limits: ranked with culling
     alone no refined candidate passes on frame 0 (the edges the bracket hides
     from itself count as unsupported and rank its true pose out); ranked
     without the samples the part hides from itself, the right pose is refined
     and passes at once."""
-    rig = _rig("1", 16)
-    config, motion, mesh = trial_config("bracket", rig, 16)
-    model = load_model(mesh)
-    strict = make_initializer(rig, model, plain_faces=False)
-    culled = make_initializer(rig, model, plain_faces=False, keep_occlusion_rank=0)
-    with SimCell(config, motion) as cell:
-        cell.settle_arm()
-        fs = cell.next_frameset()
-        assert culled(fs) is None
-        res = strict(fs)
-        assert res is not None, strict.last_report.reason
-        assert _sym_add_frac(res.T_world_object, cell.true_object_pose(), model,
-                             model_symmetries(model.vertices)) < 0.1
+    _bracket_frame_0_found_only_with(16, dict(keep_occlusion_rank=0), plain_faces=False)
 
 
 def test_a_brief_refinement_lifts_a_rough_true_hypothesis_above_clutter_fits():
@@ -294,19 +301,7 @@ def test_a_brief_refinement_lifts_a_rough_true_hypothesis_above_clutter_fits():
     refines, and no pose comes out. With none of those passing, the best 60 are
     refined briefly (``n_quick``), ranked on their refined poses, and the true
     one passes at once."""
-    rig = _rig("1", 610)
-    config, motion, mesh = trial_config("bracket", rig, 610)
-    model = load_model(mesh)
-    ini = make_initializer(rig, model)
-    unrefined = make_initializer(rig, model, n_quick=0)
-    with SimCell(config, motion) as cell:
-        cell.settle_arm()
-        fs = cell.next_frameset()
-        assert unrefined(fs) is None
-        res = ini(fs)
-        assert res is not None, ini.last_report.reason
-        assert _sym_add_frac(res.T_world_object, cell.true_object_pose(), model,
-                             model_symmetries(model.vertices)) < 0.05
+    _bracket_frame_0_found_only_with(610, dict(n_quick=0), max_add=0.05)
 
 
 def test_an_image_edge_serves_one_edge_of_a_thin_strip():
