@@ -469,6 +469,22 @@ def _verdict(chk, opt: InitOptions) -> tuple[bool, bool, str]:
     return False, False, why
 
 
+def _refined(T_world_object: np.ndarray, views, setup: InitSetup) -> np.ndarray:
+    """A candidate refined on the oriented edge distances, then (``InitOptions.subpixel``) to sub-pixel."""
+    opt, mf = setup.options, setup.mf
+    T = refine_pose(T_world_object, views, mf, setup.tree)
+    if opt.subpixel:
+        T = refine_subpixel(T, views, mf, setup.tree, shared_edge_px=opt.shared_edge_px)
+    return T
+
+
+def _checked(T_world_object: np.ndarray, views, setup: InitSetup):
+    """How well a pose explains every camera's image (:func:`check_pose` with the set-up's options)."""
+    opt = setup.options
+    return check_pose(T_world_object, views, setup.mf, setup.tree, opt.verify_tol_px,
+                      require_fixed=opt.require_fixed_view)
+
+
 def _joint_scores(cand: np.ndarray, views, setup: InitSetup) -> np.ndarray:
     """Mean ranking agreement of world poses ``cand`` (N, 4, 4) over the cameras that can judge them."""
     opt = setup.options
@@ -597,10 +613,8 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
     if pending_T_world_object is not None:
         Tp = np.asarray(pending_T_world_object, float)
         near = (opt.confirm_frac * mf.diameter + opt.confirm_speed * max(pending_age_s, 0.0))
-        Tr = refine_pose(Tp, views, mf, setup.tree)
-        if opt.subpixel:
-            Tr = refine_subpixel(Tr, views, mf, setup.tree, shared_edge_px=opt.shared_edge_px)
-        chk = check_pose(Tr, views, mf, setup.tree, opt.verify_tol_px, require_fixed=opt.require_fixed_view)
+        Tr = _refined(Tp, views, setup)
+        chk = _checked(Tr, views, setup)
         if _verdict(chk, opt)[0] and _adds(mf, Tr, Tp) < near:
             pending = (Tr, chk)
 
@@ -613,10 +627,8 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
             starts.append(transform_from_rt(starts[0][:3, :3] @ dR, starts[0][:3, 3] + dp))
         best = None
         for T in starts:
-            Tr = refine_pose(T, views, mf, setup.tree)
-            if opt.subpixel:
-                Tr = refine_subpixel(Tr, views, mf, setup.tree, shared_edge_px=opt.shared_edge_px)
-            chk = check_pose(Tr, views, mf, setup.tree, opt.verify_tol_px, require_fixed=opt.require_fixed_view)
+            Tr = _refined(T, views, setup)
+            chk = _checked(Tr, views, setup)
             if best is None or chk.inlier_frac > best[1].inlier_frac:
                 best = (Tr, chk)
             if _verdict(chk, opt)[0]:
@@ -672,13 +684,9 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
             distinct.append(cand[k])
             if len(distinct) - 1 not in wanted:
                 continue
-            Tr = refine_pose(cand[k], views, mf, setup.tree)
-            if opt.subpixel:
-                Tr = refine_subpixel(Tr, views, mf, setup.tree, shared_edge_px=opt.shared_edge_px)
-            if any(_adds(mf, Tr, T) < 0.02 * mf.diameter for T, _ in refined):
-                continue
-            chk = check_pose(Tr, views, mf, setup.tree, opt.verify_tol_px, require_fixed=opt.require_fixed_view)
-            refined.append((Tr, chk))
+            Tr = _refined(cand[k], views, setup)
+            if not any(_adds(mf, Tr, T) < 0.02 * mf.diameter for T, _ in refined):
+                refined.append((Tr, _checked(Tr, views, setup)))
 
     wanted = set(range(opt.n_refine))
     if attempt > 0:  # a first call that succeeds needs no more
