@@ -546,6 +546,8 @@ def summarize(out: Path, cfg: DemoConfig, events: list) -> dict:
         st, ts = rec["status"], (rec["t_ns"] - t0) * 1e-9
         stop = np.flatnonzero((st == int(Status.STOPPING)) | (st == int(Status.STOPPED)))
         summary.setdefault("servo", {})["first_stop_s"] = float(ts[stop[0]]) if stop.size else None
+        change = np.concatenate([[0], np.flatnonzero(np.diff(st)) + 1]) if st.size else np.zeros(0, int)
+        summary["servo"]["status_changes"] = [[float(ts[i]), Status(int(st[i])).name] for i in change]
 
     # Ground truth for the recording, so `vespro eval` can replay it.
     rec_path = vision / "recording"

@@ -107,6 +107,22 @@ class TrackerConfig:
         4 corners accepted a frame and slid 17-22 mm along the line of sight
         (a rail edge behind the box pulling the edge fits), published at
         11-21% of the diameter; none of its frames after the coast was strong.
+    blind_found_fraction : float
+        A confirmed track's camera that found fewer than this fraction of the
+        corners selected in it (NaN windows, not gated ones) is blind this
+        frame, when at least two other cameras each accepted ``min_accepted``
+        corners: something the model does not know stands in front of the part
+        there (the arm over the belt before the top camera). Its corners then
+        count neither against the frame (``min_accepted_fraction``), nor
+        against a strong frame, nor as a disagreement: a window that finds
+        nothing says nothing against the pose, and two seeing cameras still fix
+        it. In the demo with the three fixed cameras the arm following the part
+        hid it from the top camera (1 of 8 corners found): the frame counted
+        as bad, and no frame after it was strong, so a 0.7 mm track was
+        published ``lost`` and dropped while two cameras accepted 14-18 corners
+        a frame, and the servo stopped. With one seeing camera the rule does
+        not apply (its depth is unchecked); nor before confirmation. 0 turns it
+        off.
     max_pos_std : float
         Position std (m) beyond which the track is lost.
     confirm_frames : int
@@ -244,6 +260,7 @@ class TrackerConfig:
     max_mean_nis: float = 12.0
     lost_after: int = 4
     recover_frames: int = 1
+    blind_found_fraction: float = 0.5
     max_pos_std: float = 0.02
     confirm_frames: int = 2
     confirm_min_accepted: int = 6
@@ -423,6 +440,7 @@ class Tracker:
         self.frames = 0
         self.lost_events = 0
         self.unconfirmed_drops = 0  # started filters dropped for not confirming in time
+        self.blind_frames = 0  # frames in which a confirmed track did without a blind camera (blind_found_fraction)
         self._start_t_ns: int | None = None
         self.last_good = None  # (T_world_object, velocity (6,), t_ns) of the last tracking frame
         self._reseeded = True
@@ -774,13 +792,29 @@ class Tracker:
         stage["update"] += time.perf_counter() - t
         return obs, len(z), n_acc, mean_nis, max_half, updated
 
+    def _seeing(self, obs: list) -> list:
+        """The observations that count in the frame's support: all of them, less a confirmed
+        track's blind cameras while two others see the part (``blind_found_fraction``)."""
+        c = self.config
+        if not self.confirmed or c.blind_found_fraction <= 0:
+            return obs
+        blind = [ob.feature_ids.size >= c.min_accepted
+                 and np.count_nonzero(np.isfinite(ob.uv_meas[:, 0])) < c.blind_found_fraction * ob.feature_ids.size
+                 for ob in obs]
+        seeing = sum(1 for ob, b in zip(obs, blind) if not b and int(ob.accepted.sum()) >= c.min_accepted)
+        if not any(blind) or seeing < 2:
+            return obs
+        self.blind_frames += 1
+        return [ob for ob, b in zip(obs, blind) if not b]
+
     def _status(self, fs: FrameSet, obs: list, n_found: int, n_acc: int, mean_nis: float,
                 stage: dict) -> TrackerOutput:
         """Bad/strong frame bookkeeping, loss and confirmation; the published output."""
         c = self.config
         ekf = self.ekf
         # Status.
-        n_sel = sum(int(ob.feature_ids.size) for ob in obs)
+        obs_seen = self._seeing(obs)
+        n_sel = sum(int(ob.feature_ids.size) for ob in obs_seen)
         bad = (n_acc < c.min_accepted or n_acc < c.min_accepted_fraction * n_sel
                or (np.isfinite(mean_nis) and mean_nis > c.max_mean_nis))
         self._bad = self._bad + 1 if bad else 0
@@ -794,7 +828,7 @@ class Tracker:
                   and n_acc >= c.confirm_min_inlier_fraction * max(n_found, 1)
                   and n_acc >= c.confirm_min_selected_fraction * n_sel
                   and all(int(ob.accepted.sum()) >= c.confirm_min_camera_fraction * ob.feature_ids.size
-                          for ob in obs if ob.feature_ids.size >= c.min_accepted)
+                          for ob in obs_seen if ob.feature_ids.size >= c.min_accepted)
                   and pos_std < c.confirm_max_pos_std * self.model.diameter and rot_std < c.confirm_max_rot_std)
         self._good = self._good + 1 if strong else 0
         self._vetoes = self._vetoes + 1 if self._edge_veto else 0
@@ -802,7 +836,7 @@ class Tracker:
             # Cameras disagreeing: one accepts under half of the corners selected in it while
             # another accepts at least half of its own.
             agree = [int(ob.accepted.sum()) >= 0.5 * ob.feature_ids.size
-                     for ob in obs if ob.feature_ids.size >= c.min_accepted]
+                     for ob in obs_seen if ob.feature_ids.size >= c.min_accepted]
             self._disagree = self._disagree + 1 if (False in agree and True in agree) else 0
             if self._disagree >= c.disagree_frames:
                 # Widen the pose covariance: the windows open and the next frames associate

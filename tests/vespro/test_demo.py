@@ -51,7 +51,9 @@ def test_real_time_demo_survives_a_killed_pose_server(tmp_path):
     # wall clock, a real TCP link. SIGKILL the pose server: the demo must report it and end
     # by itself (no hang), the servo must never fault, and if it was following when the
     # stream stopped its stop must start within the watchdog time (generous margin: a shared
-    # CI machine delays processes, this is not a timing benchmark).
+    # CI machine delays processes, this is not a timing benchmark). A stop before the kill
+    # (the stream late on a loaded machine) is the watchdog doing its job, not a failure: what
+    # is checked is that a servo still following at the kill stops within the watchdog time.
     s = run_demo(DemoConfig(out=tmp_path, cameras="fixed", duration=9.0, video=False, kill_server_at=6.0),
                  log=lambda m: None)
     assert any(e.get("event") == "pose server killed" for e in s["events"])
@@ -59,9 +61,13 @@ def test_real_time_demo_survives_a_killed_pose_server(tmp_path):
     sv = s["servo"]
     assert sv["status_ticks"]["FAULT"] == 0 and sv["ticks"] > 0
     kill_t = next(e["t_s"] for e in s["events"] if e.get("event") == "pose server killed")
-    if sv["status_ticks"]["TRACKING"] > 0 and sv.get("first_stop_s") is not None and sv["first_stop_s"] > 1.0:
+    changes = sv["status_changes"]
+    assert changes and changes[0][0] <= kill_t
+    at_kill = [name for t, name in changes if t <= kill_t - 0.5]
+    if at_kill and at_kill[-1] == "TRACKING":  # following half a second before the kill
+        stops = [t for t, name in changes if name in ("STOPPING", "STOPPED") and t > kill_t - 0.5]
+        assert stops and stops[0] <= kill_t + WATCHDOG_S + 0.5, (kill_t, changes)
         assert sv["controlled_stops"] >= 1
-        assert kill_t - 0.5 <= sv["first_stop_s"] <= kill_t + WATCHDOG_S + 0.5, (kill_t, sv["first_stop_s"])
     assert (tmp_path / "summary.json").exists()
 
 

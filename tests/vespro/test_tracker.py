@@ -464,3 +464,58 @@ def test_after_a_coast_a_track_is_published_again_only_when_strong(recs):
     n_deadline = int(np.ceil(TrackerConfig().confirm_within_s * 26)) + 2
     tr, out = run([6, 6, 6, 2] + [4] * (n_deadline + 5))
     assert "tracking" not in out[3:] and tr.ekf is None and tr.lost_events == 1
+
+
+def test_a_camera_that_finds_nothing_does_not_count_against_a_confirmed_track(recs):
+    """A confirmed track's camera whose windows find (almost) nothing is blind (the arm in
+    front of the part, unknown to the model): with two other cameras seeing the part, its
+    corners count neither against the frame nor against a strong frame, so the track is
+    still published. Corners found and gated out are a disagreement, not blindness; one
+    seeing camera or an unconfirmed start gets no such allowance."""
+    from vespro.tracker import CameraObservation, InitResult
+
+    rec = Recording(recs["box_conveyor"])
+    _, _, T = read_groundtruth(recs["box_conveyor"])
+    ids = np.arange(8)
+
+    def ob(name, n_found, n_acc):
+        uv = np.full((8, 2), np.nan)
+        uv[:n_found] = 100.0
+        acc = np.zeros(8, bool)
+        acc[:n_acc] = True
+        return CameraObservation(name, True, 8, ids, np.zeros((8, 2)), np.full(8, 3.0), uv, acc)
+
+    seeing = [ob("cam_left", 8, 7), ob("cam_right", 8, 8)]
+
+    def run(frames, **cfg):
+        tr = make_tracker(rec, TrackerConfig(**cfg))
+        tr.initializer = lambda fs: None
+        tr.start(InitResult(T[0], cov6=np.diag([1e-6] * 6)), rec.frameset(0).t_ns)
+        out = []
+        for i, obs in enumerate(frames):
+            tr._edge_ok = tr._edge_veto = False
+            tr._edge_found = 0.0
+            n_found = sum(int(np.isfinite(o.uv_meas[:, 0]).sum()) for o in obs)
+            n_acc = sum(int(o.accepted.sum()) for o in obs)
+            out.append(tr._status(rec.frameset(i), obs, n_found, n_acc, 2.0, {"visibility": 0.0}).status)
+            if tr.ekf is None:
+                break
+        return tr, out
+
+    full = seeing + [ob("cam_top", 8, 8)]
+    # The top camera finds 1 of 8 (11 of 24 accepted in all: under half, a bad frame without the rule).
+    hidden = [ob("cam_left", 8, 5), ob("cam_right", 8, 5), ob("cam_top", 1, 1)]
+    tr, out = run([full] * 3 + [hidden] * 10)
+    assert out == ["initializing"] + ["tracking"] * 12 and tr.blind_frames == 10
+    assert tr.reassociations == 0  # not a disagreement between cameras either
+    tr, out = run([full] * 3 + [hidden] * 10, blind_found_fraction=0.0)  # off: bad frames, dropped after 4
+    assert out[3:] == ["lost"] * 4 and tr.ekf is None
+    # Found and gated out: the top camera disagrees with the pose (windows widened after 3 frames).
+    tr, out = run([full] * 3 + [seeing + [ob("cam_top", 8, 1)]] * 3)
+    assert tr.blind_frames == 0 and tr.reassociations == 1
+    # Two cameras, one of them blind: one camera's view is not enough.
+    tr, out = run([seeing] * 3 + [[ob("cam_left", 8, 3), ob("cam_right", 1, 1)]] * 3)
+    assert "tracking" not in out[3:] and tr.blind_frames == 0
+    # Not before confirmation: a start with a blind camera is not confirmed by the other two.
+    tr, out = run([[ob("cam_left", 8, 8), ob("cam_right", 8, 8), ob("cam_top", 1, 1)]] * 4)
+    assert out == ["initializing"] * 4 and not tr.confirmed and tr.blind_frames == 0
