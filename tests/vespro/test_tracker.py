@@ -313,7 +313,7 @@ def test_a_start_not_confirmed_in_time_is_dropped_for_a_fresh_initialisation(rec
     start, and the initialiser runs again. Seen on a one-camera bracket trial: after a good
     start the filter slid with 3-4 of 8 corners accepted and, 38 frames on, confirmed a pose
     28% of the diameter off."""
-    from vespro.tracker import CameraObservation, InitResult
+    from vespro.tracker import CameraObservation
 
     rec = Recording(recs["box_conveyor"])
     _, _, T = read_groundtruth(recs["box_conveyor"])
@@ -422,6 +422,27 @@ def test_an_edge_fit_that_disagrees_vetoes_confirmation_and_drops_a_slid_start(r
     assert out[1] == "tracking"
 
 
+def _statuses(rec, T0, frames, **cfg):
+    """A tracker started confidently at ``T0`` whose status logic is fed the given
+    per-frame observation lists (no edge fits; found = finite measurements);
+    stops where the filter is dropped. Returns (tracker, published statuses)."""
+    from vespro.tracker import InitResult
+
+    tr = make_tracker(rec, TrackerConfig(**cfg))
+    tr.initializer = lambda fs: None
+    tr.start(InitResult(T0, cov6=np.diag([1e-6] * 6)), rec.frameset(0).t_ns)
+    out = []
+    for i, obs in enumerate(frames):
+        tr._edge_ok = tr._edge_veto = False
+        tr._edge_found = 0.0
+        n_found = sum(int(np.isfinite(o.uv_meas[:, 0]).sum()) for o in obs)
+        n_acc = sum(int(o.accepted.sum()) for o in obs)
+        out.append(tr._status(rec.frameset(i), obs, n_found, n_acc, 2.0, {"visibility": 0.0}).status)
+        if tr.ekf is None:
+            break
+    return tr, out
+
+
 def test_after_a_coast_a_track_is_published_again_only_when_strong(recs):
     """A confirmed track that had a bad frame (published ``lost``, coasting) is
     published as ``tracking`` again only after ``recover_frames`` strong frames:
@@ -430,29 +451,20 @@ def test_after_a_coast_a_track_is_published_again_only_when_strong(recs):
     of the diameter), and with none strong within ``confirm_within_s`` the filter is
     dropped for a fresh initialisation. ``recover_frames = 0`` publishes the first
     frame that is not bad."""
-    from vespro.tracker import CameraObservation, InitResult
+    from vespro.tracker import CameraObservation
 
     rec = Recording(recs["box_conveyor"])
     _, _, T = read_groundtruth(recs["box_conveyor"])
     ids = np.arange(6)
 
-    def ob(n_acc):
+    def ob(n_acc):  # n_acc corners found, all accepted
         acc = np.zeros(6, bool)
         acc[:n_acc] = True
-        return CameraObservation("cam_left", True, 6, ids, np.zeros((6, 2)), np.full(6, 3.0), np.zeros((6, 2)), acc)
+        uv = np.where(acc[:, None], 0.0, np.nan)
+        return CameraObservation("cam_left", True, 6, ids, np.zeros((6, 2)), np.full(6, 3.0), uv, acc)
 
     def run(accepted, **cfg):
-        tr = make_tracker(rec, TrackerConfig(**cfg))
-        tr.initializer = lambda fs: None
-        tr.start(InitResult(T[0], cov6=np.diag([1e-6] * 6)), rec.frameset(0).t_ns)
-        out = []
-        for i, n in enumerate(accepted):
-            tr._edge_ok = tr._edge_veto = False
-            tr._edge_found = 0.0
-            out.append(tr._status(rec.frameset(i), [ob(n)], n, n, 2.0, {"visibility": 0.0}).status)
-            if tr.ekf is None:
-                break
-        return tr, out
+        return _statuses(rec, T[0], [[ob(n)] for n in accepted], **cfg)
 
     # Confirmed on 6 corners, one bad frame (2 corners), then 4 corners a frame: not strong.
     tr, out = run([6, 6, 6, 2, 4, 4, 4])
@@ -472,7 +484,7 @@ def test_a_camera_that_finds_nothing_does_not_count_against_a_confirmed_track(re
     corners count neither against the frame nor against a strong frame, so the track is
     still published. Corners found and gated out are a disagreement, not blindness; one
     seeing camera or an unconfirmed start gets no such allowance."""
-    from vespro.tracker import CameraObservation, InitResult
+    from vespro.tracker import CameraObservation
 
     rec = Recording(recs["box_conveyor"])
     _, _, T = read_groundtruth(recs["box_conveyor"])
@@ -488,19 +500,7 @@ def test_a_camera_that_finds_nothing_does_not_count_against_a_confirmed_track(re
     seeing = [ob("cam_left", 8, 7), ob("cam_right", 8, 8)]
 
     def run(frames, **cfg):
-        tr = make_tracker(rec, TrackerConfig(**cfg))
-        tr.initializer = lambda fs: None
-        tr.start(InitResult(T[0], cov6=np.diag([1e-6] * 6)), rec.frameset(0).t_ns)
-        out = []
-        for i, obs in enumerate(frames):
-            tr._edge_ok = tr._edge_veto = False
-            tr._edge_found = 0.0
-            n_found = sum(int(np.isfinite(o.uv_meas[:, 0]).sum()) for o in obs)
-            n_acc = sum(int(o.accepted.sum()) for o in obs)
-            out.append(tr._status(rec.frameset(i), obs, n_found, n_acc, 2.0, {"visibility": 0.0}).status)
-            if tr.ekf is None:
-                break
-        return tr, out
+        return _statuses(rec, T[0], frames, **cfg)
 
     full = seeing + [ob("cam_top", 8, 8)]
     # The top camera finds 1 of 8 (11 of 24 accepted in all: under half, a bad frame without the rule).
