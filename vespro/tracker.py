@@ -108,21 +108,23 @@ class TrackerConfig:
         (a rail edge behind the box pulling the edge fits), published at
         11-21% of the diameter; none of its frames after the coast was strong.
     blind_found_fraction : float
-        A confirmed track's camera that found fewer than this fraction of the
-        corners selected in it (NaN windows, not gated ones) is blind this
-        frame, when at least two other cameras each accepted ``min_accepted``
-        corners: something the model does not know stands in front of the part
-        there (the arm over the belt before the top camera). Its corners then
-        count neither against the frame (``min_accepted_fraction``), nor
-        against a strong frame, nor as a disagreement: a window that finds
-        nothing says nothing against the pose, and two seeing cameras still fix
-        it. In the demo with the three fixed cameras the arm following the part
-        hid it from the top camera (1 of 8 corners found): the frame counted
-        as bad, and no frame after it was strong, so a 0.7 mm track was
-        published ``lost`` and dropped while two cameras accepted 14-18 corners
-        a frame, and the servo stopped. With one seeing camera the rule does
-        not apply (its depth is unchecked); nor before confirmation. 0 turns it
-        off.
+        A camera that found fewer than this fraction of the corners selected
+        in it (NaN windows, not gated ones) is blind this frame, when at least
+        two other cameras each accepted ``min_accepted`` corners: something the
+        model does not know stands in front of the part there (the arm over
+        the belt before the top camera). Its corners then count neither
+        against the frame (``min_accepted_fraction``), nor against a strong
+        frame (confirmation included), nor as a disagreement: a window that
+        finds nothing says nothing against the pose, and two seeing cameras
+        that each accept at least ``confirm_min_camera_fraction`` of their
+        corners fix it as a two-camera rig does. In the demo with the three
+        fixed cameras the arm following the part hid it from the top camera
+        (1 of 8 corners found): the frame counted as bad, and no frame after
+        it was strong, so a 0.7 mm track was published ``lost`` and dropped
+        while two cameras accepted 14-18 corners a frame, and the servo
+        stopped; a start found then (``InitOptions.hidden_camera``) could
+        never be confirmed. With one seeing camera the rule does not apply
+        (its depth is unchecked). 0 turns it off.
     max_pos_std : float
         Position std (m) beyond which the track is lost.
     confirm_frames : int
@@ -440,7 +442,7 @@ class Tracker:
         self.frames = 0
         self.lost_events = 0
         self.unconfirmed_drops = 0  # started filters dropped for not confirming in time
-        self.blind_frames = 0  # frames in which a confirmed track did without a blind camera (blind_found_fraction)
+        self.blind_frames = 0  # frames that did without a blind camera (blind_found_fraction)
         self._start_t_ns: int | None = None
         self.last_good = None  # (T_world_object, velocity (6,), t_ns) of the last tracking frame
         self._reseeded = True
@@ -793,10 +795,10 @@ class Tracker:
         return obs, len(z), n_acc, mean_nis, max_half, updated
 
     def _seeing(self, obs: list) -> list:
-        """The observations that count in the frame's support: all of them, less a confirmed
-        track's blind cameras while two others see the part (``blind_found_fraction``)."""
+        """The observations that count in the frame's support: all of them, less the blind
+        cameras while two others see the part (``blind_found_fraction``)."""
         c = self.config
-        if not self.confirmed or c.blind_found_fraction <= 0:
+        if c.blind_found_fraction <= 0:
             return obs
         blind = [ob.feature_ids.size >= c.min_accepted
                  and np.count_nonzero(np.isfinite(ob.uv_meas[:, 0])) < c.blind_found_fraction * ob.feature_ids.size

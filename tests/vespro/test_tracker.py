@@ -479,11 +479,11 @@ def test_after_a_coast_a_track_is_published_again_only_when_strong(recs):
 
 
 def test_a_camera_that_finds_nothing_does_not_count_against_a_confirmed_track(recs):
-    """A confirmed track's camera whose windows find (almost) nothing is blind (the arm in
-    front of the part, unknown to the model): with two other cameras seeing the part, its
-    corners count neither against the frame nor against a strong frame, so the track is
-    still published. Corners found and gated out are a disagreement, not blindness; one
-    seeing camera or an unconfirmed start gets no such allowance."""
+    """A camera whose windows find (almost) nothing is blind (the arm in front of the part,
+    unknown to the model): with two other cameras seeing the part, its corners count
+    neither against the frame nor against a strong frame, so the track is still published
+    (and a start is confirmed). Corners found and gated out are a disagreement, not
+    blindness; one seeing camera gets no such allowance."""
     from vespro.tracker import CameraObservation
 
     rec = Recording(recs["box_conveyor"])
@@ -516,6 +516,12 @@ def test_a_camera_that_finds_nothing_does_not_count_against_a_confirmed_track(re
     # Two cameras, one of them blind: one camera's view is not enough.
     tr, out = run([seeing] * 3 + [[ob("cam_left", 8, 3), ob("cam_right", 1, 1)]] * 3)
     assert "tracking" not in out[3:] and tr.blind_frames == 0
-    # Not before confirmation: a start with a blind camera is not confirmed by the other two.
-    tr, out = run([[ob("cam_left", 8, 8), ob("cam_right", 8, 8), ob("cam_top", 1, 1)]] * 4)
-    assert out == ["initializing"] * 4 and not tr.confirmed and tr.blind_frames == 0
+    # A start: confirmed by the two seeing cameras (not with the rule off).
+    start = [[ob("cam_left", 8, 8), ob("cam_right", 8, 7), ob("cam_top", 1, 1)]] * 3
+    tr, out = run(start)
+    assert out == ["initializing", "tracking", "tracking"] and tr.blind_frames == 3
+    tr, out = run(start, blind_found_fraction=0.0)
+    assert out == ["initializing"] * 3 and not tr.confirmed
+    # ...but not when a seeing camera rejects half its corners.
+    tr, out = run([[ob("cam_left", 8, 8), ob("cam_right", 8, 3), ob("cam_top", 1, 1)]] * 3)
+    assert "tracking" not in out and not tr.confirmed

@@ -1042,6 +1042,9 @@ class PoseCheck:
         the silhouette), summed over cameras, and how many are supported.
         Two faces at an angle rarely have the same shade, so a crease shows
         in the image even where a face matches its background.
+    hidden : str
+        A camera left out of these statistics because the part is hidden
+        there (``InitOptions.hidden_camera``); empty when none is.
     """
 
     inlier_frac: float
@@ -1059,6 +1062,7 @@ class PoseCheck:
     interior_edge_frac: float = 0.0
     crease_edges: int = 0
     crease_supported: int = 0
+    hidden: str = ""
 
 
 def _continued_in_view(ends_xyz: np.ndarray, dirs: np.ndarray, mf: ModelFeatures, ua: np.ndarray, ub: np.ndarray,
