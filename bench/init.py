@@ -19,6 +19,11 @@ initialiser is called on frames 0, stride, 2 stride, ... up to ``--frames``
   time-to-first-pose a background thread would need);
 - position / rotation error of the successful poses (median, max).
 
+With ``--hide`` a paddle stands between the rig's first fixed camera and the
+part for the whole trial (``vespro.sim.cell.OccluderSweep`` held still): the
+part is hidden there by a body the model does not know (the demo's arm in
+front of its top camera), and the other cameras must find and track it.
+
 With ``--track N`` the trial also runs the tracker the server runs (the
 same initialiser as its starting-pose hook, called on the same frames) for N
 frames, and scores what the issue's user sees: the status. A trial is then
@@ -49,13 +54,15 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 os.environ.setdefault("MUJOCO_GL", "egl")
 
+from dataclasses import replace  # noqa: E402
+
 import numpy as np  # noqa: E402
 
 from bench._table import print_table, stats_ms  # noqa: E402
 from vespro.init import make_initializer  # noqa: E402
 from vespro.metrics import add  # noqa: E402
 from vespro.model import load_model  # noqa: E402
-from vespro.sim.cell import SimCell  # noqa: E402
+from vespro.sim.cell import OccluderSweep, SimCell  # noqa: E402
 from vespro.sim.trials import model_symmetries, random_rig, trial_config  # noqa: E402
 from vespro.tracker import Tracker  # noqa: E402
 from vespro.cmd_record import object_mesh_path  # noqa: E402
@@ -82,10 +89,20 @@ class _Gated:
         return res
 
 
-def run_tracked(obj, model, syms, rig_kind, seed, frames, stride, track_frames):
+def _hidden(config, rig):
+    """``config`` with a paddle held between the rig's first fixed camera and the part."""
+    cam = next((c.name for c in rig if c.is_fixed), None)
+    if cam is None:
+        raise SystemExit("--hide needs a rig with a fixed camera")
+    return replace(config, occluders=(OccluderSweep(cam, 0.0, duration=1e3, half_travel=0.0),))
+
+
+def run_tracked(obj, model, syms, rig_kind, seed, frames, stride, track_frames, hide=False):
     """One trial through the tracker: the initialiser as its hook; status and ADD per frame."""
     rig = _trial_rig(rig_kind, seed)
     config, motion, _ = trial_config(obj, rig, seed)
+    if hide:
+        config = _hidden(config, rig)
     gate = _Gated(make_initializer(rig, model), stride)
     tracker = Tracker(rig, model, initializer=gate)
     o = dict(frame=None, add=None, calls=[], cpu=[], to_first=0.0, err_p=None, err_r=None,
@@ -132,9 +149,11 @@ def _score(o, k, T_est, T_true, model, syms):
     o["err_r"] = float(np.arccos(np.clip((np.trace(Rd) - 1) / 2, -1, 1)))
 
 
-def run_trial(obj, model, syms, rig_kind, seed, frames, stride, baseline):
+def run_trial(obj, model, syms, rig_kind, seed, frames, stride, baseline, hide=False):
     rig = _trial_rig(rig_kind, seed)
     config, motion, _ = trial_config(obj, rig, seed)
+    if hide:
+        config = _hidden(config, rig)
     methods = {"ours": make_initializer(rig, model)}
     if baseline:
         methods["base"] = make_initializer(rig.subset([rig.names[0]]), model, **BASELINE)
@@ -177,6 +196,8 @@ def main(argv=None):
     ap.add_argument("--no-baseline", action="store_true")
     ap.add_argument("--track", type=int, default=0, metavar="N",
                     help="also run the tracker for N frames and score its published status (no baseline)")
+    ap.add_argument("--hide", action="store_true",
+                    help="a paddle hides the part from the rig's first fixed camera throughout")
     ap.add_argument("--verbose", action="store_true")
     a = ap.parse_args(argv)
     if a.track:
@@ -191,10 +212,11 @@ def main(argv=None):
         syms = model_symmetries(model.vertices)
         for rk in a.rigs.split(","):
             if a.track:
-                res = [{"ours": run_tracked(obj, model, syms, rk, a.seed + i, a.frames, a.stride, a.track)}
+                res = [{"ours": run_tracked(obj, model, syms, rk, a.seed + i, a.frames, a.stride, a.track,
+                                                 a.hide)}
                        for i in range(a.trials)]
             else:
-                res = [run_trial(obj, model, syms, rk, a.seed + i, a.frames, a.stride, not a.no_baseline)
+                res = [run_trial(obj, model, syms, rk, a.seed + i, a.frames, a.stride, not a.no_baseline, a.hide)
                        for i in range(a.trials)]
             row = [obj, rk, a.trials]
             for m in (["ours"] if a.no_baseline else ["ours", "base"]):

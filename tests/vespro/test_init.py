@@ -545,3 +545,32 @@ def test_warm_up_loads_the_kernels_and_decides_nothing(rig_file):
     before = (ini._pending, ini._attempt, ini._seed, ini.last_report)
     ini.warm_up()
     assert (ini._pending, ini._attempt, ini._seed, ini.last_report) == before
+
+
+def test_a_hidden_camera_is_left_out_for_every_candidate_alike():
+    """Box, hybrid rig seed 201, a paddle hiding the part from ``cam_right`` throughout,
+    frame 5. Judged each without its own worst camera, a pose 18% of the diameter off
+    (fitting ``cam_left`` and the hand camera at 0.78) beat the true pose, whose statistics
+    still counted the hidden camera's zeros, and was returned. Judged alike without the
+    hidden camera the true pose comes first and that rival makes the view ambiguous: no
+    pose, never a wrong one. Without ``hidden_camera`` no candidate passes at all."""
+    from vespro.init.initializer import initialize
+    from vespro.sim.cell import OccluderSweep
+
+    rig = _rig("hybrid", 201)
+    config, motion, mesh = trial_config("box", rig, 201)
+    config = replace(config, occluders=(OccluderSweep("cam_right", 0.0, duration=100.0, half_travel=0.0),))
+    model = load_model(mesh)
+    syms = model_symmetries(model.vertices)
+    setup = make_initializer(rig, model).setup
+    with SimCell(config, motion) as cell:
+        cell.settle_arm()
+        for _ in range(6):
+            fs = cell.next_frameset()
+        T_true = cell.true_object_pose()
+    res, rep = initialize(setup, fs)
+    assert res is None or _sym_add_frac(res.T_world_object, T_true, model, syms) < 0.1
+    assert all(c.hidden == "cam_right" and c.n_cameras == 2 for _, c in rep.candidates)
+    assert _sym_add_frac(rep.candidates[0][0], T_true, model, syms) < 0.02
+    res, rep = initialize(replace(setup, options=replace(setup.options, hidden_camera=False)), fs)
+    assert res is None and all(c.hidden == "" for _, c in rep.candidates)

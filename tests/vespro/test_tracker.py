@@ -313,7 +313,7 @@ def test_a_start_not_confirmed_in_time_is_dropped_for_a_fresh_initialisation(rec
     start, and the initialiser runs again. Seen on a one-camera bracket trial: after a good
     start the filter slid with 3-4 of 8 corners accepted and, 38 frames on, confirmed a pose
     28% of the diameter off."""
-    from vespro.tracker import CameraObservation
+    from vespro.tracker import CameraObservation, InitResult
 
     rec = Recording(recs["box_conveyor"])
     _, _, T = read_groundtruth(recs["box_conveyor"])
