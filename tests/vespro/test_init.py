@@ -41,6 +41,21 @@ def _sym_add_frac(T_est, T_true, model, syms):
     return min(add(T_est, T_true @ S, model.vertices) for S in syms) / model.diameter
 
 
+def _trial_frame(obj, kind, seed, frame, **config_changes):
+    """A bench trial's frame ``frame`` (its cell config changed by ``config_changes``):
+    (initialiser set-up, model, symmetries, frame set, true pose)."""
+    rig = _rig(kind, seed)
+    config, motion, mesh = trial_config(obj, rig, seed)
+    model = load_model(mesh)
+    setup = make_initializer(rig, model).setup
+    with SimCell(replace(config, **config_changes), motion) as cell:
+        cell.settle_arm()
+        for _ in range(frame + 1):
+            fs = cell.next_frameset()
+        T_true = cell.true_object_pose()
+    return setup, model, model_symmetries(model.vertices), fs, T_true
+
+
 def _calls_until_pose(cell, ini, model, syms, before=None, frames=6, stride=5):
     """Call ``ini`` on frames 0, stride, ... of ``cell`` until it returns a pose.
 
@@ -314,16 +329,7 @@ def test_an_image_edge_serves_one_edge_of_a_thin_strip():
     from vespro.init.initializer import _views
     from vespro.init.search import refine_pose, refine_subpixel
 
-    rig = _rig("1", 38)
-    config, motion, mesh = trial_config("lblock", rig, 38)
-    model = load_model(mesh)
-    syms = model_symmetries(model.vertices)
-    setup = make_initializer(rig, model).setup
-    with SimCell(config, motion) as cell:
-        cell.settle_arm()
-        for _ in range(16):
-            fs = cell.next_frameset()
-        T_true = cell.true_object_pose()
+    setup, model, syms, fs, T_true = _trial_frame("lblock", "1", 38, 15)
     views = _views(setup, fs)
     T0 = refine_pose(T_true, views, setup.mf, setup.tree)
     err = {sh: _sym_add_frac(refine_subpixel(T0, views, setup.mf, setup.tree, shared_edge_px=sh), T_true, model, syms)
@@ -557,17 +563,8 @@ def test_a_hidden_camera_is_left_out_for_every_candidate_alike():
     from vespro.init.initializer import initialize
     from vespro.sim.cell import OccluderSweep
 
-    rig = _rig("hybrid", 201)
-    config, motion, mesh = trial_config("box", rig, 201)
-    config = replace(config, occluders=(OccluderSweep("cam_right", 0.0, duration=100.0, half_travel=0.0),))
-    model = load_model(mesh)
-    syms = model_symmetries(model.vertices)
-    setup = make_initializer(rig, model).setup
-    with SimCell(config, motion) as cell:
-        cell.settle_arm()
-        for _ in range(6):
-            fs = cell.next_frameset()
-        T_true = cell.true_object_pose()
+    paddle = OccluderSweep("cam_right", 0.0, duration=100.0, half_travel=0.0)
+    setup, model, syms, fs, T_true = _trial_frame("box", "hybrid", 201, 5, occluders=(paddle,))
     res, rep = initialize(setup, fs)
     assert res is None or _sym_add_frac(res.T_world_object, T_true, model, syms) < 0.1
     assert all(c.hidden == "cam_right" and c.n_cameras == 2 for _, c in rep.candidates)
