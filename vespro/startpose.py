@@ -19,8 +19,13 @@ class InitResult:
     cov6 : ndarray (6, 6) or None
         Pose covariance; the config's initial sigmas when None.
     velocity : ndarray (6,) or None
+    hidden : tuple of str
+        Cameras the initialiser found the part hidden from (something it does
+        not know stands in front: ``InitOptions.hidden_camera``); the tracker
+        confirms the start without them (``TrackerConfig.blind_found_fraction``).
     """
 
     T_world_object: np.ndarray
     cov6: np.ndarray | None = None
     velocity: np.ndarray | None = None
+    hidden: tuple = ()

@@ -127,8 +127,10 @@ class TrackerConfig:
         accuracy suite's two-camera paddle scenario the track is published on
         98% of the frames instead of 80% (1.17 mm RMSE instead of 0.57, max 6.1
         mm, NEES in the 95% band on 0.95 of the frames instead of 0.92). A start
-        is confirmed by two seeing cameras, never one while another finds
-        nothing (the start may be wrong in that camera). 0 turns it off.
+        is confirmed by two seeing cameras, not by one while another finds
+        nothing (the start may be wrong in that camera), unless the initialiser
+        judged it without that camera (``InitResult.hidden``): then by the one,
+        under the one-camera rules. 0 turns it off.
     max_pos_std : float
         Position std (m) beyond which the track is lost.
     confirm_frames : int
@@ -447,6 +449,7 @@ class Tracker:
         self.lost_events = 0
         self.unconfirmed_drops = 0  # started filters dropped for not confirming in time
         self.blind_frames = 0  # frames that did without a blind camera (blind_found_fraction)
+        self._start_hidden: frozenset = frozenset()  # cameras the initialiser found the part hidden from
         self._start_t_ns: int | None = None
         self.last_good = None  # (T_world_object, velocity (6,), t_ns) of the last tracking frame
         self._reseeded = True
@@ -499,7 +502,8 @@ class Tracker:
     def start(self, init: InitResult, t_ns: int) -> None:
         """Start (or restart) the filter from a pose at capture time ``t_ns``."""
         c = self.config
-        init = InitResult(self.canonical_pose(init.T_world_object), init.cov6, init.velocity)
+        init = InitResult(self.canonical_pose(init.T_world_object), init.cov6, init.velocity, tuple(init.hidden))
+        self._start_hidden = frozenset(init.hidden)
         P0 = np.diag(np.r_[np.full(3, c.init_sigma_pos**2), np.full(3, c.init_sigma_rot**2),
                            np.full(3, c.init_sigma_vel**2), np.full(3, c.init_sigma_angvel**2)])
         if init.cov6 is not None:
@@ -801,8 +805,8 @@ class Tracker:
 
     def _seeing(self, obs: list) -> list:
         """The observations that count in the frame's support and get edge fits: all of them,
-        less the blind cameras while another sees the part (two before confirmation; see
-        ``blind_found_fraction``)."""
+        less the blind cameras while another sees the part (two before confirmation, unless the
+        initialiser found the part hidden from those cameras; see ``blind_found_fraction``)."""
         c = self.config
         if c.blind_found_fraction <= 0:
             return obs
@@ -810,7 +814,8 @@ class Tracker:
                  and np.count_nonzero(np.isfinite(ob.uv_meas[:, 0])) < c.blind_found_fraction * ob.feature_ids.size
                  for ob in obs]
         seeing = sum(1 for ob, b in zip(obs, blind) if not b and int(ob.accepted.sum()) >= c.min_accepted)
-        if not any(blind) or seeing < (1 if self.confirmed else 2):
+        hidden_at_start = {ob.name for ob, b in zip(obs, blind) if b} <= self._start_hidden
+        if not any(blind) or seeing < (1 if self.confirmed or hidden_at_start else 2):
             return obs
         self.blind_frames += 1
         return [ob for ob, b in zip(obs, blind) if not b]

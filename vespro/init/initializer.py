@@ -122,12 +122,14 @@ class InitOptions:
         dark side of the part on a dark background has no edges to find, and
         a wrong pose fitted in one camera scores ~0.3 or less in the others).
     hidden_camera : bool
-        When no candidate passes and, of three or more judging cameras, one
+        When no candidate passes and, of two or more judging cameras, one
         agrees with none of the candidates it can see (each under
         ``min_camera_inlier_frac``), every candidate is judged again without
         that camera (still requiring the pose in its view), as a rig without
-        it would judge them: something the model does not know stands between
-        that camera and the part. In the demo with the three fixed cameras the
+        it would judge them (one camera left: under the one-camera limits,
+        probe and confirmation), and the start says so (``InitResult.hidden``):
+        something the model does not know stands between that camera and the
+        part. In the demo with the three fixed cameras the
         arm following the part hid it from the top camera (inlier fraction
         0.15-0.23) for five seconds, and every call in that time was rejected,
         so a track lost then could not be found again while the arm waited
@@ -506,7 +508,7 @@ def _without_hidden(refined: list, views, setup: InitSetup) -> list:
     (``InitOptions.hidden_camera``), or as they are when there is none.
 
     The hidden camera is one that agrees with none of the candidates it can see
-    (under ``min_camera_inlier_frac`` for each), among three or more that judge;
+    (under ``min_camera_inlier_frac`` for each), among two or more that judge;
     every candidate is then judged without it, as a rig without that camera would
     judge them, so that they still compete on equal terms.
     """
@@ -516,7 +518,7 @@ def _without_hidden(refined: list, views, setup: InitSetup) -> list:
         for name, f in c.per_camera.items():
             if np.isfinite(f):
                 seen.setdefault(name, []).append(f)
-    if len(seen) < 3:
+    if len(seen) < 2:
         return refined
     hidden = min(seen, key=lambda name: max(seen[name]))
     if max(seen[hidden]) >= opt.min_camera_inlier_frac:
@@ -641,7 +643,9 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
         return None, InitReport(time.perf_counter() - t0, time.thread_time() - c0, "none", 0, False, reason="no images")
 
     def finish(T, chk, mode, nh):
-        return InitResult(T_world_object=T, cov6=_start_covariance(T, views, setup)), InitReport(
+        judging = [v for v in views if v.feat.name != chk.hidden]
+        return InitResult(T_world_object=T, cov6=_start_covariance(T, judging, setup),
+                          hidden=(chk.hidden,) if chk.hidden else ()), InitReport(
             time.perf_counter() - t0, time.thread_time() - c0, mode, nh, True, chk.inlier_frac, chk.per_camera, chk.supported_edges,
             chk.visible_edges)
 
@@ -780,7 +784,7 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
                 ok, why = False, f"ambiguous (plain faces): another pose explains {c2.inlier_px:.0f} px vs {chk.inlier_px:.0f}"
                 break
     if ok and not confirmed and opt.probe_single and chk.n_cameras == 1:
-        ok, why = _probe(T_best, chk, views, setup)
+        ok, why = _probe(T_best, chk, [v for v in views if v.feat.name != chk.hidden], setup)
     plain = plain and ok  # passed every check, under the looser limits
     if plain and opt.confirm_plain and not confirmed:
         ok, why = False, "plain faces: to be confirmed on the next call"
