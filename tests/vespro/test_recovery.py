@@ -42,15 +42,15 @@ def test_all_cameras_occluded_for_two_seconds_lost_then_reacquired(tmp_path):
     assert max(errs) < 0.1 * tr.model.diameter  # no wrong lock, before or after
 
 
-def _hidden_run(tmp_path, **init_options):
-    """Three fixed cameras, a paddle hiding the part from the top one throughout; tracked
-    from the images alone. Returns (outputs, recording times, ground truth, tracker)."""
+def _hidden_run(tmp_path, rig="fixed3", hide="cam_top", **init_options):
+    """A paddle hiding the part from one camera of a fixed rig throughout; tracked from
+    the images alone. Returns (outputs, recording times, ground truth, tracker)."""
     from vespro.sim.cell import OccluderSweep
     from vespro.tracker import TrackerConfig
 
-    cfg = CellConfig(MODELS_DIR / "objects" / "lblock.stl", load_rig(CAMERAS_DIR / "fixed3.yaml"),
+    cfg = CellConfig(MODELS_DIR / "objects" / "lblock.stl", load_rig(CAMERAS_DIR / f"{rig}.yaml"),
                      effects=ImageEffects(noise_px=0.5),
-                     occluders=(OccluderSweep("cam_top", 0.0, duration=100.0, half_travel=0.0),))
+                     occluders=(OccluderSweep(hide, 0.0, duration=100.0, half_travel=0.0),))
     path = tmp_path / "rec"
     if not path.exists():
         record(path, cfg, Conveyor(speed=0.05, y0=-0.1), 40, "lblock")
@@ -74,4 +74,19 @@ def test_a_camera_hidden_by_an_unknown_body_neither_blocks_initialisation_nor_tr
     assert max(errs) < 0.05 * tr.model.diameter
     assert tr.blind_frames >= len(tracking) - 1
     outs, *_ = _hidden_run(tmp_path, hidden_camera=False)
+    assert all(o.status != "tracking" for o in outs)
+
+
+def test_with_two_cameras_one_hidden_the_other_initialises_and_tracks_alone(tmp_path):
+    """Two fixed cameras, the right one behind a paddle throughout: the left one finds the
+    part under the one-camera rules (``InitResult.hidden`` names the right camera, so the
+    tracker confirms it by the left alone) and tracks it with its edges, to one-camera
+    accuracy (measured: from frame 7, 33 of 40 frames, max 4.1 mm); never with the rules off."""
+    outs, t, T, tr = _hidden_run(tmp_path, rig="fixed2", hide="cam_right")
+    tracking = [o for o in outs if o.status == "tracking"]
+    assert tracking and t[tracking[0].index] < 1.0, [o.status for o in outs]
+    assert len(tracking) >= len(outs) - 15
+    errs = [np.linalg.norm(o.T_world_object[:3, 3] - T[o.index][:3, 3]) for o in tracking]
+    assert max(errs) < 0.1 * tr.model.diameter
+    outs, *_ = _hidden_run(tmp_path, rig="fixed2", hide="cam_right", hidden_camera=False)
     assert all(o.status != "tracking" for o in outs)

@@ -422,15 +422,16 @@ def test_an_edge_fit_that_disagrees_vetoes_confirmation_and_drops_a_slid_start(r
     assert out[1] == "tracking"
 
 
-def _statuses(rec, T0, frames, **cfg):
-    """A tracker started confidently at ``T0`` whose status logic is fed the given
-    per-frame observation lists (no edge fits; found = finite measurements);
-    stops where the filter is dropped. Returns (tracker, published statuses)."""
+def _statuses(rec, T0, frames, hidden=(), **cfg):
+    """A tracker started confidently at ``T0`` (the initialiser having found the part
+    hidden from the cameras ``hidden``) whose status logic is fed the given per-frame
+    observation lists (no edge fits; found = finite measurements); stops where the
+    filter is dropped. Returns (tracker, published statuses)."""
     from vespro.tracker import InitResult
 
     tr = make_tracker(rec, TrackerConfig(**cfg))
     tr.initializer = lambda fs: None
-    tr.start(InitResult(T0, cov6=np.diag([1e-6] * 6)), rec.frameset(0).t_ns)
+    tr.start(InitResult(T0, cov6=np.diag([1e-6] * 6), hidden=hidden), rec.frameset(0).t_ns)
     out = []
     for i, obs in enumerate(frames):
         tr._edge_ok = tr._edge_veto = False
@@ -520,9 +521,14 @@ def test_a_camera_that_finds_nothing_does_not_count_against_a_confirmed_track(re
     assert out[3:] == ["tracking"] * 3 and tr.blind_frames == 3
     tr, out = run([seeing] * 3 + [one_blind] * 3, blind_found_fraction=0.0)
     assert out[3:] == ["lost"] * 3
-    # ... but a start is not confirmed by one camera while the other finds nothing ...
+    # ... but a start is not confirmed by one camera while the other finds nothing, unless
+    # the initialiser found the part hidden from that camera ...
     tr, out = run([[ob("cam_left", 8, 8), ob("cam_right", 1, 1)]] * 3)
     assert "tracking" not in out and tr.blind_frames == 0
+    tr, out = _statuses(rec, T[0], [[ob("cam_left", 8, 8), ob("cam_right", 1, 1)]] * 3, hidden=("cam_right",))
+    assert out == ["initializing", "tracking", "tracking"] and tr.blind_frames == 3
+    tr, out = _statuses(rec, T[0], [[ob("cam_left", 8, 8), ob("cam_right", 1, 1)]] * 3, hidden=("cam_top",))
+    assert "tracking" not in out
     # ... and a seeing camera must see: none with min_accepted corners, no allowance.
     tr, out = run([seeing] * 3 + [[ob("cam_left", 8, 3), ob("cam_right", 1, 1)]] * 3)
     assert "tracking" not in out[3:] and tr.blind_frames == 0
