@@ -143,6 +143,7 @@ class PoseServer:
         self.source = source
         self.tracker = tracker
         self.tracker.initializer = None
+        self._blind_logged = 0  # Tracker.blind_frames at the last status line
         self.publisher = publisher
         self.clock = clock
         self.initializer = initializer
@@ -227,7 +228,9 @@ class PoseServer:
             self._job = None
             if self.log:
                 waited = (fs.t_ns - job_t) * 1e-9
-                self.log(f"initialisation on the frame of {waited:.1f} s ago: {'a pose' if res is not None else 'no pose'}")
+                found = "no pose" if res is None else "a pose" + "".join(
+                    f" ({name} hidden: judged without it)" for name in getattr(res, "hidden", ()))
+                self.log(f"initialisation on the frame of {waited:.1f} s ago: {found}")
             newer = [old for old in self._backlog if old.t_ns > job_t]
             first_after = newer[0].t_ns if newer else fs.t_ns  # this frame, when none came between
             max_gap_ns = max(2.5e9 / self._rate, 0.25e9)  # a skipped capture or two, not seconds
@@ -329,6 +332,8 @@ class PoseServer:
         if now - self._last_log_ns < 1_000_000_000:
             return
         w, self._window = self._window, []
+        blind = self.tracker.blind_frames - self._blind_logged
+        self._blind_logged = self.tracker.blind_frames
         dt = (now - self._last_log_ns) * 1e-9
         self._last_log_ns = now
         if not self.log:
@@ -340,7 +345,8 @@ class PoseServer:
             st = self.publisher.stats()
             link = f" | link clients {st.clients_connected} sent {st.frames_sent} drops {st.drops} errors {st.errors}"
         self.log(f"{len(w) / dt:5.1f} Hz | {w[-1].status:12s} | tracker {np.median(tm):5.2f} ms "
-                 f"(max {tm.max():5.2f}) | latency {np.median(lat):6.2f} ms | features {w[-1].n_accepted:2d}{link}")
+                 f"(max {tm.max():5.2f}) | latency {np.median(lat):6.2f} ms | features {w[-1].n_accepted:2d}"
+                 f"{f' (a camera blind in {blind} frames)' if blind else ''}{link}")
 
     def run(self, max_frames: int | None = None) -> ServerStats:
         """Run until the source ends, ``max_frames`` or :meth:`stop`."""
