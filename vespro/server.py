@@ -229,7 +229,7 @@ class PoseServer:
             if self.log:
                 waited = (fs.t_ns - job_t) * 1e-9
                 found = "no pose" if res is None else "a pose" + "".join(
-                    f" ({name} hidden: judged without it)" for name in getattr(res, "hidden", ()))
+                    f" ({name} hidden: judged without it)" for name in res.hidden)
                 self.log(f"initialisation on the frame of {waited:.1f} s ago: {found}")
             newer = [old for old in self._backlog if old.t_ns > job_t]
             first_after = newer[0].t_ns if newer else fs.t_ns  # this frame, when none came between

@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable
 
 import numpy as np
@@ -502,7 +502,7 @@ class Tracker:
     def start(self, init: InitResult, t_ns: int) -> None:
         """Start (or restart) the filter from a pose at capture time ``t_ns``."""
         c = self.config
-        init = InitResult(self.canonical_pose(init.T_world_object), init.cov6, init.velocity, tuple(init.hidden))
+        init = replace(init, T_world_object=self.canonical_pose(init.T_world_object))
         self._start_hidden = frozenset(init.hidden)
         P0 = np.diag(np.r_[np.full(3, c.init_sigma_pos**2), np.full(3, c.init_sigma_rot**2),
                            np.full(3, c.init_sigma_vel**2), np.full(3, c.init_sigma_angvel**2)])

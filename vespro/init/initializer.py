@@ -527,6 +527,11 @@ def _without_hidden(refined: list, views, setup: InitSetup) -> list:
     return [(T, replace(_checked(T, rest, setup), unseen_fixed=c.unseen_fixed, hidden=hidden)) for T, c in refined]
 
 
+def _judging(views, chk) -> list:
+    """The views that judged ``chk``: all of them less its hidden camera."""
+    return [v for v in views if v.feat.name != chk.hidden]
+
+
 def _joint_scores(cand: np.ndarray, views, setup: InitSetup) -> np.ndarray:
     """Mean ranking agreement of world poses ``cand`` (N, 4, 4) over the cameras that can judge them."""
     opt = setup.options
@@ -643,8 +648,7 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
         return None, InitReport(time.perf_counter() - t0, time.thread_time() - c0, "none", 0, False, reason="no images")
 
     def finish(T, chk, mode, nh):
-        judging = [v for v in views if v.feat.name != chk.hidden]
-        return InitResult(T_world_object=T, cov6=_start_covariance(T, judging, setup),
+        return InitResult(T_world_object=T, cov6=_start_covariance(T, _judging(views, chk), setup),
                           hidden=(chk.hidden,) if chk.hidden else ()), InitReport(
             time.perf_counter() - t0, time.thread_time() - c0, mode, nh, True, chk.inlier_frac, chk.per_camera, chk.supported_edges,
             chk.visible_edges)
@@ -784,7 +788,7 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
                 ok, why = False, f"ambiguous (plain faces): another pose explains {c2.inlier_px:.0f} px vs {chk.inlier_px:.0f}"
                 break
     if ok and not confirmed and opt.probe_single and chk.n_cameras == 1:
-        ok, why = _probe(T_best, chk, [v for v in views if v.feat.name != chk.hidden], setup)
+        ok, why = _probe(T_best, chk, _judging(views, chk), setup)
     plain = plain and ok  # passed every check, under the looser limits
     if plain and opt.confirm_plain and not confirmed:
         ok, why = False, "plain faces: to be confirmed on the next call"
