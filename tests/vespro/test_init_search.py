@@ -6,6 +6,8 @@ rectangles, so edges, corners and self-occlusion are exact and independent of
 the code under test.
 """
 
+from dataclasses import replace
+
 import cv2
 import numpy as np
 import pytest
@@ -266,6 +268,38 @@ def test_a_smaller_copy_inside_the_part_is_caught_by_the_edge_ends(lblock):
     assert ok_good[0] or "one camera" in ok_good[1], ok_good
 
 
+def test_unshared_px_sees_a_copy_inside_the_part_explain_only_part_of_it(lblock):
+    """The part pushed 40% farther along the line of sight (a smaller copy inside its
+    outline) explains image edges the true pose explains as well (its outline edges lie
+    on the part's faces' edges only where they meet); the true pose explains edge
+    length the copy does not. A pose beside the part shares nothing; a pose with
+    itself shares everything."""
+    from vespro.init.search import unshared_px
+
+    mf = model_features(lblock)
+    tree = make_setup(Rig(()), lblock).tree
+    views = _views_of(lblock, (T_WO, CAMS[:1]), seed=6)
+    good = check_pose(T_WO, views, mf, tree)
+    centre = T_WO[:3, :3] @ np.array([0, 0, 0.04]) + T_WO[:3, 3]
+    T_far = T_WO.copy()
+    T_far[:3, 3] += 0.4 * (centre - CAMS[0][:3, 3])
+    far = check_pose(T_far, views, mf, tree)
+    assert good.explained and good.explained[0][0] == "c0"
+    assert sum(float(sp.sum()) for _, _, sp, _, _ in good.explained) == pytest.approx(good.inlier_px)
+    assert unshared_px(good, good) == 0.0
+    assert far.inlier_px > 0
+    assert unshared_px(far, good) <= 0.2 * far.inlier_px
+    assert unshared_px(good, far) >= 0.5 * good.inlier_px
+    # Beside the part: a copy explaining the same picture nowhere in common.
+    T_side = T_WO.copy()
+    T_side[:3, 3] += CAMS[0][:3, 0] * 0.2  # 0.2 m along the image's x axis
+    side = check_pose(T_side, views, mf, tree)
+    assert unshared_px(good, side) == pytest.approx(good.inlier_px)
+    # Another camera's samples are never shared.
+    other = replace(good, explained=tuple(("c1",) + e[1:] for e in good.explained))
+    assert unshared_px(good, other) == pytest.approx(good.inlier_px)
+
+
 def test_init_result_has_the_tracker_fields():
     from dataclasses import fields
 
@@ -295,8 +329,6 @@ def test_canny_thresholds_keep_weak_part_edges_and_rise_with_noise():
     """A face 20 grey levels off its dark background keeps its edge at the
     floors (the former fixed 40 / 100 lost it); on a noisy image the
     thresholds rise so that noise alone gives almost no edges."""
-    from dataclasses import replace
-
     from vespro.init.features import canny_thresholds
 
     opt = EdgeOptions()

@@ -32,7 +32,7 @@ from .modelfeat import ModelFeatures
 from .p3p import p3p_grunert
 
 __all__ = ["image_paths", "p3p_hypotheses", "rank_in_camera", "CameraView", "visible_samples",
-           "refine_pose", "refine_subpixel", "edge_residuals", "interior_clutter", "PoseCheck", "check_pose"]
+           "refine_pose", "refine_subpixel", "edge_residuals", "interior_clutter", "PoseCheck", "check_pose", "unshared_px"]
 
 
 # -- hypothesis generation ---------------------------------------------------
@@ -1045,6 +1045,11 @@ class PoseCheck:
     hidden : str
         A camera left out of these statistics because the part is hidden
         there (``InitOptions.hidden_camera``); empty when none is.
+    explained : tuple
+        Per judging camera ``(name, uv (n, 2), spacing (n,), bin (n,), n_bins)``:
+        the projected edge samples within ``tol_px`` of an image edge of their
+        orientation, each sample's projected spacing along its edge (px) and
+        orientation bin; for :func:`unshared_px`.
     """
 
     inlier_frac: float
@@ -1063,6 +1068,7 @@ class PoseCheck:
     crease_edges: int = 0
     crease_supported: int = 0
     hidden: str = ""
+    explained: tuple = ()
 
 
 def _continued_in_view(ends_xyz: np.ndarray, dirs: np.ndarray, mf: ModelFeatures, ua: np.ndarray, ub: np.ndarray,
@@ -1118,6 +1124,7 @@ def check_pose(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFea
     n_over, n_ends = 0, 0
     clutter = 0.0
     cr_e, cr_sup = 0, 0
+    explained = []
     cos_open = np.cos(np.deg2rad(open_face_deg))
     for v in views:
         idx, bins = _camera_setup(T_world_object, v, mf, tree)
@@ -1151,7 +1158,9 @@ def check_pose(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFea
         ue, _ = _project(v.feat.K, T_co, mf.edge_a)
         ub, _ = _project(v.feat.K, T_co, mf.edge_b)
         elen = np.linalg.norm(ub - ue, axis=1)
-        inl_px += float(np.sum((elen[e] / np.maximum(per_edge[e], 1))[inl]))
+        spacing = elen[e] / np.maximum(per_edge[e], 1)
+        inl_px += float(np.sum(spacing[inl]))
+        explained.append((v.feat.name, uv[inl], spacing[inl], bins[inl], v.feat.dt.shape[0]))
         front = _front(T_co[None, :3, :3], T_co[None, :3, 3], mf)[0]
         crease = front[mf.edge_faces[:, 0]] & front[mf.edge_faces[:, 1]]
         # Visible edges (long enough, sampled), which are supported, and the
@@ -1188,4 +1197,28 @@ def check_pose(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFea
             n_ends += int(np.sum(~own))
     return PoseCheck(n_in / n_all if n_all else 0.0, per, n_all, sup_e, vis_e, ncam,
                      dsum / n_all if n_all else float("inf"), unseen, size if np.isfinite(size) else 0.0,
-                     inl_px, open_min if ncam else 0, n_over / n_ends if n_ends else 0.0, clutter, cr_e, cr_sup)
+                     inl_px, open_min if ncam else 0, n_over / n_ends if n_ends else 0.0, clutter, cr_e, cr_sup,
+                     explained=tuple(explained))
+
+
+def unshared_px(a: PoseCheck, b: PoseCheck, tol_px: float = 2.0) -> float:
+    """Image edge length pose ``a`` explains that pose ``b`` does not, px (summed over cameras).
+
+    An explained sample of ``a`` is shared when a sample of ``b`` explained in
+    the same camera, of the same or a neighbouring orientation bin, lies within
+    ``2 tol_px`` plus half that sample's spacing (both then lie on one image
+    edge); every sample of ``a`` in a camera where ``b`` explains nothing is
+    unshared.
+    """
+    other = {name: (uv, sp, b_) for name, uv, sp, b_, _ in b.explained}
+    total = 0.0
+    for name, uv, sp, bins, n_bins in a.explained:
+        if name not in other or len(other[name][0]) == 0:
+            total += float(sp.sum())
+            continue
+        uv2, sp2, bins2 = other[name]
+        d2 = np.sum((uv[:, None, :] - uv2[None]) ** 2, axis=2)
+        db = np.abs(bins[:, None] - bins2[None]) % n_bins
+        near = (np.minimum(db, n_bins - db) <= 1) & (d2 <= (2.0 * tol_px + 0.5 * sp2[None]) ** 2)
+        total += float(sp[~near.any(axis=1)].sum())
+    return total
