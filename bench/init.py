@@ -54,7 +54,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 os.environ.setdefault("MUJOCO_GL", "egl")
 
-from dataclasses import replace  # noqa: E402
+from dataclasses import dataclass, replace  # noqa: E402
 
 import numpy as np  # noqa: E402
 
@@ -89,6 +89,27 @@ class _Gated:
         return res
 
 
+@dataclass(frozen=True)
+class Trial:
+    """One trial: an object (and its model, symmetries), a rig kind and seed, the frame
+    budget, the initialiser's stride, and whether a paddle hides the first fixed camera."""
+
+    obj: str
+    model: object
+    syms: list
+    rig_kind: str
+    seed: int
+    frames: int
+    stride: int
+    hide: bool = False
+
+    def cell_setup(self):
+        """(rig, cell config, motion) of the trial."""
+        rig = _trial_rig(self.rig_kind, self.seed)
+        config, motion, _ = trial_config(self.obj, rig, self.seed)
+        return rig, (_hidden(config, rig) if self.hide else config), motion
+
+
 def _hidden(config, rig):
     """``config`` with a paddle held between the rig's first fixed camera and the part."""
     cam = next((c.name for c in rig if c.is_fixed), None)
@@ -97,13 +118,11 @@ def _hidden(config, rig):
     return replace(config, occluders=(OccluderSweep(cam, 0.0, duration=1e3, half_travel=0.0),))
 
 
-def run_tracked(obj, model, syms, rig_kind, seed, frames, stride, track_frames, hide=False):
+def run_tracked(trial: Trial, track_frames: int):
     """One trial through the tracker: the initialiser as its hook; status and ADD per frame."""
-    rig = _trial_rig(rig_kind, seed)
-    config, motion, _ = trial_config(obj, rig, seed)
-    if hide:
-        config = _hidden(config, rig)
-    gate = _Gated(make_initializer(rig, model), stride)
+    model, syms, frames = trial.model, trial.syms, trial.frames
+    rig, config, motion = trial.cell_setup()
+    gate = _Gated(make_initializer(rig, model), trial.stride)
     tracker = Tracker(rig, model, initializer=gate)
     o = dict(frame=None, add=None, calls=[], cpu=[], to_first=0.0, err_p=None, err_r=None,
              track_frame=None, track_add=None, wrong_frame=None, wrong_add=None, max_track_add=None)
@@ -149,11 +168,10 @@ def _score(o, k, T_est, T_true, model, syms):
     o["err_r"] = float(np.arccos(np.clip((np.trace(Rd) - 1) / 2, -1, 1)))
 
 
-def run_trial(obj, model, syms, rig_kind, seed, frames, stride, baseline, hide=False):
-    rig = _trial_rig(rig_kind, seed)
-    config, motion, _ = trial_config(obj, rig, seed)
-    if hide:
-        config = _hidden(config, rig)
+def run_trial(trial: Trial, baseline: bool):
+    """One trial of the initialiser alone (and the baseline): its first pose and compute."""
+    model, syms, frames, stride = trial.model, trial.syms, trial.frames, trial.stride
+    rig, config, motion = trial.cell_setup()
     methods = {"ours": make_initializer(rig, model)}
     if baseline:
         methods["base"] = make_initializer(rig.subset([rig.names[0]]), model, **BASELINE)
@@ -211,13 +229,11 @@ def main(argv=None):
         model = load_model(object_mesh_path(obj))
         syms = model_symmetries(model.vertices)
         for rk in a.rigs.split(","):
+            trials = [Trial(obj, model, syms, rk, a.seed + i, a.frames, a.stride, a.hide) for i in range(a.trials)]
             if a.track:
-                res = [{"ours": run_tracked(obj, model, syms, rk, a.seed + i, a.frames, a.stride, a.track,
-                                                 a.hide)}
-                       for i in range(a.trials)]
+                res = [{"ours": run_tracked(t, a.track)} for t in trials]
             else:
-                res = [run_trial(obj, model, syms, rk, a.seed + i, a.frames, a.stride, not a.no_baseline, a.hide)
-                       for i in range(a.trials)]
+                res = [run_trial(t, not a.no_baseline) for t in trials]
             row = [obj, rk, a.trials]
             for m in (["ours"] if a.no_baseline else ["ours", "base"]):
                 ok = [r[m] for r in res if r[m]["add"] is not None and r[m]["add"] < 0.1]

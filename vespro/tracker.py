@@ -821,17 +821,16 @@ class Tracker:
         return [ob for ob, b in zip(obs, blind) if not b]
 
     def _status(self, fs: FrameSet, obs: list, n_found: int, n_acc: int, mean_nis: float,
-                stage: dict, seen: list | None = None) -> TrackerOutput:
+                stage: dict, seen: list) -> TrackerOutput:
         """Bad/strong frame bookkeeping, loss and confirmation; the published output.
 
-        ``seen``: the observations that count in the frame's support (:meth:`_seeing`, by
-        default of ``obs``); ``obs`` are all published.
+        ``seen``: the observations that count in the frame's support (:meth:`_seeing` of
+        ``obs``); ``obs`` are all published.
         """
         c = self.config
         ekf = self.ekf
         # Status.
-        obs_seen = self._seeing(obs) if seen is None else seen
-        n_sel = sum(int(ob.feature_ids.size) for ob in obs_seen)
+        n_sel = sum(int(ob.feature_ids.size) for ob in seen)
         bad = (n_acc < c.min_accepted or n_acc < c.min_accepted_fraction * n_sel
                or (np.isfinite(mean_nis) and mean_nis > c.max_mean_nis))
         self._bad = self._bad + 1 if bad else 0
@@ -845,7 +844,7 @@ class Tracker:
                   and n_acc >= c.confirm_min_inlier_fraction * max(n_found, 1)
                   and n_acc >= c.confirm_min_selected_fraction * n_sel
                   and all(int(ob.accepted.sum()) >= c.confirm_min_camera_fraction * ob.feature_ids.size
-                          for ob in obs_seen if ob.feature_ids.size >= c.min_accepted)
+                          for ob in seen if ob.feature_ids.size >= c.min_accepted)
                   and pos_std < c.confirm_max_pos_std * self.model.diameter and rot_std < c.confirm_max_rot_std)
         self._good = self._good + 1 if strong else 0
         self._vetoes = self._vetoes + 1 if self._edge_veto else 0
@@ -853,7 +852,7 @@ class Tracker:
             # Cameras disagreeing: one accepts under half of the corners selected in it while
             # another accepts at least half of its own.
             agree = [int(ob.accepted.sum()) >= 0.5 * ob.feature_ids.size
-                     for ob in obs_seen if ob.feature_ids.size >= c.min_accepted]
+                     for ob in seen if ob.feature_ids.size >= c.min_accepted]
             self._disagree = self._disagree + 1 if (False in agree and True in agree) else 0
             if self._disagree >= c.disagree_frames:
                 # Widen the pose covariance: the windows open and the next frames associate

@@ -26,6 +26,12 @@ from vespro.tracker import TrackerConfig
 NOISE = ImageEffects(noise_px=0.5)
 
 
+def _judge(tr, fs, obs, n_found, n_acc):
+    """The tracker's status step on given observations (mean NIS 2), the blind cameras
+    left out as ``Tracker._track`` leaves them."""
+    return tr._status(fs, obs, n_found, n_acc, 2.0, {"visibility": 0.0}, tr._seeing(obs))
+
+
 def _rec(path, obj, rig, motion, n, **kw):
     cfg = CellConfig(MODELS_DIR / "objects" / f"{obj}.stl", load_rig(CAMERAS_DIR / f"{rig}.yaml"), effects=NOISE, **kw)
     return record(path, cfg, motion, n, obj)
@@ -265,7 +271,7 @@ def test_confirmation_needs_every_camera_to_agree(recs):
         obs = [ob("cam_left", accepted_left), ob("cam_right", 8)]
         n_acc = accepted_left + 8
         # 12 corners found of 16 selected: totals pass the inlier (10/12) and selected (10/16) fractions.
-        return [tr._status(fs, obs, 12, n_acc, 2.0, {"visibility": 0.0}).status for _ in range(n)]
+        return [_judge(tr, fs, obs, 12, n_acc).status for _ in range(n)]
 
     assert "tracking" not in frames(accepted_left=2)  # 10 of 16 accepted, one camera rejecting
     assert frames(accepted_left=6)[-1] == "tracking"  # both cameras agree: confirmed
@@ -291,11 +297,11 @@ def test_cameras_disagreeing_on_a_confirmed_track_reopen_the_windows(recs):
         tr.start(InitResult(T[0], cov6=np.diag([1e-6] * 6)), fs.t_ns)
         both = [ob("cam_left", 8), ob("cam_right", 8)]
         for _ in range(3):
-            tr._status(fs, both, 16, 16, 2.0, {"visibility": 0.0})
+            _judge(tr, fs, both, 16, 16)
         assert tr.confirmed
         P0 = tr.ekf.pose_covariance
         obs = [ob("cam_left", accepted_left), ob("cam_right", 8)]
-        outs = [tr._status(fs, obs, 16, accepted_left + 8, 2.0, {"visibility": 0.0}) for _ in range(3)]
+        outs = [_judge(tr, fs, obs, 16, accepted_left + 8) for _ in range(3)]
         return tr, P0, outs
 
     tr, P0, outs = run(accepted_left=2)
@@ -334,7 +340,7 @@ def test_a_start_not_confirmed_in_time_is_dropped_for_a_fresh_initialisation(rec
     i = 0
     while tr.ekf is not None:
         fs = rec.frameset(i)
-        out = tr._status(fs, weak, 8, 8, 2.0, {"visibility": 0.0})
+        out = _judge(tr, fs, weak, 8, 8)
         assert out.status == "initializing"
         assert (fs.t_ns >= deadline) == (tr.ekf is None)
         i += 1
@@ -346,7 +352,7 @@ def test_a_start_not_confirmed_in_time_is_dropped_for_a_fresh_initialisation(rec
     tr = make_tracker(rec)
     tr.start(InitResult(T[0], cov6=np.diag([1e-6] * 6)), t0)
     strong = [ob("cam_left", 8), ob("cam_right", 8)]
-    outs = [tr._status(rec.frameset(i), strong, 16, 16, 2.0, {"visibility": 0.0}).status for i in range(30)]
+    outs = [_judge(tr, rec.frameset(i), strong, 16, 16).status for i in range(30)]
     assert outs[-1] == "tracking" and tr.unconfirmed_drops == 0
 
 
@@ -373,7 +379,7 @@ def test_an_agreeing_edge_fit_lets_fewer_corners_confirm(recs):
             tr._edge_ok = edge_ok
             tr._edge_found = found if edge_ok else 0.0
             n = int(acc.sum())
-            out.append(tr._status(fs, [ob], n, n, 2.0, {"visibility": 0.0}).status)
+            out.append(_judge(tr, fs, [ob], n, n).status)
         return out
 
     assert "tracking" not in statuses(edge_ok=False)
@@ -406,7 +412,7 @@ def test_an_edge_fit_that_disagrees_vetoes_confirmation_and_drops_a_slid_start(r
         out = []
         for i, v in enumerate(vetoes):
             tr._edge_veto = v
-            out.append(tr._status(rec.frameset(i), [ob], 6, 6, 2.0, {"visibility": 0.0}).status)
+            out.append(_judge(tr, rec.frameset(i), [ob], 6, 6).status)
             if tr.ekf is None:
                 break
         return tr, out
@@ -438,7 +444,7 @@ def _statuses(rec, T0, frames, hidden=(), **cfg):
         tr._edge_found = 0.0
         n_found = sum(int(np.isfinite(o.uv_meas[:, 0]).sum()) for o in obs)
         n_acc = sum(int(o.accepted.sum()) for o in obs)
-        out.append(tr._status(rec.frameset(i), obs, n_found, n_acc, 2.0, {"visibility": 0.0}).status)
+        out.append(_judge(tr, rec.frameset(i), obs, n_found, n_acc).status)
         if tr.ekf is None:
             break
     return tr, out
