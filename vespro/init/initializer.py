@@ -694,14 +694,21 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
             dR = exp_so3(rng.normal(size=3) * opt.seed_perturb_rad)
             dp = rng.normal(size=3) * opt.seed_perturb_m
             starts.append(transform_from_rt(starts[0][:3, :3] @ dR, starts[0][:3, 3] + dp))
-        best = None
+        best, seeded = None, []
         for T in starts:
             Tr = _refined(T, views, setup)
             chk = _checked(Tr, views, setup)
+            seeded.append((Tr, chk))
             if best is None or chk.inlier_frac > best[1].inlier_frac:
                 best = (Tr, chk)
             if _verdict(chk, opt)[0]:
                 return finish(Tr, chk, "seed", len(starts))
+        if opt.hidden_camera:
+            # A camera the part is hidden from (the arm that hid it when the track was
+            # lost): judged without it, as the search's candidates are.
+            for Tr, chk in sorted(_without_hidden(seeded, views, setup), key=lambda r: -r[1].inlier_frac):
+                if _verdict(chk, opt)[0]:
+                    return finish(Tr, chk, "seed", len(starts))
         if opt.seed_only:
             return None, InitReport(time.perf_counter() - t0, time.thread_time() - c0, "none", len(starts), False, best[1].inlier_frac,
                                     best[1].per_camera, reason="seed: " + _accept(best[1], opt)[1])
