@@ -64,10 +64,21 @@ def _worker_ping() -> None:
     return None
 
 
+def _init_call(initializer, fs: FrameSet, seed=None) -> tuple:
+    """One initialiser call (seeded first when there is a seed): ``(result, why not)``.
+
+    ``why not`` is the initialiser's reason for returning no pose (its
+    ``last_report.reason``, e.g. an accidental view or an ambiguity), or "".
+    """
+    if seed is not None and hasattr(initializer, "reseed"):
+        initializer.reseed(seed[0], velocity=seed[1], t_ns=seed[2])
+    res = initializer(fs)
+    report = getattr(initializer, "last_report", None)
+    return res, ("" if res is not None or report is None else str(getattr(report, "reason", "") or ""))
+
+
 def _worker_run(fs: FrameSet, seed=None):
-    if seed is not None and hasattr(_WORKER_INIT, "reseed"):
-        _WORKER_INIT.reseed(seed[0], velocity=seed[1], t_ns=seed[2])
-    return _WORKER_INIT(fs)
+    return _init_call(_WORKER_INIT, fs, seed)
 
 _STATUS = {"tracking": PoseStatus.TRACKING, "initializing": PoseStatus.INITIALIZING, "lost": PoseStatus.LOST}
 
@@ -197,9 +208,7 @@ class PoseServer:
             return False
 
     def _seeded_call(self, fs: FrameSet, seed):
-        if seed is not None and hasattr(self.initializer, "reseed"):
-            self.initializer.reseed(seed[0], velocity=seed[1], t_ns=seed[2])
-        return self.initializer(fs)
+        return _init_call(self.initializer, fs, seed)
 
     def stop(self) -> None:
         """Ask the loop to finish after the current frame (signal-safe)."""
@@ -212,23 +221,23 @@ class PoseServer:
         if not self.background_init:
             self.stats.init_attempts += 1
             # After a loss the initialiser first tries near the last good pose.
-            res = self._seeded_call(fs, self.tracker.recovery_seed())
+            res, _ = self._seeded_call(fs, self.tracker.recovery_seed())
             if res is not None:
                 self.stats.init_successes += 1
                 self.tracker.start(res, fs.t_ns)
             return
         if self._job is not None and self._job.done():
             try:
-                res = self._job.result()
+                res, why = self._job.result()
             except Exception as e:  # an initialiser bug must not kill the server
-                res = None
+                res, why = None, ""
                 if self.log:
                     self.log(f"initialiser failed: {e!r}")
             job_t = self._job_t_ns
             self._job = None
             if self.log:
                 waited = (fs.t_ns - job_t) * 1e-9
-                found = "no pose" if res is None else "a pose" + "".join(
+                found = (f"no pose ({why})" if why else "no pose") if res is None else "a pose" + "".join(
                     f" ({name} hidden: judged without it)" for name in res.hidden)
                 self.log(f"initialisation on the frame of {waited:.1f} s ago: {found}")
             newer = [old for old in self._backlog if old.t_ns > job_t]

@@ -148,6 +148,41 @@ def test_a_slow_initialiser_is_caught_up_through_the_frames_it_missed(rec_path):
         assert np.linalg.norm(o.T_world_object[:3, 3] - T[o.index][:3, 3]) < 3e-3
 
 
+def test_the_log_says_why_an_initialisation_found_no_pose(rec_path):
+    """Each background initialisation is logged; one that found no pose says why (the
+    initialiser's reason: a user seeing a lone camera's "accidental view" knows to add a
+    camera or move it). Also through the inline path, the same call."""
+    from types import SimpleNamespace
+
+    from vespro.server import _init_call
+
+    rec = Recording(rec_path)
+    _, _, T = read_groundtruth(rec_path)
+
+    class Picky:
+        def __init__(self):
+            self.last_report = None
+
+        def __call__(self, fs):
+            time.sleep(0.05)
+            if fs.index < 3:
+                self.last_report = SimpleNamespace(reason="one camera, accidental view (1 faces seen openly)")
+                return None
+            self.last_report = SimpleNamespace(reason="")
+            return InitResult(T[fs.index])
+
+    clock = SimClock()
+    lines = []
+    server = PoseServer(ReplaySource(rec, clock), Tracker(rec.rig, load_model(rec.model_path)), None, clock,
+                        Picky(), background_init="thread", log=lines.append)
+    server.on_output = lambda fs, o: time.sleep(0.02)
+    server.run()
+    inits = [ln for ln in lines if "initialisation on the frame" in ln]
+    assert any(ln.endswith("no pose (one camera, accidental view (1 faces seen openly))") for ln in inits), inits
+    assert any(ln.endswith("a pose") for ln in inits), inits
+    assert _init_call(lambda fs: None, rec.frameset(0)) == (None, "")  # no report: no reason
+
+
 def test_live_loop_core_and_priority_and_the_worker_left_free():
     """``serve --cpu/--fifo``: the loop is pinned and SCHED_FIFO, the initialisation worker and the
     end-of-run saving are not (checked in a child process: the test process keeps its own scheduling)."""
