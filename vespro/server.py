@@ -174,7 +174,7 @@ class PoseServer:
             self._submit = lambda fs, seed: self._pool.submit(_worker_run, fs, seed)
         elif background_init:
             self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="vespro-init")
-            self._submit = lambda fs, seed: self._pool.submit(self._seeded_call, fs, seed)
+            self._submit = lambda fs, seed: self._pool.submit(_init_call, self.initializer, fs, seed)
         else:
             self._pool = None
         self._job: Future | None = None
@@ -207,9 +207,6 @@ class PoseServer:
         except Exception:  # a failed or slow start: the loop runs anyway, and says so in its log
             return False
 
-    def _seeded_call(self, fs: FrameSet, seed):
-        return _init_call(self.initializer, fs, seed)
-
     def stop(self) -> None:
         """Ask the loop to finish after the current frame (signal-safe)."""
         self._stop.set()
@@ -221,7 +218,7 @@ class PoseServer:
         if not self.background_init:
             self.stats.init_attempts += 1
             # After a loss the initialiser first tries near the last good pose.
-            res, _ = self._seeded_call(fs, self.tracker.recovery_seed())
+            res, _ = _init_call(self.initializer, fs, self.tracker.recovery_seed())
             if res is not None:
                 self.stats.init_successes += 1
                 self.tracker.start(res, fs.t_ns)

@@ -610,9 +610,10 @@ def _probe(T_world_object: np.ndarray, chk, views, setup: InitSetup) -> tuple[bo
             Tr = refine_subpixel(Tr, views, mf, setup.tree, shared_edge_px=opt.shared_edge_px)
         c2 = check_pose(Tr, views, mf, setup.tree, opt.verify_tol_px, require_fixed=opt.require_fixed_view)
         if c2.n_cameras and _adds(mf, Tr, T_world_object) > opt.distinct_frac * mf.diameter and \
-                not _part_of(c2, chk, opt) and c2.inlier_frac >= chk.inlier_frac - _margin(chk, opt) and \
+                c2.inlier_frac >= chk.inlier_frac - _margin(chk, opt) and \
                 c2.inlier_px >= (1 - opt.ambiguity_px_frac) * chk.inlier_px and \
-                not (opt.plain_faces and c2.interior_edge_frac > 2 * opt.plain_max_interior_edge_frac):
+                not (opt.plain_faces and c2.interior_edge_frac > 2 * opt.plain_max_interior_edge_frac) and \
+                not _part_of(c2, chk, opt):
             return False, f"ambiguous: a restart settles on a pose scoring {c2.inlier_frac:.2f} vs {chk.inlier_frac:.2f}"
     return True, ""
 
@@ -694,13 +695,11 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
             dR = exp_so3(rng.normal(size=3) * opt.seed_perturb_rad)
             dp = rng.normal(size=3) * opt.seed_perturb_m
             starts.append(transform_from_rt(starts[0][:3, :3] @ dR, starts[0][:3, 3] + dp))
-        best, seeded = None, []
+        seeded = []
         for T in starts:
             Tr = _refined(T, views, setup)
             chk = _checked(Tr, views, setup)
             seeded.append((Tr, chk))
-            if best is None or chk.inlier_frac > best[1].inlier_frac:
-                best = (Tr, chk)
             if _verdict(chk, opt)[0]:
                 return finish(Tr, chk, "seed", len(starts))
         if opt.hidden_camera:
@@ -710,6 +709,7 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
                 if _verdict(chk, opt)[0]:
                     return finish(Tr, chk, "seed", len(starts))
         if opt.seed_only:
+            best = max(seeded, key=lambda r: r[1].inlier_frac)
             return None, InitReport(time.perf_counter() - t0, time.thread_time() - c0, "none", len(starts), False, best[1].inlier_frac,
                                     best[1].per_camera, reason="seed: " + _accept(best[1], opt)[1])
 
@@ -794,7 +794,7 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
     if ok and not confirmed:
         for T2, c2 in refined[1:]:
             if c2.unseen_fixed or c2.n_cameras < chk.n_cameras or \
-                    _adds(mf, T_best, T2) <= opt.distinct_frac * mf.diameter or _part_of(c2, chk, opt):
+                    _adds(mf, T_best, T2) <= opt.distinct_frac * mf.diameter:
                 continue
             # A pose whose faces cover image edges is no rival for a plain
             # part (one camera: with several, a part partly hidden in one
@@ -805,15 +805,17 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
             # A rival need not pass every check (the true pose of an
             # accidental view may fail one): seen by the same cameras, about
             # as good an agreement, about as much edge length explained.
-            if c2.inlier_frac >= chk.inlier_frac - _margin(chk, opt) and \
-                    c2.inlier_px >= (1 - opt.ambiguity_px_frac) * chk.inlier_px:
-                ok, why = False, f"ambiguous: another pose scores {c2.inlier_frac:.2f} vs {chk.inlier_frac:.2f}"
-                break
+            rival = c2.inlier_frac >= chk.inlier_frac - _margin(chk, opt) and \
+                c2.inlier_px >= (1 - opt.ambiguity_px_frac) * chk.inlier_px
             # Under the looser limits, any clear-faced rival explaining nearly
             # as much edge length makes the view ambiguous.
-            if plain and c2.interior_edge_frac <= 2 * opt.plain_max_interior_edge_frac and \
-                    c2.inlier_frac >= 0.5 and c2.inlier_px >= opt.plain_rival_px_frac * chk.inlier_px:
-                ok, why = False, f"ambiguous (plain faces): another pose explains {c2.inlier_px:.0f} px vs {chk.inlier_px:.0f}"
+            plain_rival = plain and c2.interior_edge_frac <= 2 * opt.plain_max_interior_edge_frac and \
+                c2.inlier_frac >= 0.5 and c2.inlier_px >= opt.plain_rival_px_frac * chk.inlier_px
+            # Either way, not a pose explaining only part of what the best explains.
+            if (rival or plain_rival) and not _part_of(c2, chk, opt):
+                ok, why = False, (f"ambiguous: another pose scores {c2.inlier_frac:.2f} vs {chk.inlier_frac:.2f}"
+                                  if rival else f"ambiguous (plain faces): another pose explains "
+                                  f"{c2.inlier_px:.0f} px vs {chk.inlier_px:.0f}")
                 break
     if ok and not confirmed and opt.probe_single and chk.n_cameras == 1:
         ok, why = _probe(T_best, chk, _judging(views, chk), setup)
