@@ -98,6 +98,12 @@ class _Gated:
         self._next_t_ns = fs.t_ns + int(self.ini.last_report.cpu_s * 1e9)
         return res
 
+    def reseed(self, *a, **kw):
+        self.ini.reseed(*a, **kw)
+
+    def await_confirmation(self, *a):
+        self.ini.await_confirmation(*a)
+
 
 @dataclass(frozen=True)
 class Trial:
@@ -148,7 +154,7 @@ def run_tracked(trial: Trial, track_frames: int):
                 o["cpu"].append(r.cpu_s)
                 if o["frame"] is None and k < frames:  # the initialiser's own score: within the budget
                     o["to_first"] += r.wall_s
-                    if res is not None:
+                    if res is not None and not res.provisional:  # a provisional start: the tracker's to confirm
                         _score(o, k, res.T_world_object, T_true, model, syms)
             if out.status == "tracking":
                 e = sym_add(out.T_world_object, T_true, model, syms) / model.diameter
@@ -207,7 +213,7 @@ def run_trial(trial: Trial, baseline: bool):
                 o["calls"].append(r.wall_s)
                 o["cpu"].append(r.cpu_s)
                 o["to_first"] += r.wall_s
-                if res is not None:
+                if res is not None and not res.provisional:
                     _score(o, k, res.T_world_object, T_true, model, syms)
                     done.add(m)
     return out

@@ -64,21 +64,25 @@ def _worker_ping() -> None:
     return None
 
 
-def _init_call(initializer, fs: FrameSet, seed=None) -> tuple:
+def _init_call(initializer, fs: FrameSet, seed=None, pending=None) -> tuple:
     """One initialiser call (seeded first when there is a seed): ``(result, why not)``.
 
-    ``why not`` is the initialiser's reason for returning no pose (its
-    ``last_report.reason``, e.g. an accidental view or an ambiguity), or "".
+    ``pending``: ``(T_world_object, t_ns)`` of the tracker's provisional start, for the
+    call to confirm (:meth:`vespro.tracker.Tracker.offer`). ``why not`` is the
+    initialiser's reason for returning no pose (its ``last_report.reason``, e.g. an
+    accidental view or an ambiguity), or "".
     """
     if seed is not None and hasattr(initializer, "reseed"):
         initializer.reseed(seed[0], velocity=seed[1], t_ns=seed[2])
+    if pending is not None and hasattr(initializer, "await_confirmation"):
+        initializer.await_confirmation(*pending)
     res = initializer(fs)
     report = getattr(initializer, "last_report", None)
     return res, ("" if res is not None or report is None else str(getattr(report, "reason", "") or ""))
 
 
-def _worker_run(fs: FrameSet, seed=None):
-    return _init_call(_WORKER_INIT, fs, seed)
+def _worker_run(fs: FrameSet, seed=None, pending=None):
+    return _init_call(_WORKER_INIT, fs, seed, pending)
 
 _STATUS = {"tracking": PoseStatus.TRACKING, "initializing": PoseStatus.INITIALIZING, "lost": PoseStatus.LOST}
 
@@ -171,10 +175,10 @@ class PoseServer:
             # Start the worker now: started by the first real job, its launch stalled the live loop
             # for long enough that the frames after that job's were missing and its pose was discarded.
             self._worker_up = self._pool.submit(_worker_ping)
-            self._submit = lambda fs, seed: self._pool.submit(_worker_run, fs, seed)
+            self._submit = lambda fs, seed, pending: self._pool.submit(_worker_run, fs, seed, pending)
         elif background_init:
             self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="vespro-init")
-            self._submit = lambda fs, seed: self._pool.submit(_init_call, self.initializer, fs, seed)
+            self._submit = lambda fs, seed, pending: self._pool.submit(_init_call, self.initializer, fs, seed, pending)
         else:
             self._pool = None
         self._job: Future | None = None
@@ -213,15 +217,18 @@ class PoseServer:
 
     # -- initialisation ---------------------------------------------------------
     def _maybe_start(self, fs: FrameSet) -> None:
-        if self.tracker.ekf is not None or (self.initializer is None and self._pool is None):
+        """Run the initialiser while there is no filter, or the filter holds a provisional
+        start (the initialiser confirms or replaces it: :meth:`Tracker.offer`)."""
+        if (self.tracker.ekf is not None and not self.tracker.provisional) or \
+                (self.initializer is None and self._pool is None):
             return
         if not self.background_init:
             self.stats.init_attempts += 1
             # After a loss the initialiser first tries near the last good pose.
-            res, _ = _init_call(self.initializer, fs, self.tracker.recovery_seed())
+            res, _ = _init_call(self.initializer, fs, self.tracker.recovery_seed(), self.tracker.provisional_pose())
             if res is not None:
                 self.stats.init_successes += 1
-                self.tracker.start(res, fs.t_ns)
+                self._start(res, fs.t_ns)
             return
         if self._job is not None and self._job.done():
             try:
@@ -234,7 +241,8 @@ class PoseServer:
             self._job = None
             if self.log:
                 waited = (fs.t_ns - job_t) * 1e-9
-                found = (f"no pose ({why})" if why else "no pose") if res is None else "a pose" + "".join(
+                found = (f"no pose ({why})" if why else "no pose") if res is None else (
+                    "a provisional pose" if res.provisional else "a pose") + "".join(
                     f" ({name} hidden: judged without it)" for name in res.hidden)
                 self.log(f"initialisation on the frame of {waited:.1f} s ago: {found}")
             newer = [old for old in self._backlog if old.t_ns > job_t]
@@ -249,7 +257,8 @@ class PoseServer:
                     self.log("  discarded: the frames right after it are gone (no catch-up across the gap)")
             if res is not None:
                 self.stats.init_successes += 1
-                self.tracker.start(res, job_t)
+                if not self._start(res, job_t):
+                    return  # the provisional start confirmed (or kept): tracked on as it is
                 # Catch up: the part moved while the initialiser worked. The frames that came
                 # since are tracked (not published: they are old), a few per live frame, with
                 # the live frames joining the queue, until the filter reaches the present.
@@ -259,7 +268,15 @@ class PoseServer:
         if self._job is None:
             self.stats.init_attempts += 1
             self._job_t_ns = fs.t_ns
-            self._job = self._submit(fs, self.tracker.recovery_seed())
+            self._job = self._submit(fs, self.tracker.recovery_seed(), self.tracker.provisional_pose())
+
+    def _start(self, res, t_ns: int) -> bool:
+        """Start the filter from an initialiser's pose on the frame set of ``t_ns``, or offer the
+        pose to a provisional start; True when the filter was (re)started."""
+        if self.tracker.ekf is not None and self.tracker.provisional:
+            return self.tracker.offer(res, t_ns)
+        self.tracker.start(res, t_ns)
+        return True
 
     def _catch_up(self, fs: FrameSet) -> TrackerOutput:
         """Track queued frames, then ``fs`` once the queue is through; ``fs``'s output.
@@ -297,7 +314,7 @@ class PoseServer:
         try:
             self._maybe_start(fs)
             out = self._catch_up(fs) if self._catching is not None else self.tracker.process(fs)
-            if self.tracker.ekf is None and self._pool is not None:
+            if (self.tracker.ekf is None or self.tracker.provisional) and self._pool is not None:
                 # Kept in grey (what the tracker uses): a third of the memory.
                 self._backlog.append(FrameSet(fs.index, fs.t_ns, {k: fs.grey(k) for k in fs.images},
                                               fs.T_world_camera))

@@ -23,9 +23,14 @@ class InitResult:
         Cameras the initialiser found the part hidden from (something it does
         not know stands in front: ``InitOptions.hidden_camera``); the tracker
         confirms the start without them (``TrackerConfig.blind_found_fraction``).
+    provisional : bool
+        The initialiser accepted the pose only provisionally (one camera, the
+        looser limits of a part with plain faces): the tracker confirms it on
+        more frames (``TrackerConfig.confirm_frames_provisional``).
     """
 
     T_world_object: np.ndarray
     cov6: np.ndarray | None = None
     velocity: np.ndarray | None = None
     hidden: tuple = ()
+    provisional: bool = False

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections import deque
 from dataclasses import dataclass, field, replace
 from typing import Callable
 
@@ -148,6 +149,13 @@ class TrackerConfig:
         400 an accurate start (0.6-4.6% of the diameter) had strong frames 5
         frames apart with such weak ones between, and was published 17 frames
         after it was found; now 9. ``False``: consecutive strong frames.
+    provisional_same_frac : float
+        A start the initialiser gave provisionally (``InitResult.provisional``:
+        one camera, the looser limits of a plain-faced part) is tracked but not
+        published until the initialiser, called on meanwhile, gives the same
+        pose (within this fraction of the diameter, ADD over the part's
+        symmetries) as confirmed; another pose from it restarts the filter
+        there (:meth:`Tracker.offer`).
     confirm_min_accepted : int
         Accepted features a frame needs to count towards confirmation...
     confirm_min_inlier_fraction : float
@@ -283,6 +291,7 @@ class TrackerConfig:
     max_pos_std: float = 0.02
     confirm_frames: int = 2
     confirm_hold_neutral: bool = True
+    provisional_same_frac: float = 0.1
     confirm_min_accepted: int = 6
     confirm_min_inlier_fraction: float = 0.75
     confirm_min_selected_fraction: float = 0.6
@@ -419,7 +428,9 @@ class Tracker:
     config : TrackerConfig
     initializer : callable, optional
         ``initializer(frameset) -> InitResult | None``: called while not
-        tracking; None means "not yet".
+        tracking, and while the filter holds a provisional start (to confirm
+        it: handed the filter's pose by ``initializer.await_confirmation(T,
+        t_ns)`` where it has one); None means "not yet".
     bsp_cache_dir : path, optional
     """
 
@@ -460,8 +471,11 @@ class Tracker:
         self.frames = 0
         self.lost_events = 0
         self.unconfirmed_drops = 0  # started filters dropped for not confirming in time
+        self.starts_replaced = 0  # provisional starts replaced by the initialiser's better pose
         self.blind_frames = 0  # frames that did without a blind camera (blind_found_fraction)
         self._start_hidden: frozenset = frozenset()  # cameras the initialiser found the part hidden from
+        self.provisional = False  # the start awaits the initialiser's confirmation (InitResult.provisional)
+        self._recent: deque = deque(maxlen=64)  # (t_ns, T_world_object) of the frames tracked lately
         self._start_t_ns: int | None = None
         self.last_good = None  # (T_world_object, velocity (6,), t_ns) of the last tracking frame
         self._reseeded = True
@@ -516,6 +530,8 @@ class Tracker:
         c = self.config
         init = replace(init, T_world_object=self.canonical_pose(init.T_world_object))
         self._start_hidden = frozenset(init.hidden)
+        self.provisional = bool(init.provisional)
+        self._recent.clear()
         P0 = np.diag(np.r_[np.full(3, c.init_sigma_pos**2), np.full(3, c.init_sigma_rot**2),
                            np.full(3, c.init_sigma_vel**2), np.full(3, c.init_sigma_angvel**2)])
         if init.cov6 is not None:
@@ -568,8 +584,44 @@ class Tracker:
                 status = STATUS_INITIALIZING if self.status != STATUS_LOST else STATUS_LOST
                 return TrackerOutput(fs.index, fs.t_ns, status, time_ms=(time.perf_counter() - t0) * 1e3)
             self.start(init, fs.t_ns)
+        elif self.provisional and self.initializer is not None:
+            # A provisional start: the initialiser goes on looking, and confirms it by
+            # finding it again (first among its candidates) or replaces it.
+            if hasattr(self.initializer, "await_confirmation"):
+                self.initializer.await_confirmation(*self.provisional_pose())
+            self.offer(self.initializer(fs), fs.t_ns)
         out = self._track(fs)
+        if self.provisional and self.ekf is not None:
+            self._recent.append((fs.t_ns, self.ekf.pose.copy()))
         return TrackerOutput(**{**out.__dict__, "time_ms": (time.perf_counter() - t0) * 1e3})
+
+    def provisional_pose(self) -> tuple[np.ndarray, int] | None:
+        """(T_world_object, t_ns) of a provisional start's latest estimate (None otherwise)."""
+        if not self.provisional or self.ekf is None:
+            return None
+        return self.ekf.pose, self._t_ns
+
+    def offer(self, init: InitResult | None, t_ns: int) -> bool:
+        """An initialiser's answer on the frame set of ``t_ns`` while the filter holds a
+        provisional start (:attr:`InitResult.provisional`).
+
+        The same pose as the filter's then (within ``provisional_same_frac`` of the
+        diameter, over the part's symmetries), given as confirmed: the start is
+        confirmed (its strong frames then publish it). The same pose, still provisional:
+        nothing changes. Another pose: the initialiser's best is elsewhere, and the
+        filter is started again from it at ``t_ns`` (True is returned; the caller tracks
+        on from there). Nothing, or no provisional start: nothing changes.
+        """
+        if init is None or self.ekf is None or not self.provisional:
+            return False
+        T_then = min(self._recent, key=lambda r: abs(r[0] - t_ns))[1] if self._recent else self.ekf.pose
+        d = min(add(init.T_world_object, T_then @ S, self.model.vertices) for S in self.symmetries)
+        if d < self.config.provisional_same_frac * self.model.diameter:
+            self.provisional = self.provisional and init.provisional
+            return False
+        self.start(init, t_ns)
+        self.starts_replaced += 1
+        return True
 
     def _camera_pose(self, fs: FrameSet, name: str) -> np.ndarray | None:
         cam = self.rig[name]
@@ -880,7 +932,7 @@ class Tracker:
                 self._disagree = 0
                 self.reassociations += 1
                 ekf.widen_pose(c.init_sigma_pos, c.init_sigma_rot)
-        if not self.confirmed and self._good >= c.confirm_frames:
+        if not self.confirmed and self._good >= c.confirm_frames and not self.provisional:
             self.confirmed = True
         T = ekf.pose
         stage_ms = {k: v * 1e3 for k, v in stage.items()}

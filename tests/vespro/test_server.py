@@ -183,6 +183,61 @@ def test_the_log_says_why_an_initialisation_found_no_pose(rec_path):
     assert _init_call(lambda fs: None, rec.frameset(0)) == (None, "")  # no report: no reason
 
 
+class _ProvisionalFirst:
+    """A fake initialiser: a provisional pose (the truth) on the frame sets before
+    ``confirm_from``, then the same pose confirmed; ``far`` puts its first pose 5 cm off."""
+
+    def __init__(self, T, confirm_from, far=False):
+        self.T, self.confirm_from, self.far = T, confirm_from, far
+        self.last_report, self.awaited, self.calls = None, [], []
+
+    def await_confirmation(self, T_world_object, t_ns):
+        self.awaited.append(t_ns)
+
+    def __call__(self, fs):
+        from types import SimpleNamespace
+
+        self.calls.append(fs.index)
+        self.last_report = SimpleNamespace(reason="")
+        T = self.T[fs.index].copy()
+        if self.far and len(self.calls) == 1:
+            T[2, 3] += 0.05
+        return InitResult(T, provisional=fs.index < self.confirm_from)
+
+
+@pytest.mark.parametrize("mode", [False, "thread"])
+def test_a_provisional_start_is_published_once_the_initialiser_confirms_it(rec_path, mode):
+    """The server keeps calling the initialiser while the filter holds a provisional start,
+    handing it the filter's pose to confirm; nothing is published ``tracking`` before an
+    answer confirms it, and a first pose elsewhere is replaced by the next answer."""
+    rec = Recording(rec_path)
+    _, _, T = read_groundtruth(rec_path)
+    clock = SimClock()
+    ini = _ProvisionalFirst(T, confirm_from=6, far=True)
+    tracker = Tracker(rec.rig, load_model(rec.model_path))
+    lines = []
+    server = PoseServer(ReplaySource(rec, clock), tracker, None, clock, ini, background_init=mode, log=lines.append)
+    outs = []
+
+    def on_output(fs, out):
+        outs.append(out)
+        if mode:
+            time.sleep(0.02)  # a live loop's pace: the worker answers a few frames later
+
+    server.on_output = on_output
+    server.run()
+    status = [o.status for o in outs]
+    assert "tracking" in status
+    first = status.index("tracking")
+    assert first >= min(c for c in ini.calls if c >= 6), (first, ini.calls)
+    assert len(ini.calls) >= 2 and ini.awaited  # called on while provisional, with the filter's pose
+    assert tracker.starts_replaced >= 1  # the first pose, 5 cm off, replaced
+    if mode:
+        assert any(ln.endswith("a provisional pose") for ln in lines), lines
+    else:  # lockstep: called on every frame set until confirmed on the first non-provisional one
+        assert first == 6 and ini.calls[:7] == list(range(7)), (status, ini.calls)
+
+
 def test_live_loop_core_and_priority_and_the_worker_left_free():
     """``serve --cpu/--fifo``: the loop is pinned and SCHED_FIFO, the initialisation worker and the
     end-of-run saving are not (checked in a child process: the test process keeps its own scheduling)."""

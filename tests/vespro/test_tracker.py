@@ -429,6 +429,39 @@ def test_a_weak_frame_that_agrees_does_not_break_a_confirmation(recs):
     assert statuses([strong, weak, disagreeing, strong, strong])[-1] == "tracking"
 
 
+def test_a_provisional_start_is_published_only_once_the_initialiser_confirms_it(recs):
+    """A start the initialiser gave provisionally (``InitResult.provisional``) is tracked but
+    not published, however strong its frames, until an initialiser answer gives the same
+    pose as confirmed (``Tracker.offer``); the same pose still provisional changes nothing;
+    another pose starts the filter again from it."""
+    from vespro.tracker import CameraObservation, InitResult
+
+    rec = Recording(recs["box_conveyor"])
+    _, _, T = read_groundtruth(recs["box_conveyor"])
+    fs = rec.frameset(0)
+    ids = np.arange(6)
+    ob = CameraObservation("cam_left", True, 6, ids, np.zeros((6, 2)), np.full(6, 3.0), np.zeros((6, 2)),
+                           np.ones(6, bool))
+    tr = make_tracker(rec, TrackerConfig(edge_aid="off"))
+    cov = np.diag([1e-6] * 6)
+    tr.start(InitResult(T[0], cov6=cov, provisional=True), fs.t_ns)
+    assert tr.provisional and tr.provisional_pose()[1] == fs.t_ns
+    assert [_judge(tr, fs, [ob], 6, 6).status for _ in range(3)] == ["initializing"] * 3
+    moved = T[0].copy()
+    moved[:3, 3] += [0.004, 0.0, 0.0]  # 4 mm: the same pose
+    assert not tr.offer(InitResult(moved, cov6=cov, provisional=True), fs.t_ns) and tr.provisional
+    assert _judge(tr, fs, [ob], 6, 6).status == "initializing"
+    assert not tr.offer(InitResult(moved, cov6=cov), fs.t_ns) and not tr.provisional
+    assert _judge(tr, fs, [ob], 6, 6).status == "tracking"  # its strong frames counted all along
+
+    tr.start(InitResult(T[0], cov6=cov, provisional=True), fs.t_ns)
+    far = T[0].copy()
+    far[:3, 3] += [0.0, 0.0, 0.05]  # 5 cm: another pose, the initialiser's best now
+    assert tr.offer(InitResult(far, cov6=cov, provisional=True), fs.t_ns)
+    assert tr.provisional and np.allclose(tr.ekf.pose[:3, 3], far[:3, 3])
+    assert not tr.offer(None, fs.t_ns) and tr.provisional
+
+
 def test_an_edge_fit_that_disagrees_vetoes_confirmation_and_drops_a_slid_start(recs):
     """Six of six corners accepted confirm a start, unless the frame's edge fit found far
     less of the outline than the filter's first fit did (``Tracker._edge_veto``): a
