@@ -305,7 +305,7 @@ def test_init_result_has_the_tracker_fields():
 
     from vespro.init import InitResult
 
-    assert [f.name for f in fields(InitResult)] == ["T_world_object", "cov6", "velocity", "hidden"]
+    assert [f.name for f in fields(InitResult)] == ["T_world_object", "cov6", "velocity", "hidden", "provisional"]
 
 
 def _picture(rng, sigma):

@@ -274,8 +274,8 @@ class InitOptions:
         before starting lost the frames between, and a view that the next
         call judged accidental (one face openly in view) lost the pose: a
         one-camera L-block (rig seed 410) found on frame 0 was published on
-        frame 41; now 10. One camera, 240 trials: published within a second
-        on 228 instead of 222, the median start at frame 3 instead of 6.
+        frame 41; now 10. One camera, 240 trials (``bench/init.py --track``):
+        published within a second on 227 instead of 222, none wrong.
     confirm_frac, confirm_speed : float
         Found again means within ``confirm_frac`` of the diameter plus
         ``confirm_speed`` (m/s) times the time since the previous call
