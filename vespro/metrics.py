@@ -45,6 +45,18 @@ def add(T_est: np.ndarray, T_true: np.ndarray, P_object: np.ndarray) -> float:
     return float(np.mean(np.linalg.norm(transform_points(T_est, P_object) - transform_points(T_true, P_object), axis=1)))
 
 
+def add_sym(T_est: np.ndarray, T_true: np.ndarray, P_object: np.ndarray, symmetries) -> float:
+    """ADD to the nearest of the true pose's symmetric equivalents ``T_true @ S`` (m).
+
+    Not ADD-S (nearest point): a part that is nearly symmetric (an L-block turned
+    over) lies close to itself point for point, so a distinct pose of it would
+    pass for the same one.
+    """
+    A = P_object @ T_est[:3, :3].T + T_est[:3, 3]
+    return float(min(np.mean(np.linalg.norm(A - (P_object @ (T_true @ S)[:3, :3].T + (T_true @ S)[:3, 3]), axis=1))
+                     for S in symmetries))
+
+
 def add_s(T_est: np.ndarray, T_true: np.ndarray, P_object: np.ndarray) -> float:
     """ADD for symmetric objects (m): mean distance to the closest true-pose point."""
     tree = cKDTree(transform_points(T_true, P_object))

@@ -25,8 +25,9 @@ class InitResult:
         confirms the start without them (``TrackerConfig.blind_found_fraction``).
     provisional : bool
         The initialiser accepted the pose only provisionally (one camera, the
-        looser limits of a part with plain faces): the tracker confirms it on
-        more frames (``TrackerConfig.confirm_frames_provisional``).
+        looser limits of a part with plain faces): the tracker tracks it but
+        publishes it only once the initialiser confirms it
+        (``vespro.tracker.Tracker.offer``).
     """
 
     T_world_object: np.ndarray

@@ -38,7 +38,7 @@ from .ekf import PoseEKF
 from .ekf import Status as EKFStatus
 from .extraction import extract_corners, window_half_sizes
 from .features import salient_corners
-from .metrics import add, discrete_symmetries
+from .metrics import add, add_sym, discrete_symmetries
 from .frames import FrameSet
 from .model import Model
 from .projection import project_with_jacobian
@@ -615,7 +615,7 @@ class Tracker:
         if init is None or self.ekf is None or not self.provisional:
             return False
         T_then = min(self._recent, key=lambda r: abs(r[0] - t_ns))[1] if self._recent else self.ekf.pose
-        d = min(add(init.T_world_object, T_then @ S, self.model.vertices) for S in self.symmetries)
+        d = add_sym(init.T_world_object, T_then, self.model.vertices, self.symmetries)
         if d < self.config.provisional_same_frac * self.model.diameter:
             self.provisional = self.provisional and init.provisional
             return False
@@ -910,13 +910,13 @@ class Tracker:
                   and all(int(ob.accepted.sum()) >= c.confirm_min_camera_fraction * ob.feature_ids.size
                           for ob in seen if ob.feature_ids.size >= c.min_accepted)
                   and pos_std < c.confirm_max_pos_std * self.model.diameter and rot_std < c.confirm_max_rot_std)
-        # A frame with too little support to confirm but nothing against the pose (the
-        # corners it found agree, no edge veto) neither counts nor breaks the run.
-        against = (self._edge_veto or n_acc < c.confirm_min_inlier_fraction * n_found
-                   or (np.isfinite(mean_nis) and mean_nis > c.max_mean_nis))
         if strong:
             self._good += 1
-        elif against or self.confirmed or not c.confirm_hold_neutral:
+        elif (self.confirmed or not c.confirm_hold_neutral or self._edge_veto
+              or n_acc < c.confirm_min_inlier_fraction * n_found
+              or (np.isfinite(mean_nis) and mean_nis > c.max_mean_nis)):
+            # Not a frame with too little support but nothing against the pose (the corners
+            # it found agree, no edge veto): that one neither counts nor breaks the run.
             self._good = 0
         self._vetoes = self._vetoes + 1 if self._edge_veto else 0
         if self.confirmed and not bad:

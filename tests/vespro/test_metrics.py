@@ -30,6 +30,11 @@ def test_symmetric_box_rotated_180_has_zero_add_s_but_large_add():
     assert metrics.add_s(Te, T, box) == pytest.approx(0.0, abs=1e-12)
     assert metrics.add(Te, T, box) > 0.05
     assert metrics.mssd(Te, T, box, symmetries=[np.eye(4), flip]) == pytest.approx(0.0, abs=1e-12)
+    assert metrics.add_sym(Te, T, box, [np.eye(4), flip]) == pytest.approx(0.0, abs=1e-12)
+    moved = Te.copy()
+    moved[:3, 3] += [0.003, 0.004, 0.0]  # 5 mm: ADD to the nearest equivalent, not ADD-S
+    assert metrics.add_sym(moved, T, box, [np.eye(4), flip]) == pytest.approx(0.005)
+    assert metrics.add_sym(Te, T, box, [np.eye(4)]) == pytest.approx(metrics.add(Te, T, box))
     assert metrics.rotation_errors(Te[None], T[None])[0] == pytest.approx(np.pi)
 
 

@@ -40,6 +40,7 @@ import numpy as np
 
 from ..bsp import load_or_build_bsp
 from ..frames import FrameSet
+from ..metrics import add_sym
 from ..model import Model
 from ..rig import Rig
 from ..se3 import exp_so3, invert_transform, transform_from_rt
@@ -634,15 +635,9 @@ def _probe(T_world_object: np.ndarray, chk, views, setup: InitSetup) -> tuple[bo
 
 
 def _adds(mf: ModelFeatures, T1, T2) -> float:
-    """Distance between two poses: ADD over the model vertices, least over the part's symmetries, m.
-
-    Not ADD-S (nearest point): a part that is nearly symmetric, an L-block
-    turned over, lies close to itself point for point, so a distinct pose of it
-    could pass for the same one (a rival overlooked, a wrong lock).
-    """
-    A = mf.vertices @ T1[:3, :3].T + T1[:3, 3]
-    return float(min(np.mean(np.linalg.norm(A - (mf.vertices @ (T2 @ S)[:3, :3].T + (T2 @ S)[:3, 3]), axis=1))
-                     for S in mf.symmetries))
+    """Distance between two poses: ADD over the model vertices, least over the part's symmetries, m
+    (:func:`vespro.metrics.add_sym`: not ADD-S, or a rival would be overlooked)."""
+    return add_sym(T1, T2, mf.vertices, mf.symmetries)
 
 
 def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.ndarray | None = None,
