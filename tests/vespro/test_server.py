@@ -234,7 +234,7 @@ def test_a_provisional_start_is_published_once_the_initialiser_confirms_it(rec_p
     assert tracker.starts_replaced >= 1  # the first pose, 5 cm off, replaced
     if mode:
         assert any(ln.endswith("a provisional pose") for ln in lines), lines
-    else:  # lockstep: called on every frame set until confirmed on the first non-provisional one
+    else:  # lockstep: called on every frame set until confirmed on frame set 6, published there
         assert first == 6 and ini.calls[:7] == list(range(7)), (status, ini.calls)
 
 
