@@ -64,7 +64,7 @@ import numpy as np  # noqa: E402
 
 from bench._table import print_table, stats_ms  # noqa: E402
 from vespro.init import make_initializer  # noqa: E402
-from vespro.metrics import add  # noqa: E402
+from vespro.metrics import add, add_sym  # noqa: E402
 from vespro.model import load_model  # noqa: E402
 from vespro.sim.cell import OccluderSweep, SimCell  # noqa: E402
 from vespro.sim.trials import model_symmetries, random_rig, trial_config  # noqa: E402
@@ -76,7 +76,7 @@ BASELINE = dict(min_supported_edges=0, min_supported_edges_single=0, min_size_px
 
 
 def sym_add(T_est, T_true, model, syms):
-    return min(add(T_est, T_true @ S, model.vertices) for S in syms)
+    return add_sym(T_est, T_true, model.vertices, syms)
 
 
 class _Gated:
@@ -243,7 +243,6 @@ def main(argv=None):
         raise SystemExit("--stride 0 (real-time cadence) needs --track")
     rows = []
     totals = {"ours": [0, 0, 0], "base": [0, 0, 0]}
-    track_totals = [0, 0, 0]
     by_rig = {}  # rig kind -> [published within the budget, wrong locks, trials] (tracker)
     t_start = time.perf_counter()
     for obj in a.objects.split(","):
@@ -280,10 +279,10 @@ def main(argv=None):
                     row += [len(t_ok) / a.trials, len(t_wrong),
                             float(np.median(t_at)) if t_at else float("nan"),
                             float(np.max(t_at)) if t_at else float("nan")]
-                    for tot in (track_totals, by_rig.setdefault(rk, [0, 0, 0])):
-                        tot[0] += len(t_ok)
-                        tot[1] += len(t_wrong)
-                        tot[2] += a.trials
+                    tot = by_rig.setdefault(rk, [0, 0, 0])
+                    tot[0] += len(t_ok)
+                    tot[1] += len(t_wrong)
+                    tot[2] += a.trials
                 totals[m][0] += len(ok)
                 totals[m][1] += len(wrong)
                 totals[m][2] += a.trials
@@ -310,7 +309,7 @@ def main(argv=None):
         if n:
             print(f"{m}: success {ok}/{n} = {ok / n:.3f}, wrong locks {wrong}")
     if a.track:
-        ok, wrong, n = track_totals
+        ok, wrong, n = np.sum(list(by_rig.values()), axis=0)
         print(f"tracker: published tracking within {a.frames} frames (ADD < 10%) {ok}/{n} = {ok / n:.3f}, "
               f"wrong locks (a tracking frame with ADD >= 10% in {a.track} frames) {wrong}")
         for rk, (ok, wrong, n) in by_rig.items():

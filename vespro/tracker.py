@@ -547,11 +547,12 @@ class Tracker:
         self.require_confirmation(t_ns)
         self.status = STATUS_INITIALIZING
 
-    def require_confirmation(self, t_ns: int) -> None:
+    def require_confirmation(self, t_ns: int, keep_strong: bool = False) -> None:
         """Publish ``initializing`` until the filter is confirmed again, from the frame at
-        ``t_ns`` on (and within ``confirm_within_s`` of it)."""
+        ``t_ns`` on (and within ``confirm_within_s`` of it); ``keep_strong``: the strong
+        frames counted so far still count."""
         self.confirmed = False
-        self._good = 0
+        self._good = self._good if keep_strong else 0
         self._recover_t_ns = None
         self._vetoes = 0
         self._start_found = {}
@@ -626,9 +627,7 @@ class Tracker:
             return True
         if not init.provisional:
             self.provisional = False
-            self._start_found = {}
-            self._vetoes = 0
-            self._start_t_ns = t_ns
+            self.require_confirmation(t_ns, keep_strong=True)
         return False
 
     def _camera_pose(self, fs: FrameSet, name: str) -> np.ndarray | None:

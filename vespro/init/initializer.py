@@ -830,16 +830,15 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
     if ok and not confirmed and opt.probe_single and chk.n_cameras == 1:
         ok, why = _probe(T_best, chk, _judging(views, chk), setup)
     plain = plain and ok  # passed every check, under the looser limits
-    if plain and opt.confirm_plain and not confirmed:
-        if opt.provisional_start:
-            res, rep = finish(T_best, chk, "provisional", nh)
-            return replace(res, provisional=True), replace(rep, candidates=tuple(refined), plain=True)
+    provisional = plain and opt.confirm_plain and not confirmed
+    if provisional and not opt.provisional_start:
         ok, why = False, "plain faces: to be confirmed on the next call"
     if not ok:
         return None, InitReport(time.perf_counter() - t0, time.thread_time() - c0, "none", nh, False, chk.inlier_frac, chk.per_camera,
                                 chk.supported_edges, chk.visible_edges, why, tuple(refined), plain)
-    res, rep = finish(T_best, chk, "confirm" if plain and opt.confirm_plain else "search", nh)
-    return res, replace(rep, candidates=tuple(refined), plain=plain)
+    mode = "provisional" if provisional else "confirm" if plain and opt.confirm_plain else "search"
+    res, rep = finish(T_best, chk, mode, nh)
+    return replace(res, provisional=provisional), replace(rep, candidates=tuple(refined), plain=plain)
 
 
 class Initializer:
