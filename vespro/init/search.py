@@ -806,9 +806,13 @@ class EdgeFit:
     rms_px : float
         Weighted RMS of those residuals, px.
     n_samples, n_edges : int
-        Edge samples with an edge point found, and the model edges they lie on.
+        Edge samples with an edge point found (and their edge not dropped as
+        an outlier), and the model edges they lie on.
     n_searched : int
         Visible edge samples searched (``n_samples`` of them found an edge point).
+    weight : float or None
+        Summed weight of the ``n_samples`` (each at most 1; see ``spacing_px``
+        of :func:`refine_subpixel`); None: each weighs 1.
     """
 
     normal: np.ndarray
@@ -816,6 +820,7 @@ class EdgeFit:
     n_samples: int
     n_edges: int
     n_searched: int = 0
+    weight: float | None = None
 
     @property
     def found_frac(self) -> float:
@@ -839,7 +844,8 @@ class EdgeFit:
         except np.linalg.LinAlgError:
             return None
         n_indep = 2.0 * min(self.n_edges, max_independent_edges)
-        s2 = max(self.rms_px, min_sigma_px) ** 2 * max(self.n_samples / n_indep, 1.0)
+        n_eff = self.n_samples if self.weight is None else self.weight
+        s2 = max(self.rms_px, min_sigma_px) ** 2 * max(n_eff / n_indep, 1.0)
         # x = [w, dp] with R = R0 Exp(w): dtheta (left, world) = R0 w.
         M = np.zeros((6, 6))
         M[:3, 3:] = np.eye(3)
@@ -852,7 +858,8 @@ class EdgeFit:
 
 def refine_subpixel(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFeatures, tree=None,
                     rounds: int = 4, search_px: float = 3.0, min_grad: float = 40.0, f_scale: float = 0.7,
-                    shared_edge_px: float = 1.5, info: bool = False):
+                    shared_edge_px: float = 1.5, spacing_px: float = 0.0, edge_outlier_px: float = 0.0,
+                    info: bool = False):
     """Final sub-pixel refinement by 1D edge search along the projected normals.
 
     Each visible edge sample looks along its projected edge normal (within
@@ -865,7 +872,18 @@ def refine_subpixel(T_world_object: np.ndarray, views: list[CameraView], mf: Mod
     nearer one (:func:`shared_edge_losers`): counted for both, it pulled the
     thin strip of a face seen edge-on onto one image edge and the pose of a
     single-camera L-block view 12% of the diameter off along the ray, even
-    when refined from the true pose (0 turns it off). Canny pixels and the distance maps are only
+    when refined from the true pose (0 turns it off). With ``spacing_px``,
+    an edge's samples weigh together at most one per ``spacing_px`` of its
+    projected length: the samples are spaced evenly along the model edge, so
+    an edge that points at the camera packs many of them into a few pixels
+    between two junctions, where the blurs of the edges meeting there mix,
+    and would count as much as a long edge seen square on (see
+    :class:`vespro.edgeaid.EdgeAid` for what that did to one-camera fits).
+    With ``edge_outlier_px``, an edge whose residuals the solved step leaves
+    more than that off on average (weighted) has found a neighbouring image
+    edge (its own too faint: a dark face on a dark background); it is left out
+    of the round and the step solved again (twice at most, keeping four
+    edges). Canny pixels and the distance maps are only
     pixel-accurate; this removes that quantisation from the final pose.
 
     Returns
@@ -878,7 +896,7 @@ def refine_subpixel(T_world_object: np.ndarray, views: list[CameraView], mf: Mod
     offs = np.arange(-search_px, search_px + 1e-9, 0.5)
     fit = None
     for _ in range(rounds):
-        rows_J, rows_r, rows_e = [], [], []
+        rows_J, rows_r, rows_e, rows_d = [], [], [], []
         n_searched = 0
         for v in views:
             T_cw = invert_transform(v.T_world_camera)
@@ -890,6 +908,11 @@ def refine_subpixel(T_world_object: np.ndarray, views: list[CameraView], mf: Mod
             K = v.feat.K
             ua, _ = _project(K, T_co, mf.edge_a)
             ub, _ = _project(K, T_co, mf.edge_b)
+            dens = np.ones(idx.size)
+            if spacing_px > 0:
+                e = mf.sample_edge[idx]
+                per_edge = np.bincount(e, minlength=len(mf.edge_a))
+                dens = np.minimum(1.0, np.linalg.norm(ub - ua, axis=1)[e] / (spacing_px * per_edge[e]))
             d = (ub - ua)[mf.sample_edge[idx]]
             n = np.stack([-d[:, 1], d[:, 0]], 1)
             n /= np.linalg.norm(n, axis=1, keepdims=True) + 1e-12
@@ -907,6 +930,7 @@ def refine_subpixel(T_world_object: np.ndarray, views: list[CameraView], mf: Mod
                                            shared_edge_px)]] = False
             # Residual: n . (uv - target) = -s*; Jacobian n^T d(uv)/dx.
             X, z, n, sstar, P = X[ok], z[ok], n[ok], sstar[ok], P[ok]
+            rows_d.append(dens[ok])
             du = np.stack([K[0, 0] / z, 0 * z, -K[0, 0] * X[:, 0] / z ** 2], 1)
             dv = np.stack([0 * z, K[1, 1] / z, -K[1, 1] * X[:, 1] / z ** 2], 1)
             g_w = (n[:, :1] * du + n[:, 1:] * dv) @ T_cw[:3, :3]
@@ -920,12 +944,30 @@ def refine_subpixel(T_world_object: np.ndarray, views: list[CameraView], mf: Mod
         r = np.concatenate(rows_r)
         if len(r) < 12:
             break
-        w = np.where(np.abs(r) <= f_scale, 1.0, f_scale / np.maximum(np.abs(r), 1e-12))
-        JW = J * w[:, None]
-        A = JW.T @ J
-        fit = EdgeFit(A, float(np.sqrt(np.sum(w * r * r) / np.sum(w))), len(r), len(np.unique(np.concatenate(rows_e))),
-                      n_searched)
-        step = np.linalg.solve(A + 1e-6 * np.diag(np.diag(A) + 1e-9), -(JW.T @ r))
+        dens = np.concatenate(rows_d)
+        eid = np.concatenate(rows_e)
+        w = dens * np.where(np.abs(r) <= f_scale, 1.0, f_scale / np.maximum(np.abs(r), 1e-12))
+        keep = np.ones(len(r), bool)
+        for drops in range(3):
+            JW = J * w[:, None]
+            A = JW.T @ J
+            step = np.linalg.solve(A + 1e-6 * np.diag(np.diag(A) + 1e-9), -(JW.T @ r))
+            if edge_outlier_px <= 0 or drops == 2:
+                break
+            # Edges the fitted pose leaves off on average found a neighbouring image edge: out,
+            # and the step solved again without them (twice at most).
+            u, inv = np.unique(eid, return_inverse=True)
+            wsum = np.bincount(inv, w, len(u))
+            mean = np.bincount(inv, w * (r + J @ step), len(u)) / np.maximum(wsum, 1e-12)
+            out = (np.abs(mean) > edge_outlier_px) & (wsum > 0)
+            if not out.any() or np.count_nonzero(~out & (wsum > 0)) < 4:
+                break
+            keep &= ~out[inv]
+            w = np.where(keep, w, 0.0)
+        if keep.sum() < 12:
+            break
+        fit = EdgeFit(A, float(np.sqrt(np.sum(w * r * r) / np.sum(w))), int(keep.sum()), len(np.unique(eid[keep])),
+                      n_searched, float(np.sum(dens[keep])))
         T = _perturbed(T, step)
         if np.linalg.norm(step[:3]) < 1e-5 and np.linalg.norm(step[3:]) < 1e-6:
             break
