@@ -101,16 +101,21 @@ class EdgeAid:
         7% and its std grows to 5-6.5 mm. 0: off.
     spacing_px : float
         An edge's samples weigh together at most one per ``spacing_px`` of its
-        projected length (see :func:`vespro.init.search.refine_subpixel`).
-        Measured on 720 one-camera views (box, L-block, bracket; seeds 0-19,
-        40-59, 200-219; frames 0, 10, 20, 30), fitted from the true pose with
-        image noise: the 90th percentile of the error along the line of
-        sight fell from 3.0-3.3% of the diameter to 2.7-2.9% and fits more
-        than 5% off from 23 to 14; without image noise (seeds 40-59) from
-        1.2% to 0.8%.
-        Dropping the edges of faces seen as strips under 2-6 px wide, or
-        the samples within 1-3 px of an edge's ends, removed more of the
-        noise-free bias but left the noisy fits worse (fewer samples). 0: off.
+        projected length (see :func:`vespro.init.search.refine_subpixel`). 0: off.
+    edge_outlier_px : float
+        An edge the solved step leaves more than this off on average is left
+        out of the round (a faint edge found on its neighbour). 0: off.
+        Measured, fitted from the true pose on one-camera views (box,
+        L-block, bracket; frames 0, 10, 20, 30): with image noise (960 views,
+        seeds 0-19, 40-59, 200-219, 600-619) the 90th percentile of the error
+        along the line of sight fell from 2.7-3.3% of the diameter to
+        2.5-3.0% and fits more than 5% off from 26 to 20; without (seeds
+        40-59) from 1.2% to 0.7%. Spacing alone did as well with noise but
+        left an L-block view whose dark face loses two silhouette edges
+        (seed 610) 10-13 mm off where both give 0-0.7 mm. Dropping the edges
+        of faces seen as strips under 2-6 px wide, or the samples within 1-3
+        px of an edge's ends, removed more of the noise-free error but left
+        the noisy fits worse (fewer samples); not kept.
     """
 
     def __init__(self, rig: Rig, model: Model, tree=None, blur_sigma: float = 0.8, search_px: float = 3.0,
