@@ -149,15 +149,17 @@ def _overrides(text: str) -> dict:
     return out
 
 
-def run_tracked(trial: Trial, track_frames: int, config_set: dict | None = None, edge_set: dict | None = None):
+def run_tracked(trial: Trial, track_frames: int, config_set: dict | None = None, edge_set: dict | None = None,
+                init_set: dict | None = None):
     """One trial through the tracker: the initialiser as its hook; status and ADD per frame.
 
     ``config_set``: ``TrackerConfig`` fields to change; ``edge_set``: attributes
-    of the tracker's ``EdgeAid`` to change (both for A/B runs from the command line).
+    of the tracker's ``EdgeAid`` to change; ``init_set``: ``InitOptions`` fields to
+    change (all for A/B runs from the command line).
     """
     model, syms, frames = trial.model, trial.syms, trial.frames
     rig, config, motion = trial.cell_setup()
-    gate = _Gated(make_initializer(rig, model), trial.stride)
+    gate = _Gated(make_initializer(rig, model, **(init_set or {})), trial.stride)
     tracker = Tracker(rig, model, config=replace(TrackerConfig(), **(config_set or {})), initializer=gate)
     for k, v in (edge_set or {}).items():
         if tracker.edge_aid is None or not hasattr(tracker.edge_aid, k):
@@ -261,11 +263,13 @@ def main(argv=None):
                     help="with --track: TrackerConfig fields to change, e.g. q_acc=0.02,recover_frames=2")
     ap.add_argument("--edge-aid", default="", metavar="K=V,...",
                     help="with --track: attributes of the tracker's EdgeAid to change, e.g. grazing_cos=0")
+    ap.add_argument("--init-set", default="", metavar="K=V,...",
+                    help="with --track: InitOptions fields to change, e.g. min_supported_edges_confirm=5")
     ap.add_argument("--verbose", action="store_true")
     a = ap.parse_args(argv)
-    config_set, edge_set = _overrides(a.set), _overrides(a.edge_aid)
-    if (config_set or edge_set) and not a.track:
-        raise SystemExit("--set and --edge-aid change the tracker: they need --track")
+    config_set, edge_set, init_set = _overrides(a.set), _overrides(a.edge_aid), _overrides(a.init_set)
+    if (config_set or edge_set or init_set) and not a.track:
+        raise SystemExit("--set, --edge-aid and --init-set apply to the tracked runs: they need --track")
     if a.track:
         a.no_baseline = True
         a.track = max(a.track, a.frames)
@@ -282,7 +286,7 @@ def main(argv=None):
         for rk in a.rigs.split(","):
             trials = [Trial(obj, model, syms, rk, a.seed + i, a.frames, a.stride, a.hide) for i in range(a.trials)]
             if a.track:
-                res = [{"ours": run_tracked(t, a.track, config_set, edge_set)} for t in trials]
+                res = [{"ours": run_tracked(t, a.track, config_set, edge_set, init_set)} for t in trials]
             else:
                 res = [run_trial(t, not a.no_baseline) for t in trials]
             row = [obj, rk, a.trials]

@@ -171,10 +171,13 @@ def test_edges_veto_a_start_that_slid_on_wrong_corners():
 
 def test_fits_that_find_half_the_outline_count_for_less():
     """L-block, rig seed 610, one camera, started at frame 30 from the true pose: its dark
-    face leaves 48-61% of the outline to find. Taken at their residuals' word, those fits
-    (3 mm position std each) pulled the published track 29 mm along the line of sight, up
-    to 17.6% of the diameter (the premise, ``found_power`` 0, checked here); divided by the
-    squared found fraction they leave it within 10% (measured 7.1%)."""
+    face leaves 48-61% of the outline to find (40-52% weighted by image length). Taken at
+    their residuals' word, those fits (3 mm position std each) pulled the published track
+    29 mm along the line of sight, up to 17.6% of the diameter (the premise, ``found_power``
+    0, checked here); divided by the squared found fraction they leave it within 10%
+    (measured 6.0%). With so little of the outline found the edges do not help confirm the
+    start: it waits for 6 corners and is published from frame 40, on 14 of the 18 frames
+    from there (3 corners on frames 44 and 54-56)."""
     rig, model, frames = _one_camera_frames("lblock", 610, 58)
     syms = model_symmetries(model.vertices)
 
@@ -185,7 +188,7 @@ def test_fits_that_find_half_the_outline_count_for_less():
         return _published_errors(tr, frames[30:], model, syms)
 
     errs = run(EdgeAid(rig, model).found_power)
-    assert len(errs) >= 20 - 4 and max(errs) < 0.1, errs
+    assert len(errs) >= 12 and max(errs) < 0.1, errs
     errs_off = run(0.0)
     assert max(errs_off) > 0.1, errs_off
 
@@ -242,3 +245,47 @@ def test_edge_fits_weigh_edges_by_their_image_and_drop_edges_left_off(obj, seed,
                 depth[g].append((m.T_world_object[:3, 3] - T[:3, 3]) @ ray)
     assert min(np.abs(depth["alike"])) > off_min, depth["alike"]  # the premise
     assert max(np.abs(depth["default"])) < on_max, depth["default"]
+
+
+@pytest.mark.parametrize("seed", [200, 53])
+def test_a_face_seen_as_a_strip_leaves_the_outline_whole(seed):
+    """A box lying flat seen from above by one camera (rig seeds 200, 53): its top face and
+    the strips of side faces under 3 px wide, whose two long edges are one image edge.
+    Fitted from the true pose on frames 0-5, the samples fitted are 62-82% of those searched
+    (the strip's second edge loses its image edge to the nearer parallel one, and the 31-47
+    samples of an edge foreshortened to 2-3 px count one each): the outline looked half
+    missing and the track was never confirmed. Weighted by image length, with the samples
+    that lost their edge to a strip's other side counted as found, 98-100% is found."""
+    rig, model, frames = _one_camera_frames("box", seed, 6)
+    cam = rig.cameras[0]
+    aid = EdgeAid(rig, model)
+    raw, found = [], []
+    for fs, T in frames:
+        m = aid.measure(cam.name, fs.images[cam.name], cam.T_world_camera, T)
+        assert m is not None
+        raw.append(m.fit.n_samples / m.fit.n_searched)
+        found.append(m.fit.found_frac)
+    assert max(raw) < 0.85, raw  # the premise: counted sample by sample, a third seems missing
+    assert min(found) > 0.95, found
+
+
+@pytest.mark.parametrize("seed", [200, 17])
+def test_a_box_seen_from_above_by_one_camera_is_published(seed):
+    """Box lying flat, one camera above it (rig seeds 200 and 17), initialiser on every 5th
+    frame: one open face and 5-6 edges, under the 7 a one-camera pose needs. Accepted as
+    provisional with 5 (``min_supported_edges_confirm``), found again by the next call and
+    confirmed by the tracker, it is published from frame 5 and stays within 10% of the
+    diameter (measured 3-7%); with 7 edges needed nothing is published in the second."""
+    from vespro.init import make_initializer
+
+    rig, model, frames = _one_camera_frames("box", seed, 26)
+    syms = model_symmetries(model.vertices)
+
+    def run(**opts):
+        ini = make_initializer(rig, model, **opts)
+        tr = Tracker(rig, model, initializer=lambda fs: None if fs.index % 5 else ini(fs))
+        return _published_errors(tr, frames, model, syms)
+
+    errs = run()
+    assert len(errs) >= 18 and max(errs) < 0.1, errs
+    assert run(min_supported_edges_confirm=7) == []

@@ -481,6 +481,29 @@ def visible_samples(T_camera_object: np.ndarray, mf: ModelFeatures, tree=None) -
     return idx
 
 
+def face_widths_px(T_camera_object: np.ndarray, K: np.ndarray, mf: ModelFeatures) -> np.ndarray:
+    """Each face's width in the image, px: projected area over its longest projected edge.
+
+    A face seen nearly edge on is a strip this wide (0 behind the camera:
+    no face is judged thin there).
+    """
+    R, t = T_camera_object[:3, :3], T_camera_object[:3, 3]
+    X = mf.tri_p @ R.T + t  # (T, 3, 3)
+    F = len(mf.face_normals)
+    if np.any(X[..., 2] <= 1e-9):
+        return np.full(F, np.inf)
+    uv = X[..., :2] / X[..., 2:3] * K[[0, 1], [0, 1]]
+    d1, d2 = uv[:, 1] - uv[:, 0], uv[:, 2] - uv[:, 0]
+    area = np.bincount(mf.tri_face, 0.5 * np.abs(d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0]), F)
+    ua, _ = _project(K, T_camera_object, mf.edge_a)
+    ub, _ = _project(K, T_camera_object, mf.edge_b)
+    length = np.linalg.norm(ub - ua, axis=1)
+    longest = np.zeros(F)
+    for k in range(2):
+        np.maximum.at(longest, mf.edge_faces[:, k], length)
+    return area / np.maximum(longest, 1e-9)
+
+
 def _project(K, T_camera_object, P):
     X = P @ T_camera_object[:3, :3].T + T_camera_object[:3, 3]
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -813,6 +836,12 @@ class EdgeFit:
     weight : float or None
         Summed weight of the ``n_samples`` (each at most 1; see ``spacing_px``
         of :func:`refine_subpixel`); None: each weighs 1.
+    found_weight, searched_weight : float or None
+        Summed weight of the samples that found their image edge (the fitted
+        ones, and those on an edge of a face seen as a strip under twice
+        ``shared_edge_px`` wide whose image edge a nearer parallel model edge
+        took: such a face shows its two edges as one) and of all searched;
+        None: ``n_samples`` and ``n_searched``.
     """
 
     normal: np.ndarray
@@ -821,10 +850,14 @@ class EdgeFit:
     n_edges: int
     n_searched: int = 0
     weight: float | None = None
+    found_weight: float | None = None
+    searched_weight: float | None = None
 
     @property
     def found_frac(self) -> float:
-        """Fraction of the visible samples that found an edge point (0 when none searched)."""
+        """Fraction of the visible outline (samples, weighted) that found its image edge (0 when none searched)."""
+        if self.found_weight is not None and self.searched_weight is not None:
+            return min(self.found_weight / max(self.searched_weight, 1e-12), 1.0)
         return self.n_samples / max(self.n_searched, 1)
 
     def covariance(self, R_world_object: np.ndarray, min_sigma_px: float = 0.3,
@@ -898,6 +931,7 @@ def refine_subpixel(T_world_object: np.ndarray, views: list[CameraView], mf: Mod
     for _ in range(rounds):
         rows_J, rows_r, rows_e, rows_d = [], [], [], []
         n_searched = 0
+        w_searched = w_shared = 0.0  # summed sample weights: searched; found but lost to a parallel edge
         for v in views:
             T_cw = invert_transform(v.T_world_camera)
             T_co = T_cw @ T
@@ -913,6 +947,7 @@ def refine_subpixel(T_world_object: np.ndarray, views: list[CameraView], mf: Mod
                 e = mf.sample_edge[idx]
                 per_edge = np.bincount(e, minlength=len(mf.edge_a))
                 dens = np.minimum(1.0, np.linalg.norm(ub - ua, axis=1)[e] / (spacing_px * per_edge[e]))
+            w_searched += float(dens.sum())
             d = (ub - ua)[mf.sample_edge[idx]]
             n = np.stack([-d[:, 1], d[:, 0]], 1)
             n /= np.linalg.norm(n, axis=1, keepdims=True) + 1e-12
@@ -926,8 +961,15 @@ def refine_subpixel(T_world_object: np.ndarray, views: list[CameraView], mf: Mod
             if shared_edge_px > 0:
                 k_ok = np.flatnonzero(ok)
                 tgt = uv[k_ok] + sstar[k_ok, None] * n[k_ok]
-                ok[k_ok[shared_edge_losers(tgt, mf.sample_edge[idx[k_ok]], ub - ua, np.abs(sstar[k_ok]),
-                                           shared_edge_px)]] = False
+                lost = k_ok[shared_edge_losers(tgt, mf.sample_edge[idx[k_ok]], ub - ua, np.abs(sstar[k_ok]),
+                                               shared_edge_px)]
+                ok[lost] = False
+                if lost.size:
+                    # A face seen edge on shows its two edges as one image edge: there, the
+                    # sample that lost it still found its outline.
+                    thin = face_widths_px(T_co, K, mf) < 2.0 * shared_edge_px
+                    ef = mf.edge_faces[mf.sample_edge[idx[lost]]]
+                    w_shared += float(dens[lost][np.any(thin[ef], axis=1)].sum())
             # Residual: n . (uv - target) = -s*; Jacobian n^T d(uv)/dx.
             X, z, n, sstar, P = X[ok], z[ok], n[ok], sstar[ok], P[ok]
             rows_d.append(dens[ok])
@@ -967,7 +1009,7 @@ def refine_subpixel(T_world_object: np.ndarray, views: list[CameraView], mf: Mod
         if keep.sum() < 12:
             break
         fit = EdgeFit(A, float(np.sqrt(np.sum(w * r * r) / np.sum(w))), int(keep.sum()), len(np.unique(eid[keep])),
-                      n_searched, float(np.sum(dens[keep])))
+                      n_searched, float(np.sum(dens[keep])), float(np.sum(dens[keep])) + w_shared, w_searched)
         T = _perturbed(T, step)
         if np.linalg.norm(step[:3]) < 1e-5 and np.linalg.norm(step[3:]) < 1e-6:
             break
