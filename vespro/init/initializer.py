@@ -180,7 +180,7 @@ class InitOptions:
         Such a pose (one open face) needs only this many supported edges
         instead of ``min_supported_edges_single``: a box lying flat and seen
         from above shows its top face's four edges and the strips of one or
-        two side faces, 5-6 edges, every one of them supported; 14 of the 24
+        two side faces, 5-6 edges, every one of them supported; 11 of the 24
         one-camera trials missed in six seed sets were such views, their
         best candidates 2-9% of the diameter off. Provisional, so confirmed
         by the next call and then by the tracker (whose edge fits count a
