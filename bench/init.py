@@ -262,7 +262,7 @@ def main(argv=None):
     ap.add_argument("--set", default="", metavar="K=V,...",
                     help="with --track: TrackerConfig fields to change, e.g. q_acc=0.02,recover_frames=2")
     ap.add_argument("--edge-aid", default="", metavar="K=V,...",
-                    help="with --track: attributes of the tracker's EdgeAid to change, e.g. grazing_cos=0")
+                    help="with --track: attributes of the tracker's EdgeAid to change, e.g. spacing_px=0,edge_outlier_px=0")
     ap.add_argument("--init-set", default="", metavar="K=V,...",
                     help="with --track: InitOptions fields to change, e.g. min_supported_edges_confirm=5")
     ap.add_argument("--verbose", action="store_true")

@@ -496,4 +496,3 @@ def test_image_paths_with_one_end_add_the_corners_an_edge_runs_past():
     assert not np.any(strict[:, 1] == b)
     assert np.any(loose[:, 1] == b)
     assert set(map(tuple, strict.tolist())) <= set(map(tuple, loose.tolist()))
-

@@ -528,9 +528,9 @@ def _verdict(chk, opt: InitOptions) -> tuple[bool, bool, str]:
             not (opt.plain_faces and chk.interior_edge_frac > opt.plain_max_interior_edge_frac):
         loose = replace(opt, min_open_faces_single=min(opt.min_open_faces_single, opt.min_open_faces_confirm),
                         max_overrun_frac_single=max(opt.max_overrun_frac_single, opt.max_overrun_frac_confirm),
-                        min_supported_edges_single=min(opt.min_supported_edges_single,
-                                                       opt.min_supported_edges_confirm if few_faces else
-                                                       opt.min_supported_edges_single))
+                        min_supported_edges_single=(min(opt.min_supported_edges_single,
+                                                        opt.min_supported_edges_confirm) if few_faces
+                                                    else opt.min_supported_edges_single))
         if _accept(chk, loose)[0]:
             return True, True, ""
     return False, False, why

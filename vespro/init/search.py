@@ -481,11 +481,13 @@ def visible_samples(T_camera_object: np.ndarray, mf: ModelFeatures, tree=None) -
     return idx
 
 
-def face_widths_px(T_camera_object: np.ndarray, K: np.ndarray, mf: ModelFeatures) -> np.ndarray:
+def face_widths_px(T_camera_object: np.ndarray, K: np.ndarray, mf: ModelFeatures,
+                   edge_len_px: np.ndarray) -> np.ndarray:
     """Each face's width in the image, px: projected area over its longest projected edge.
 
-    A face seen nearly edge on is a strip this wide (0 behind the camera:
-    no face is judged thin there).
+    A face seen nearly edge on is a strip this wide (inf for every face when
+    part of the model is behind the camera: no face is judged thin there).
+    ``edge_len_px`` (E,): the model edges' projected lengths.
     """
     R, t = T_camera_object[:3, :3], T_camera_object[:3, 3]
     X = mf.tri_p @ R.T + t  # (T, 3, 3)
@@ -495,12 +497,9 @@ def face_widths_px(T_camera_object: np.ndarray, K: np.ndarray, mf: ModelFeatures
     uv = X[..., :2] / X[..., 2:3] * K[[0, 1], [0, 1]]
     d1, d2 = uv[:, 1] - uv[:, 0], uv[:, 2] - uv[:, 0]
     area = np.bincount(mf.tri_face, 0.5 * np.abs(d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0]), F)
-    ua, _ = _project(K, T_camera_object, mf.edge_a)
-    ub, _ = _project(K, T_camera_object, mf.edge_b)
-    length = np.linalg.norm(ub - ua, axis=1)
     longest = np.zeros(F)
     for k in range(2):
-        np.maximum.at(longest, mf.edge_faces[:, k], length)
+        np.maximum.at(longest, mf.edge_faces[:, k], edge_len_px)
     return area / np.maximum(longest, 1e-9)
 
 
@@ -832,33 +831,30 @@ class EdgeFit:
         Edge samples with an edge point found (and their edge not dropped as
         an outlier), and the model edges they lie on.
     n_searched : int
-        Visible edge samples searched (``n_samples`` of them found an edge point).
-    weight : float or None
+        Visible edge samples searched.
+    weight : float
         Summed weight of the ``n_samples`` (each at most 1; see ``spacing_px``
-        of :func:`refine_subpixel`); None: each weighs 1.
-    found_weight, searched_weight : float or None
+        of :func:`refine_subpixel`).
+    found_weight, searched_weight : float
         Summed weight of the samples that found their image edge (the fitted
         ones, and those on an edge of a face seen as a strip under twice
         ``shared_edge_px`` wide whose image edge a nearer parallel model edge
-        took: such a face shows its two edges as one) and of all searched;
-        None: ``n_samples`` and ``n_searched``.
+        took: such a face shows its two edges as one) and of all searched.
     """
 
     normal: np.ndarray
     rms_px: float
     n_samples: int
     n_edges: int
-    n_searched: int = 0
-    weight: float | None = None
-    found_weight: float | None = None
-    searched_weight: float | None = None
+    n_searched: int
+    weight: float
+    found_weight: float
+    searched_weight: float
 
     @property
     def found_frac(self) -> float:
         """Fraction of the visible outline (samples, weighted) that found its image edge (0 when none searched)."""
-        if self.found_weight is not None and self.searched_weight is not None:
-            return min(self.found_weight / max(self.searched_weight, 1e-12), 1.0)
-        return self.n_samples / max(self.n_searched, 1)
+        return min(self.found_weight / max(self.searched_weight, 1e-12), 1.0)
 
     def covariance(self, R_world_object: np.ndarray, min_sigma_px: float = 0.3,
                    max_independent_edges: int = 12) -> np.ndarray | None:
@@ -877,8 +873,7 @@ class EdgeFit:
         except np.linalg.LinAlgError:
             return None
         n_indep = 2.0 * min(self.n_edges, max_independent_edges)
-        n_eff = self.n_samples if self.weight is None else self.weight
-        s2 = max(self.rms_px, min_sigma_px) ** 2 * max(n_eff / n_indep, 1.0)
+        s2 = max(self.rms_px, min_sigma_px) ** 2 * max(self.weight / n_indep, 1.0)
         # x = [w, dp] with R = R0 Exp(w): dtheta (left, world) = R0 w.
         M = np.zeros((6, 6))
         M[:3, 3:] = np.eye(3)
@@ -942,13 +937,14 @@ def refine_subpixel(T_world_object: np.ndarray, views: list[CameraView], mf: Mod
             K = v.feat.K
             ua, _ = _project(K, T_co, mf.edge_a)
             ub, _ = _project(K, T_co, mf.edge_b)
+            se = mf.sample_edge[idx]
+            edge_len = np.linalg.norm(ub - ua, axis=1)
             dens = np.ones(idx.size)
             if spacing_px > 0:
-                e = mf.sample_edge[idx]
-                per_edge = np.bincount(e, minlength=len(mf.edge_a))
-                dens = np.minimum(1.0, np.linalg.norm(ub - ua, axis=1)[e] / (spacing_px * per_edge[e]))
+                per_edge = np.bincount(se, minlength=len(mf.edge_a))
+                dens = np.minimum(1.0, edge_len[se] / (spacing_px * per_edge[se]))
             w_searched += float(dens.sum())
-            d = (ub - ua)[mf.sample_edge[idx]]
+            d = (ub - ua)[se]
             n = np.stack([-d[:, 1], d[:, 0]], 1)
             n /= np.linalg.norm(n, axis=1, keepdims=True) + 1e-12
             P = mf.sample_p[idx]
@@ -961,14 +957,13 @@ def refine_subpixel(T_world_object: np.ndarray, views: list[CameraView], mf: Mod
             if shared_edge_px > 0:
                 k_ok = np.flatnonzero(ok)
                 tgt = uv[k_ok] + sstar[k_ok, None] * n[k_ok]
-                lost = k_ok[shared_edge_losers(tgt, mf.sample_edge[idx[k_ok]], ub - ua, np.abs(sstar[k_ok]),
-                                               shared_edge_px)]
+                lost = k_ok[shared_edge_losers(tgt, se[k_ok], ub - ua, np.abs(sstar[k_ok]), shared_edge_px)]
                 ok[lost] = False
                 if lost.size:
                     # A face seen edge on shows its two edges as one image edge: there, the
                     # sample that lost it still found its outline.
-                    thin = face_widths_px(T_co, K, mf) < 2.0 * shared_edge_px
-                    ef = mf.edge_faces[mf.sample_edge[idx[lost]]]
+                    thin = face_widths_px(T_co, K, mf, edge_len) < 2.0 * shared_edge_px
+                    ef = mf.edge_faces[se[lost]]
                     w_shared += float(dens[lost][np.any(thin[ef], axis=1)].sum())
             # Residual: n . (uv - target) = -s*; Jacobian n^T d(uv)/dx.
             X, z, n, sstar, P = X[ok], z[ok], n[ok], sstar[ok], P[ok]
@@ -979,7 +974,7 @@ def refine_subpixel(T_world_object: np.ndarray, views: list[CameraView], mf: Mod
             R = T[:3, :3]
             rows_J.append(np.concatenate([np.cross(P @ R.T, g_w) @ R, g_w], 1))
             rows_r.append(-sstar)
-            rows_e.append(mf.sample_edge[idx[ok]] + len(mf.edge_a) * len(rows_e))
+            rows_e.append(se[ok] + len(mf.edge_a) * len(rows_e))
         if not rows_J:
             break
         J = np.concatenate(rows_J)
@@ -990,6 +985,7 @@ def refine_subpixel(T_world_object: np.ndarray, views: list[CameraView], mf: Mod
         eid = np.concatenate(rows_e)
         w = dens * np.where(np.abs(r) <= f_scale, 1.0, f_scale / np.maximum(np.abs(r), 1e-12))
         keep = np.ones(len(r), bool)
+        u, inv = np.unique(eid, return_inverse=True)
         for drops in range(3):
             JW = J * w[:, None]
             A = JW.T @ J
@@ -998,7 +994,6 @@ def refine_subpixel(T_world_object: np.ndarray, views: list[CameraView], mf: Mod
                 break
             # Edges the fitted pose leaves off on average found a neighbouring image edge: out,
             # and the step solved again without them (twice at most).
-            u, inv = np.unique(eid, return_inverse=True)
             wsum = np.bincount(inv, w, len(u))
             mean = np.bincount(inv, w * (r + J @ step), len(u)) / np.maximum(wsum, 1e-12)
             out = (np.abs(mean) > edge_outlier_px) & (wsum > 0)
