@@ -559,10 +559,20 @@ class Tracker:
         self._start_t_ns = t_ns
 
     def _lose(self) -> None:
+        """The filter goes. A confirmed track is lost: published ``lost`` until found again,
+        the initialiser seeded from its last good pose. A start from the initialiser not yet
+        confirmed is dropped as at ``confirm_within_s`` (counted in ``unconfirmed_drops``):
+        nothing was published from it and the initialiser looks again, so the status stays
+        ``initializing`` (a one-camera bracket start that went bad before confirming was
+        published ``lost`` for five frames, though the part had never been reported found).
+        Without an initialiser (a given start pose) there is nothing more to wait for: lost."""
         self.ekf = None
-        self.status = STATUS_LOST
-        self.lost_events += 1
-        self._reseeded = False
+        if self.confirmed or self.initializer is None:
+            self.status = STATUS_LOST
+            self.lost_events += 1
+            self._reseeded = False
+        else:
+            self.unconfirmed_drops += 1
 
     def recovery_seed(self):
         """After a loss, the last good pose, velocity and stamp (once), to seed re-initialisation."""
@@ -681,7 +691,7 @@ class Tracker:
             self._t_ns = fs.t_ns
         if not (np.all(np.isfinite(ekf.pose)) and np.all(np.isfinite(ekf.pose_covariance))):
             self._lose()
-            return TrackerOutput(fs.index, fs.t_ns, STATUS_LOST)
+            return TrackerOutput(fs.index, fs.t_ns, self.status)
         saved = (ekf.snapshot(), self.sigma_px, self.feature_factor.copy(), self._noise_updates)
         obs, n_found, n_acc, mean_nis, max_half, ok = self._measure(fs, stage)
         if ok and max_half >= c.refine_window_px:
@@ -950,7 +960,7 @@ class Tracker:
 
         if not np.all(np.isfinite(T)) or pos_std > c.max_pos_std or self._bad >= c.lost_after:
             self._lose()
-            return unpublished(STATUS_LOST)
+            return unpublished(self.status)
         if self.confirmed and bad:
             # Too little support this frame: the filter coasts (up to lost_after frames) but the
             # estimate is not published as tracking, nor after it until strong again (recover_frames).

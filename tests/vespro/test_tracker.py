@@ -564,6 +564,34 @@ def test_after_a_coast_a_track_is_published_again_only_when_strong(recs):
     assert "tracking" not in out[3:] and tr.ekf is None and tr.lost_events == 1
 
 
+def test_a_start_that_goes_bad_before_it_is_confirmed_leaves_the_status_initializing(recs):
+    """A started filter whose frames go bad (``lost_after`` in a row) before it was ever
+    confirmed is dropped for a fresh initialisation, as one not confirmed in time: the
+    part was never reported found, so the status stays ``initializing`` (not ``lost``),
+    no loss is counted and no recovery seed is offered. A confirmed track that goes bad
+    the same way is lost."""
+    from vespro.tracker import CameraObservation
+
+    rec = Recording(recs["box_conveyor"])
+    _, _, T = read_groundtruth(recs["box_conveyor"])
+    ids = np.arange(6)
+
+    def ob(n_acc):
+        acc = np.zeros(6, bool)
+        acc[:n_acc] = True
+        uv = np.where(acc[:, None], 0.0, np.nan)
+        return CameraObservation("cam_left", True, 6, ids, np.zeros((6, 2)), np.full(6, 3.0), uv, acc)
+
+    n_bad = TrackerConfig().lost_after
+    tr, out = _statuses(rec, T[0], [[ob(2)]] * (n_bad + 2))
+    assert out == ["initializing"] * n_bad and tr.ekf is None
+    assert tr.unconfirmed_drops == 1 and tr.lost_events == 0 and tr.status == "initializing"
+    assert tr.recovery_seed() is None
+    tr, out = _statuses(rec, T[0], [[ob(6)]] * 3 + [[ob(2)]] * (n_bad + 2))
+    assert out[:3] == ["initializing", "tracking", "tracking"] and out[-1] == "lost"
+    assert tr.ekf is None and tr.lost_events == 1 and tr.unconfirmed_drops == 0 and tr.status == "lost"
+
+
 def test_a_camera_that_finds_nothing_does_not_count_against_a_confirmed_track(recs):
     """A camera whose windows find (almost) nothing is blind (the arm in front of the part,
     unknown to the model): with another camera seeing the part (two for a start), its
