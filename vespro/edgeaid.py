@@ -116,12 +116,16 @@ class EdgeAid:
         of faces seen as strips under 2-6 px wide, or the samples within 1-3
         px of an edge's ends, removed more of the noise-free error but left
         the noisy fits worse (fewer samples); not kept.
+    edge_offset_px : float
+        Std of an offset common to all samples of one edge (the image edge
+        as a whole off the model's), added to the covariance (see
+        :meth:`vespro.init.search.EdgeFit.covariance`). 0: off.
     """
 
     def __init__(self, rig: Rig, model: Model, tree=None, blur_sigma: float = 0.8, search_px: float = 3.0,
                  min_samples: int = 40, min_edges: int = 5, min_sigma_px: float = 0.3,
                  max_independent_edges: int = 12, rounds: int = 2, found_power: float = 2.0,
-                 spacing_px: float = 2.0, edge_outlier_px: float = 1.0):
+                 spacing_px: float = 2.0, edge_outlier_px: float = 1.0, edge_offset_px: float = 0.0):
         self.mf = model_features(model)
         self.tree = None if self.mf.convex else tree
         self.undistort = {c.name: Undistorter(c.intrinsics) for c in rig}
@@ -136,6 +140,7 @@ class EdgeAid:
         self.found_power = found_power
         self.spacing_px = spacing_px
         self.edge_outlier_px = edge_outlier_px
+        self.edge_offset_px = edge_offset_px
 
     def _roi(self, K, T_world_camera, T_world_object, width, height):
         """Pixel box (x0, y0, x1, y1) around the model's projection, with room for the search."""
@@ -176,7 +181,7 @@ class EdgeAid:
                                  edge_outlier_px=self.edge_outlier_px)
         if fit is None or fit.n_samples < self.min_samples or fit.n_edges < self.min_edges:
             return None
-        cov = fit.covariance(T[:3, :3], self.min_sigma_px, self.max_independent_edges)
+        cov = fit.covariance(T[:3, :3], self.min_sigma_px, self.max_independent_edges, self.edge_offset_px)
         if cov is None:
             return None
         return EdgeMeasurement(T, cov / max(fit.found_frac, 0.05) ** self.found_power, fit)

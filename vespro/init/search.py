@@ -840,6 +840,10 @@ class EdgeFit:
         ones, and those on an edge of a face seen as a strip under twice
         ``shared_edge_px`` wide whose image edge a nearer parallel model edge
         took: such a face shows its two edges as one) and of all searched.
+    offset_gram : ndarray (6, 6)
+        ``G^T G``, ``G`` the per-edge sums of the weighted Jacobian rows
+        (``sum w J`` over each fitted edge's samples): how the step answers an
+        offset common to all samples of one edge (see :meth:`covariance`).
     """
 
     normal: np.ndarray
@@ -850,6 +854,7 @@ class EdgeFit:
     weight: float
     found_weight: float
     searched_weight: float
+    offset_gram: np.ndarray
 
     @property
     def found_frac(self) -> float:
@@ -857,16 +862,23 @@ class EdgeFit:
         return min(self.found_weight / max(self.searched_weight, 1e-12), 1.0)
 
     def covariance(self, R_world_object: np.ndarray, min_sigma_px: float = 0.3,
-                   max_independent_edges: int = 12) -> np.ndarray | None:
+                   max_independent_edges: int = 12, edge_offset_px: float = 0.0) -> np.ndarray | None:
         """Covariance of the fitted pose, ``s^2 (J^T W J)^-1``, in the filter's ``[dp, dtheta]``.
 
         ``s`` is the weighted residual RMS (at least ``min_sigma_px``), raised by
         the number of samples per edge over two: samples along one straight edge
         share its errors (an edge measures an offset and an angle, not one
         independent distance per sample); edges beyond ``max_independent_edges``
-        count as no more information (see :mod:`vespro.edgeaid`). ``dtheta`` is a
-        rotation on the left in the world frame (``R = Exp(dtheta) R0``), for the
-        pose's rotation ``R_world_object``. None when the fit leaves a direction free.
+        count as no more information (see :mod:`vespro.edgeaid`). With
+        ``edge_offset_px``, each edge's image edge may also lie that far (std)
+        off its model edge as a whole, the same for all its samples (a face's
+        bottom edge sunk into its support, a bevel, a dark face's blur), which
+        the residuals cannot show when the pose absorbs it: the covariance gains
+        ``o^2 (J^T W J)^-1 G^T G (J^T W J)^-1`` (:attr:`offset_gram`). With one
+        camera that is mostly depth, which one edge's offset shifts unseen.
+        ``dtheta`` is a rotation on the left in the world frame
+        (``R = Exp(dtheta) R0``), for the pose's rotation ``R_world_object``.
+        None when the fit leaves a direction free.
         """
         try:
             C_x = np.linalg.inv(self.normal)
@@ -874,11 +886,14 @@ class EdgeFit:
             return None
         n_indep = 2.0 * min(self.n_edges, max_independent_edges)
         s2 = max(self.rms_px, min_sigma_px) ** 2 * max(self.weight / n_indep, 1.0)
+        C = s2 * C_x
+        if edge_offset_px > 0:
+            C = C + edge_offset_px ** 2 * (C_x @ self.offset_gram @ C_x)
         # x = [w, dp] with R = R0 Exp(w): dtheta (left, world) = R0 w.
         M = np.zeros((6, 6))
         M[:3, 3:] = np.eye(3)
         M[3:, :3] = R_world_object
-        cov = s2 * (M @ C_x @ M.T)
+        cov = M @ C @ M.T
         if not np.all(np.isfinite(cov)):
             return None
         return 0.5 * (cov + cov.T)
@@ -1003,8 +1018,10 @@ def refine_subpixel(T_world_object: np.ndarray, views: list[CameraView], mf: Mod
             w = np.where(keep, w, 0.0)
         if keep.sum() < 12:
             break
+        G = np.zeros((len(u), 6))
+        np.add.at(G, inv, J * w[:, None])
         fit = EdgeFit(A, float(np.sqrt(np.sum(w * r * r) / np.sum(w))), int(keep.sum()), len(np.unique(eid[keep])),
-                      n_searched, float(np.sum(dens[keep])), float(np.sum(dens[keep])) + w_shared, w_searched)
+                      n_searched, float(np.sum(dens[keep])), float(np.sum(dens[keep])) + w_shared, w_searched, G.T @ G)
         T = _perturbed(T, step)
         if np.linalg.norm(step[:3]) < 1e-5 and np.linalg.norm(step[3:]) < 1e-6:
             break
