@@ -401,6 +401,28 @@ def test_single_camera_turned_over_lblock_is_not_a_lock():
                 assert _sym_add_frac(res.T_world_object, cell.true_object_pose(), model, syms) < 0.1
 
 
+def test_one_camera_never_accepts_a_pose_whose_faces_cover_image_edges():
+    """Rig seed 1617, one camera, a bracket seen from above on the belt: the search
+    missed the true pose and put first one 90% of the diameter off whose faces lie over
+    the real part's slot and step (3.6% of their interiors on image edges). It passed
+    every strict single-camera check (inlier fraction 0.72, two open faces) and was
+    returned, and the tracker published it. A part with plain faces shows no edges
+    inside its faces at the true pose (at most 0.13% in 352 one-camera views), so with
+    one judging camera every pose must keep them clear, not only the plain-face ones."""
+    from vespro.init.initializer import _checked, _refined, _verdict, _views, initialize
+
+    setup, model, syms, fs, T_true = _trial_frame("bracket", "1", 1617, 5)
+    res, rep = initialize(setup, fs)
+    assert res is None or _sym_add_frac(res.T_world_object, T_true, model, syms) < 0.1
+    T_best, chk = rep.candidates[0]
+    assert _sym_add_frac(T_best, T_true, model, syms) > 0.5
+    assert chk.n_cameras == 1 and chk.interior_edge_frac > 0.02
+    assert _verdict(replace(chk, interior_edge_frac=0.0), setup.options)[0]  # the premise: it passes otherwise
+    assert "inside the faces" in rep.reason
+    views = _views(setup, fs)
+    chk_true = _checked(_refined(T_true, views, setup), views, setup)
+    assert chk_true.interior_edge_frac <= setup.options.plain_max_interior_edge_frac
+
 def test_paths_with_one_edge_running_on_find_a_part_against_an_aligned_background():
     """Bracket, rig seed 36, one camera, frame 0: the flange's long edge lies
     along a rail whose edge runs on past the part's corner, so no image corner
