@@ -871,8 +871,9 @@ class EdgeFit:
         independent distance per sample); edges beyond ``max_independent_edges``
         count as no more information (see :mod:`vespro.edgeaid`). With
         ``edge_offset_px``, each edge's image edge may also lie that far (std)
-        off its model edge as a whole, the same for all its samples (a bevel, a
-        dark face's blur, a parallel background edge a pixel or two away), which
+        off its model edge as a whole, the same for all its samples (a face seen
+        edge on as a dark line a pixel wide, whose far side the search took; a
+        bevel; a dark face's blur), which
         the residuals cannot show when the pose absorbs it: the covariance gains
         ``o^2 (J^T W J)^-1 G^T G (J^T W J)^-1`` (:attr:`offset_gram`). With one
         camera that is mostly depth, which one edge's offset shifts unseen.
