@@ -125,7 +125,8 @@ class EdgeAid:
     def __init__(self, rig: Rig, model: Model, tree=None, blur_sigma: float = 0.8, search_px: float = 3.0,
                  min_samples: int = 40, min_edges: int = 5, min_sigma_px: float = 0.3,
                  max_independent_edges: int = 12, rounds: int = 2, found_power: float = 2.0,
-                 spacing_px: float = 2.0, edge_outlier_px: float = 1.0, edge_offset_px: float = 0.0):
+                 spacing_px: float = 2.0, edge_outlier_px: float = 1.0, edge_offset_px: float = 0.0,
+                 near_peak_frac: float = 0.0):
         self.mf = model_features(model)
         self.tree = None if self.mf.convex else tree
         self.undistort = {c.name: Undistorter(c.intrinsics) for c in rig}
@@ -141,6 +142,7 @@ class EdgeAid:
         self.spacing_px = spacing_px
         self.edge_outlier_px = edge_outlier_px
         self.edge_offset_px = edge_offset_px
+        self.near_peak_frac = near_peak_frac
 
     def _roi(self, K, T_world_camera, T_world_object, width, height):
         """Pixel box (x0, y0, x1, y1) around the model's projection, with room for the search."""
@@ -178,7 +180,7 @@ class EdgeAid:
         view = CameraView(_GradientImage(K_roi, np.stack([dx, dy]).astype(np.float32)), T_wc, True)
         T, fit = refine_subpixel(T_world_object, [view], self.mf, self.tree, search_px=self.search_px, info=True,
                                  rounds=self.rounds, spacing_px=self.spacing_px,
-                                 edge_outlier_px=self.edge_outlier_px)
+                                 edge_outlier_px=self.edge_outlier_px, near_peak_frac=self.near_peak_frac)
         if fit is None or fit.n_samples < self.min_samples or fit.n_edges < self.min_edges:
             return None
         cov = fit.covariance(T[:3, :3], self.min_sigma_px, self.max_independent_edges, self.edge_offset_px)

@@ -233,8 +233,9 @@ def edge_residuals_ref(x, T0, setups, want_jac, dmax=20.0):
     return np.concatenate(js) if want_jac else np.concatenate(rs)
 
 
-def normal_search_ref(grad, uv, n, offs, min_grad):
-    """The edge search inside ``refine_subpixel``'s loop, as it was."""
+def normal_search_ref(grad, uv, n, offs, min_grad, near_frac=0.0):
+    """The edge search inside ``refine_subpixel``'s loop, as it was (the highest peak)."""
+    assert near_frac == 0.0
     q = uv[:, None, :] + offs[None, :, None] * n[:, None, :]
     S, O = q.shape[:2]
     zeros = np.zeros(S * O, np.int64)

@@ -510,7 +510,7 @@ def _project(K, T_camera_object, P):
 
 
 @njit
-def _normal_search(grad, uv, n, offs, min_grad):
+def _normal_search(grad, uv, n, offs, min_grad, near_frac=0.0):
     """The 1D edge search of :func:`refine_subpixel` for each sample, compiled.
 
     At ``q = uv + offs[o] n`` the bilinear gradient ``(gx, gy)`` of ``grad``
@@ -518,8 +518,10 @@ def _normal_search(grad, uv, n, offs, min_grad):
     ``g = |gx n_u + gy n_v|`` (0 where not finite); its first maximum over the
     offsets, and a parabola through it and its neighbours, give the edge
     point's offset ``sstar`` (S,); ``ok`` (S,) where the peak is at least
-    ``min_grad`` and not at either end. The NumPy code's operations in its
-    order: the same bits.
+    ``min_grad`` and not at either end. With ``near_frac`` > 0, the peak taken
+    is the local maximum nearest the sample (smallest ``|offs|``) among those
+    at least ``near_frac`` times the highest (and ``min_grad``). The NumPy
+    code's operations in its order: the same bits.
     """
     _, H, W = grad.shape
     umax, vmax = W - 1.001, H - 1.001
@@ -547,6 +549,11 @@ def _normal_search(grad, uv, n, offs, min_grad):
         for o in range(1, O):
             if g[o] > g[k]:
                 k = o
+        if near_frac > 0:
+            floor = max(near_frac * g[k], min_grad)
+            for o in range(1, O - 1):
+                if g[o] >= floor and g[o] >= g[o - 1] and g[o] >= g[o + 1] and abs(offs[o]) < abs(offs[k]):
+                    k = o
         ok[s] = g[k] >= min_grad and k > 0 and k < O - 1
         kk = min(max(k, 1), O - 2)
         gm, g0, gp = g[kk - 1], g[kk], g[kk + 1]
@@ -903,7 +910,7 @@ class EdgeFit:
 def refine_subpixel(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFeatures, tree=None,
                     rounds: int = 4, search_px: float = 3.0, min_grad: float = 40.0, f_scale: float = 0.7,
                     shared_edge_px: float = 1.5, spacing_px: float = 0.0, edge_outlier_px: float = 0.0,
-                    info: bool = False):
+                    near_peak_frac: float = 0.0, info: bool = False):
     """Final sub-pixel refinement by 1D edge search along the projected normals.
 
     Each visible edge sample looks along its projected edge normal (within
@@ -967,7 +974,7 @@ def refine_subpixel(T_world_object: np.ndarray, views: list[CameraView], mf: Mod
             X = P @ T_co[:3, :3].T + T_co[:3, 3]
             z = X[:, 2]
             uv = X[:, :2] / z[:, None] * K[[0, 1], [0, 1]] + K[:2, 2]
-            sstar, ok = _normal_search(v.feat.grad, uv, n, offs, float(min_grad))
+            sstar, ok = _normal_search(v.feat.grad, uv, n, offs, float(min_grad), float(near_peak_frac))
             if not ok.any():
                 continue
             if shared_edge_px > 0:
