@@ -531,3 +531,21 @@ def test_segments_blocked_matches_the_breadth_first_walk(scene):
         ref1 = segments_blocked_ref(tree, c, A, t_lo=0.0, t_hi=0.999, min_length=min_length)
         assert_same_bits(ref1, tree.segments_blocked(c, A, t_lo=0.0, t_hi=0.999, min_length=min_length))
         assert_same_bits(ref1[:50], tree.segments_blocked(c, A[:50], 0.0, 0.999, min_length))
+
+
+def test_normal_search_can_take_the_nearest_of_comparable_peaks():
+    """Two gradient peaks along a sample's normal, 80 at the sample and 100 two pixels
+    out (a face seen edge on as a one-pixel line shows both its sides): the highest is
+    taken by default; with ``near_frac`` 0.6 the nearest of those at least 0.6 times the
+    highest; with 0.9 the nearer one is too weak and the highest is taken again."""
+    grad = np.zeros((2, 20, 20), np.float32)
+    grad[0, :, 10] = 80.0
+    grad[0, :, 12] = 100.0
+    uv = np.array([[10.0, 10.0]])
+    n = np.array([[1.0, 0.0]])
+    offs = np.arange(-3.0, 3.0 + 1e-9, 0.5)
+    s_hi, ok_hi = search._normal_search(grad, uv, n, offs, 40.0)
+    s_near, ok_near = search._normal_search(grad, uv, n, offs, 40.0, 0.6)
+    s_far, _ = search._normal_search(grad, uv, n, offs, 40.0, 0.9)
+    assert ok_hi[0] and ok_near[0]
+    assert abs(s_hi[0] - 2.0) < 0.3 and abs(s_near[0]) < 0.3 and abs(s_far[0] - 2.0) < 0.3
