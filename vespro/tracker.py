@@ -220,7 +220,9 @@ class TrackerConfig:
         3.9% instead of 3.4 (600 one-camera trials, ``bench/init.py``), as many
         published within 1 s (564 against 561) and as many wrong (5: two of the
         five tracks that slid past 10% now held, two others slid). 0 (off) by
-        default: it buys a calibrated covariance with accuracy.
+        default: it buys a calibrated covariance with accuracy (measured before
+        the edge search took the nearest of comparable peaks,
+        :attr:`vespro.edgeaid.EdgeAid.near_peak_frac`).
     edge_aid_max_move : float
         An edge fit that lands further than this from the filter's pose (mean
         model-vertex displacement, fraction of the diameter) is not used

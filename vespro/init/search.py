@@ -934,8 +934,11 @@ def refine_subpixel(T_world_object: np.ndarray, views: list[CameraView], mf: Mod
     more than that off on average (weighted) has found a neighbouring image
     edge (its own too faint: a dark face on a dark background); it is left out
     of the round and the step solved again (twice at most, keeping four
-    edges). Canny pixels and the distance maps are only
-    pixel-accurate; this removes that quantisation from the final pose.
+    edges). With ``near_peak_frac``, a sample takes the nearest gradient peak
+    of those at least that fraction of the highest (a face seen edge on is a
+    line a pixel wide whose far side may be the stronger edge; see
+    :class:`vespro.edgeaid.EdgeAid`). Canny pixels and the distance maps are
+    only pixel-accurate; this removes that quantisation from the final pose.
 
     Returns
     -------
