@@ -138,7 +138,8 @@ def test_edges_veto_a_start_that_slid_on_wrong_corners():
     found, against 71% by the first fit) keep it unconfirmed, it is dropped after 5 vetoed frames and a fresh start is
     published within the second (measured: from frame 17 at 3%). Run with the edge fits as
     when this was found: taken at their residuals' word (``found_power`` 0), every sample
-    weighing alike and no edge dropped (``spacing_px``, ``edge_outlier_px`` 0). With their
+    weighing alike, no edge dropped and the highest gradient peak taken (``spacing_px``,
+    ``edge_outlier_px``, ``near_peak_frac`` 0). With their
     covariance raised for the outline they miss, or with the edges weighed by their image
     and those left off dropped, this start no longer slides (measured: at most 3.3% without
     the veto); the veto stays as the guard behind that."""
@@ -160,6 +161,7 @@ def test_edges_veto_a_start_that_slid_on_wrong_corners():
         tr = Tracker(rig, model, cfg, initializer=hook)
         tr.edge_aid.found_power = 0.0  # the fits at their residuals' word, as when this was found
         tr.edge_aid.spacing_px = tr.edge_aid.edge_outlier_px = 0.0
+        tr.edge_aid.near_peak_frac = 0.0  # the highest gradient peak
         return tr, _published_errors(tr, frames, model, syms)
 
     tr, errs = run(TrackerConfig())
@@ -222,13 +224,17 @@ def test_edge_fits_weigh_edges_by_their_image_and_drop_edges_left_off(obj, seed,
     silhouette edges found on a neighbouring image edge 2-2.6 px away, frames 48-55) 7-10 mm
     nearer. With each edge weighing at most one sample per 2 px of its image (``spacing_px``)
     and edges whose residuals the fit leaves over 1 px off on average dropped
-    (``edge_outlier_px``), the defaults: 0.3-0.6, 2.1-2.8 and 0.0-0.7 mm."""
+    (``edge_outlier_px``), the defaults: 0.3-0.6, 2.1-2.8 and 0.0-0.7 mm. Both with the
+    highest gradient peak taken, as then: with the nearest of comparable peaks
+    (``near_peak_frac``, now the default) the first two stay within those bounds, the third
+    0.1-7.5 mm nearer (see :class:`vespro.edgeaid.EdgeAid`)."""
     rig = random_rig(np.random.default_rng(10_000 + seed), 1)
     config, motion, mesh = trial_config(obj, rig, seed, noise_px=0.0)
     model = load_model(mesh)
     cam = rig.cameras[0]
     T_wc = cam.T_world_camera
-    aids = {"alike": EdgeAid(rig, model, spacing_px=0.0, edge_outlier_px=0.0), "default": EdgeAid(rig, model)}
+    aids = {"alike": EdgeAid(rig, model, spacing_px=0.0, edge_outlier_px=0.0, near_peak_frac=0.0),
+            "default": EdgeAid(rig, model, near_peak_frac=0.0)}
     assert aids["default"].spacing_px == 2.0 and aids["default"].edge_outlier_px == 1.0
     depth = {g: [] for g in aids}
     with SimCell(config, motion) as cell:
