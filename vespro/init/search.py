@@ -520,8 +520,8 @@ def _normal_search(grad, uv, n, offs, min_grad, near_frac=0.0):
     point's offset ``sstar`` (S,); ``ok`` (S,) where the peak is at least
     ``min_grad`` and not at either end. With ``near_frac`` > 0, the peak taken
     is the local maximum nearest the sample (smallest ``|offs|``) among those
-    at least ``near_frac`` times the highest (and ``min_grad``). The NumPy
-    code's operations in its order: the same bits.
+    at least ``near_frac`` times the highest (and ``min_grad``). With
+    ``near_frac`` 0, the NumPy code's operations in its order: the same bits.
     """
     _, H, W = grad.shape
     umax, vmax = W - 1.001, H - 1.001
@@ -880,8 +880,8 @@ class EdgeFit:
         ``edge_offset_px``, each edge's image edge may also lie that far (std)
         off its model edge as a whole, the same for all its samples (a face seen
         edge on as a dark line a pixel wide, whose far side the search took; a
-        bevel; a dark face's blur), which
-        the residuals cannot show when the pose absorbs it: the covariance gains
+        bevel; a dark face's blur), which the residuals cannot show when the
+        pose absorbs it: the covariance gains
         ``o^2 (J^T W J)^-1 G^T G (J^T W J)^-1`` (:attr:`offset_gram`). With one
         camera that is mostly depth, which one edge's offset shifts unseen.
         ``dtheta`` is a rotation on the left in the world frame
