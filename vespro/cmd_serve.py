@@ -130,8 +130,10 @@ def run(args) -> int:
 
             from .init import make_initializer
 
-            initializer = make_initializer(source.rig, model)
-            factory = partial(make_initializer, source.rig, model)
+            from .cmd_track import init_options
+
+            initializer = make_initializer(source.rig, model, **init_options(args))
+            factory = partial(make_initializer, source.rig, model, **init_options(args))
         except ImportError:
             print("vespro serve: automatic initialisation is not available; pass --init-pose", file=sys.stderr)
             return 2

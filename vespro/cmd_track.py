@@ -14,12 +14,21 @@ def add_tracker_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--selection", choices=["information", "quality"], default="quality",
                    help="feature selection: information-greedy (log-det) or the classic quality index")
     p.add_argument("--sigma-px", type=float, default=0.5, help="corner measurement noise std, px")
+    p.add_argument("--textured", action="store_true",
+                   help="the part's faces carry texture or markings: image edges inside its faces do not count "
+                        "against a pose found by one camera (by default faces are taken as plain, as CAD parts "
+                        "of one material are; see InitOptions.plain_faces)")
 
 
 def tracker_config(args):
     from .tracker import TrackerConfig
 
     return TrackerConfig(features_per_camera=args.features, selection=args.selection, sigma_px=args.sigma_px)
+
+
+def init_options(args) -> dict:
+    """``InitOptions`` fields the command line sets (``--textured``)."""
+    return {"plain_faces": not getattr(args, "textured", False)}
 
 
 def initializer_for(args, rec, model):
@@ -30,7 +39,7 @@ def initializer_for(args, rec, model):
         from .init import make_initializer
     except ImportError:
         return None
-    return make_initializer(rec.rig, model)
+    return make_initializer(rec.rig, model, **init_options(args))
 
 
 def add_parser(sub) -> None:

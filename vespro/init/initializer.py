@@ -252,7 +252,8 @@ class InitOptions:
         its faces over the real part's slot and step (3.6% of their interiors
         on image edges, the true pose's 0); in 352 one-camera views (three
         parts, seeds 0-29 and 1000-1029) the pose refined from the truth had at
-        most 0.13%.
+        most 0.13%. A part with texture or markings needs False (``vespro track``
+        and ``vespro serve --textured``): one camera would refuse its true pose.
     plain_max_interior_edge_frac : float
         Most fraction of the face interiors on image edges (image noise at the
         true pose stays below 0.002 in the simulator).
