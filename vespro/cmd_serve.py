@@ -132,8 +132,9 @@ def run(args) -> int:
 
             from .cmd_track import init_options
 
-            initializer = make_initializer(source.rig, model, **init_options(args))
-            factory = partial(make_initializer, source.rig, model, **init_options(args))
+            opts = init_options(args)
+            initializer = make_initializer(source.rig, model, **opts)
+            factory = partial(make_initializer, source.rig, model, **opts)
         except ImportError:
             print("vespro serve: automatic initialisation is not available; pass --init-pose", file=sys.stderr)
             return 2

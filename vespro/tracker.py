@@ -587,13 +587,18 @@ class Tracker:
         ``initializing`` (a one-camera bracket start that went bad before confirming was
         published ``lost`` for five frames, though the part had never been reported found).
         Without an initialiser (a given start pose) there is nothing more to wait for: lost."""
-        self.ekf = None
         if self.confirmed or self.initializer is None:
+            self.ekf = None
             self.status = STATUS_LOST
             self.lost_events += 1
             self._reseeded = False
         else:
-            self.unconfirmed_drops += 1
+            self._drop_start()
+
+    def _drop_start(self) -> None:
+        """A start not confirmed goes; the initialiser looks again (``unconfirmed_drops``)."""
+        self.ekf = None
+        self.unconfirmed_drops += 1
 
     def recovery_seed(self):
         """After a loss, the last good pose, velocity and stamp (once), to seed re-initialisation."""
@@ -1004,8 +1009,7 @@ class Tracker:
                     (c.confirm_edge_veto and self._vetoes >= c.veto_drop_frames):
                 # Not confirmed in time, or the edges keep saying the start slid: start again
                 # from the images (see confirm_within_s, veto_drop_frames).
-                self.ekf = None
-                self.unconfirmed_drops += 1
+                self._drop_start()
             return unpublished(STATUS_INITIALIZING)
         self.status = STATUS_TRACKING
         vel = np.concatenate([ekf.velocity, ekf.angular_velocity])

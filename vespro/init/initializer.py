@@ -467,6 +467,8 @@ def _accept(chk, opt: InitOptions) -> tuple[bool, str]:
         return False, "part not in any image"
     if chk.unseen_fixed:
         return False, "outside the view of a fixed camera"
+    if opt.plain_faces and chk.n_cameras == 1 and chk.interior_edge_frac > opt.plain_max_interior_edge_frac:
+        return False, f"one camera, image edges inside the faces ({chk.interior_edge_frac:.3f})"
     need_frac = opt.min_inlier_frac if chk.n_cameras > 1 else opt.min_inlier_frac_single
     if chk.inlier_frac < need_frac:
         return False, f"inlier fraction {chk.inlier_frac:.2f} < {need_frac}"
@@ -524,8 +526,6 @@ def _verdict(chk, opt: InitOptions) -> tuple[bool, bool, str]:
     70% of the diameter off passed the plain-face limits with one open face
     on a fresh seed (45) and was confirmed.
     """
-    if opt.plain_faces and chk.n_cameras == 1 and chk.interior_edge_frac > opt.plain_max_interior_edge_frac:
-        return False, False, f"one camera, image edges inside the faces ({chk.interior_edge_frac:.3f})"
     ok, why = _accept(chk, opt)
     if ok:
         return True, False, ""
@@ -534,8 +534,7 @@ def _verdict(chk, opt: InitOptions) -> tuple[bool, bool, str]:
         return True, True, ""
     few_faces = opt.min_open_faces_confirm <= chk.open_faces < opt.min_open_faces_single
     overrun = opt.max_overrun_frac_single < chk.overrun_frac <= opt.max_overrun_frac_confirm
-    if chk.n_cameras == 1 and (few_faces or overrun) and \
-            not (opt.plain_faces and chk.interior_edge_frac > opt.plain_max_interior_edge_frac):
+    if chk.n_cameras == 1 and (few_faces or overrun):  # (face interiors clear: checked by _accept)
         loose = replace(opt, min_open_faces_single=min(opt.min_open_faces_single, opt.min_open_faces_confirm),
                         max_overrun_frac_single=max(opt.max_overrun_frac_single, opt.max_overrun_frac_confirm),
                         min_supported_edges_single=(min(opt.min_supported_edges_single,

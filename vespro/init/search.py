@@ -1029,8 +1029,8 @@ def refine_subpixel(T_world_object: np.ndarray, views: list[CameraView], mf: Mod
             w = np.where(keep, w, 0.0)
         if keep.sum() < 12:
             break
-        G = np.zeros((len(u), 6))
-        np.add.at(G, inv, J * w[:, None])
+        # Per-edge sums of the weighted rows (JW is the last solve's, with the final weights).
+        G = np.stack([np.bincount(inv, JW[:, j], len(u)) for j in range(6)], 1)
         fit = EdgeFit(A, float(np.sqrt(np.sum(w * r * r) / np.sum(w))), int(keep.sum()), len(np.unique(eid[keep])),
                       n_searched, float(np.sum(dens[keep])), float(np.sum(dens[keep])) + w_shared, w_searched, G.T @ G)
         T = _perturbed(T, step)
