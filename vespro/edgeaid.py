@@ -32,12 +32,12 @@ import numpy as np
 
 from .init.features import Undistorter, _gradient
 from .init.modelfeat import model_features
-from .init.search import CameraView, EdgeFit, _project, refine_subpixel
+from .init.search import CameraView, EdgeFit, _front, _project, refine_subpixel
 from .model import Model
 from .rig import Rig
 from .se3 import invert_transform
 
-__all__ = ["EdgeAid", "EdgeMeasurement"]
+__all__ = ["EdgeAid", "EdgeContrast", "EdgeMeasurement"]
 
 
 @dataclass(frozen=True)
@@ -63,6 +63,64 @@ class EdgeMeasurement:
     T_world_object: np.ndarray
     cov6: np.ndarray
     fit: EdgeFit
+    edge_side: np.ndarray | None = None
+
+
+class EdgeContrast:
+    """What each model edge looks like in one camera, learnt over the frames of a track.
+
+    A model edge's image edge has a sign (which side is brighter, along the
+    edge's projected normal) and a strength; both stay put from frame to frame
+    while the part moves a little, and a search that knows them does not take
+    a neighbouring image edge of the other sign or of another strength for it
+    (the moving-edge trackers check each site's contrast against its last the
+    same way). Seen on one-camera tracks: a box whose top edge meets a brighter
+    plate behind it (grey 127 against 134) shows there a dark seam a pixel wide,
+    a weak falling and a strong rising edge 2.5 px apart, and the nearest
+    comparable peak flipped between them frame to frame; an L-block edge with
+    no contrast at the true pose (grey levels alike on both sides) found a
+    strong edge 3 px away once the pose had moved half way to it, and the fits
+    that then explained more of the outline slid the track 15-23% of the
+    diameter along the line of sight.
+
+    The contrast learnt is each edge's mean signed gradient at its projected
+    samples (:attr:`vespro.init.search.EdgeFit.edge_contrast`), averaged with
+    rate ``rate`` over the frames whose measurement the filter accepted; an
+    edge is expected once it has ``min_frames`` such frames with the same
+    visible faces (the key ``edge_side``: which of its two faces are seen,
+    which fixes its normal's orientation relative to them; a change of faces
+    seen changes what lies either side, so the edge starts again).
+
+    Parameters
+    ----------
+    n_edges : int
+    rate : float
+        Weight of a new frame in the running mean.
+    min_frames : int
+    """
+
+    def __init__(self, n_edges: int, rate: float = 0.3, min_frames: int = 2):
+        self.rate = rate
+        self.min_frames = min_frames
+        self.contrast = np.full(n_edges, np.nan)
+        self.frames = np.zeros(n_edges, np.int64)
+        self.side = np.full(n_edges, -1, np.int64)
+
+    def expect(self, side: np.ndarray) -> np.ndarray:
+        """Each edge's expected signed contrast for faces seen as ``side`` (NaN: unknown)."""
+        known = (self.frames >= self.min_frames) & (self.side == side)
+        return np.where(known, self.contrast, np.nan)
+
+    def learn(self, contrast: np.ndarray, side: np.ndarray) -> None:
+        """A frame's contrasts (NaN: edge not seen) with the faces seen as ``side``."""
+        seen = np.isfinite(contrast)
+        fresh = seen & ((self.side != side) | (self.frames == 0))
+        same = seen & ~fresh
+        self.contrast[fresh] = contrast[fresh]
+        self.frames[fresh] = 1
+        self.side[fresh] = side[fresh]
+        self.contrast[same] += self.rate * (contrast[same] - self.contrast[same])
+        self.frames[same] += 1
 
 
 class EdgeAid:
@@ -139,13 +197,17 @@ class EdgeAid:
         on the dark belt leaves two silhouette edges to a neighbouring image
         edge (seed 610, frames 48-55, no noise) 0.1-7.5 mm nearer instead of
         0.0-0.7 mm. 0: the highest peak.
+    contrast_ratio : (float, float) or None
+        Given an :class:`EdgeContrast` (:meth:`measure`), an edge whose contrast
+        is known takes only image edges of its sign between these multiples of
+        its strength. None: the memory is not used.
     """
 
     def __init__(self, rig: Rig, model: Model, tree=None, blur_sigma: float = 0.8, search_px: float = 3.0,
                  min_samples: int = 40, min_edges: int = 5, min_sigma_px: float = 0.3,
                  max_independent_edges: int = 12, rounds: int = 2, found_power: float = 2.0,
                  spacing_px: float = 2.0, edge_outlier_px: float = 1.0, edge_offset_px: float = 0.0,
-                 near_peak_frac: float = 0.6):
+                 near_peak_frac: float = 0.6, contrast_ratio: tuple[float, float] | None = (0.4, 3.0)):
         self.mf = model_features(model)
         self.tree = None if self.mf.convex else tree
         self.undistort = {c.name: Undistorter(c.intrinsics) for c in rig}
@@ -162,6 +224,7 @@ class EdgeAid:
         self.edge_outlier_px = edge_outlier_px
         self.edge_offset_px = edge_offset_px
         self.near_peak_frac = near_peak_frac
+        self.contrast_ratio = contrast_ratio
 
     def _roi(self, K, T_world_camera, T_world_object, width, height):
         """Pixel box (x0, y0, x1, y1) around the model's projection, with room for the search."""
@@ -176,12 +239,22 @@ class EdgeAid:
             return None
         return int(x0), int(y0), int(x1), int(y1)
 
+    def edge_side(self, T_camera_object: np.ndarray) -> np.ndarray:
+        """Which of each model edge's two faces the camera sees (bit 0: the first, bit 1: the second), (E,)."""
+        front = _front(T_camera_object[None, :3, :3], T_camera_object[None, :3, 3], self.mf)[0]
+        ef = self.mf.edge_faces
+        return front[ef[:, 0]].astype(np.int64) + 2 * front[ef[:, 1]].astype(np.int64)
+
     def measure(self, name: str, image: np.ndarray, T_world_camera: np.ndarray,
-                T_world_object: np.ndarray) -> EdgeMeasurement | None:
+                T_world_object: np.ndarray, contrast: EdgeContrast | None = None) -> EdgeMeasurement | None:
         """The pose near ``T_world_object`` that fits camera ``name``'s image edges, or None.
 
         ``image``: the camera's image as captured, 8-bit grey (undistorted here); the
-        gradient is taken in a box around the model's projection only.
+        gradient is taken in a box around the model's projection only. ``contrast``:
+        what the edges looked like in this camera's last frames (the search takes
+        only image edges like them; :class:`EdgeContrast`); the measurement's
+        ``fit.edge_contrast[0]`` and ``edge_side`` are what to teach it when the
+        measurement is accepted.
         """
         T_wc = np.asarray(T_world_camera, float)
         if not (np.all(np.isfinite(T_wc)) and np.all(np.isfinite(T_world_object))):
@@ -197,12 +270,17 @@ class EdgeAid:
         K_roi[0, 2] -= x0
         K_roi[1, 2] -= y0
         view = CameraView(_GradientImage(K_roi, np.stack([dx, dy]).astype(np.float32)), T_wc, True)
+        T_cw = invert_transform(T_wc)
+        expect = None
+        if contrast is not None and self.contrast_ratio is not None:
+            expect = [contrast.expect(self.edge_side(T_cw @ T_world_object))]
         T, fit = refine_subpixel(T_world_object, [view], self.mf, self.tree, search_px=self.search_px, info=True,
                                  rounds=self.rounds, spacing_px=self.spacing_px,
-                                 edge_outlier_px=self.edge_outlier_px, near_peak_frac=self.near_peak_frac)
+                                 edge_outlier_px=self.edge_outlier_px, near_peak_frac=self.near_peak_frac,
+                                 expect=expect, contrast_ratio=self.contrast_ratio or (0.0, np.inf))
         if fit is None or fit.n_samples < self.min_samples or fit.n_edges < self.min_edges:
             return None
         cov = fit.covariance(T[:3, :3], self.min_sigma_px, self.max_independent_edges, self.edge_offset_px)
         if cov is None:
             return None
-        return EdgeMeasurement(T, cov / max(fit.found_frac, 0.05) ** self.found_power, fit)
+        return EdgeMeasurement(T, cov / max(fit.found_frac, 0.05) ** self.found_power, fit, self.edge_side(T_cw @ T))

@@ -33,7 +33,7 @@ from typing import Callable
 import numpy as np
 
 from .bsp import load_or_build_bsp
-from .edgeaid import EdgeAid
+from .edgeaid import EdgeAid, EdgeContrast
 from .ekf import PoseEKF
 from .ekf import Status as EKFStatus
 from .extraction import extract_corners, window_half_sizes
@@ -469,6 +469,7 @@ class Tracker:
             self.edge_aid = EdgeAid(rig, model, self.tree, edge_offset_px=config.edge_offset_px)
         self.edge_updates = 0  # edge-fitted poses the filter was updated with
         self.edge_rejects = 0  # edge fits too far from the filter's pose to use
+        self._contrast = {}  # camera -> EdgeContrast (see start)
         self._edge_ok = False  # this frame's edge fits support the filter (see confirm_edge_*)
         self._edge_found = 0.0  # least fraction of visible edge samples found by this frame's fits
         self._edge_veto = False  # this frame's edge fits found far less than this filter's first (veto_found_ratio)
@@ -562,6 +563,7 @@ class Tracker:
             v, w = init.velocity[:3], init.velocity[3:]
         self.ekf = PoseEKF(init.T_world_object, P0, q_acc=c.q_acc, q_alpha=c.q_alpha, sigma_px=c.sigma_px,
                            gate_prob=c.gate_prob, v=v, w=w, robust_nis=c.robust_nis)
+        self._contrast = {}  # camera -> EdgeContrast: what the part's edges look like, learnt from this start on
         self._t_ns = t_ns
         self._bad = 0
         self._disagree = 0
@@ -751,7 +753,8 @@ class Tracker:
             if T_wc is None or img is None:
                 continue
             T = self.ekf.pose
-            m = self.edge_aid.measure(name, img, T_wc, T)
+            memory = self._contrast.setdefault(name, EdgeContrast(len(self.edge_aid.mf.edge_a)))
+            m = self.edge_aid.measure(name, img, T_wc, T, memory)
             if m is None:
                 continue
             if add(m.T_world_object, T, self.model.vertices) > c.edge_aid_max_move * self.model.diameter:
@@ -761,6 +764,8 @@ class Tracker:
                 continue
             nis = self.ekf.update_pose(m.T_world_object, m.cov6)
             self.edge_updates += 1
+            if nis <= _CHI2_6_99:
+                memory.learn(m.fit.edge_contrast[0], m.edge_side)
             frac = m.fit.found_frac
             support.append(nis <= _CHI2_6_99 and m.fit.n_edges >= c.confirm_edge_min_edges
                            and frac >= c.confirm_edge_min_found)

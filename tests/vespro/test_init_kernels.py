@@ -233,16 +233,17 @@ def edge_residuals_ref(x, T0, setups, want_jac, dmax=20.0):
     return np.concatenate(js) if want_jac else np.concatenate(rs)
 
 
-def normal_search_ref(grad, uv, n, offs, min_grad, near_frac=0.0):
-    """The edge search inside ``refine_subpixel``'s loop, as it was (the highest peak)."""
-    assert near_frac == 0.0
+def normal_search_ref(grad, uv, n, offs, min_grad, near_frac=0.0, expect=None, ratio_lo=0.0, ratio_hi=np.inf):
+    """The edge search inside ``refine_subpixel``'s loop, as it was (the highest peak, no contrast expected)."""
+    assert near_frac == 0.0 and expect is None
     q = uv[:, None, :] + offs[None, :, None] * n[:, None, :]
     S, O = q.shape[:2]
     zeros = np.zeros(S * O, np.int64)
     gx = _bilinear_ref(grad, zeros, q.reshape(-1, 2), np.nan).reshape(S, O)
     gy = _bilinear_ref(grad, zeros + 1, q.reshape(-1, 2), np.nan).reshape(S, O)
-    g = np.abs(gx * n[:, 0:1] + gy * n[:, 1:2])
-    g = np.where(np.isfinite(g), g, 0.0)
+    c = gx * n[:, 0:1] + gy * n[:, 1:2]
+    c = np.where(np.isfinite(c), c, 0.0)
+    g = np.abs(c)
     k = np.argmax(g, axis=1)
     peak = g[np.arange(S), k]
     ok = (peak >= min_grad) & (k > 0) & (k < O - 1)
@@ -252,7 +253,7 @@ def normal_search_ref(grad, uv, n, offs, min_grad, near_frac=0.0):
     with np.errstate(divide="ignore", invalid="ignore"):
         frac = np.where(np.abs(den) > 1e-9, 0.5 * (gm - gp) / den, 0.0)
     sstar = offs[kk] + np.clip(frac, -0.5, 0.5) * 0.5
-    return sstar, ok
+    return sstar, ok, np.ascontiguousarray(c[:, np.argmin(np.abs(offs))])
 
 
 def segments_blocked_ref(tree, A, B, t_lo=0.0, t_hi=1.0, min_length=0.0):
@@ -483,8 +484,8 @@ def test_normal_search_matches_numpy(scene):
         for min_grad in (40.0, 0.0):
             ref = normal_search_ref(v.feat.grad, uv, n, offs, min_grad)
             got = search._normal_search(v.feat.grad, uv, n, offs, min_grad)
-            assert_same_bits(ref[0], got[0])
-            assert_same_bits(ref[1], got[1])
+            for a, b in zip(ref, got):
+                assert_same_bits(a, b)
 
 
 def test_refinements_unchanged(scene, monkeypatch):
@@ -544,8 +545,31 @@ def test_normal_search_can_take_the_nearest_of_comparable_peaks():
     uv = np.array([[10.0, 10.0]])
     n = np.array([[1.0, 0.0]])
     offs = np.arange(-3.0, 3.0 + 1e-9, 0.5)
-    s_hi, ok_hi = search._normal_search(grad, uv, n, offs, 40.0)
-    s_near, ok_near = search._normal_search(grad, uv, n, offs, 40.0, 0.6)
-    s_far, _ = search._normal_search(grad, uv, n, offs, 40.0, 0.9)
+    s_hi, ok_hi, _ = search._normal_search(grad, uv, n, offs, 40.0)
+    s_near, ok_near, _ = search._normal_search(grad, uv, n, offs, 40.0, 0.6)
+    s_far, _, _ = search._normal_search(grad, uv, n, offs, 40.0, 0.9)
     assert ok_hi[0] and ok_near[0]
     assert abs(s_hi[0] - 2.0) < 0.3 and abs(s_near[0]) < 0.3 and abs(s_far[0] - 2.0) < 0.3
+
+
+def test_normal_search_takes_only_edges_like_the_expected_contrast():
+    """A rising edge of 100 at the sample and a falling one of 60 two pixels out (a dark
+    seam beside an edge): unknown contrast (NaN) takes the stronger; a falling edge
+    expected takes the falling one; a rising one of about 100 the rising one; a much
+    stronger or a much weaker edge expected finds neither (``ratio_lo``/``ratio_hi`` 0.4
+    and 3). The contrast at the sample's own position comes back signed."""
+    grad = np.zeros((2, 20, 20), np.float32)
+    grad[0, :, 10] = 100.0
+    grad[0, :, 12] = -60.0
+    uv = np.array([[10.0, 10.0]] * 5)
+    n = np.array([[1.0, 0.0]] * 5)
+    offs = np.arange(-3.0, 3.0 + 1e-9, 0.5)
+    expect = np.array([np.nan, -60.0, 90.0, -300.0, 20.0])
+    s, ok, c0 = search._normal_search(grad, uv, n, offs, 40.0, 0.6, expect, 0.4, 3.0)
+    assert list(ok) == [True, True, True, False, False]
+    assert abs(s[0]) < 0.3 and abs(s[1] - 2.0) < 0.3 and abs(s[2]) < 0.3
+    assert np.allclose(c0, 100.0)
+    # The normal the other way round: the same edges with the other signs.
+    s, ok, c0 = search._normal_search(grad, uv, -n, offs, 40.0, 0.6, -expect, 0.4, 3.0)
+    assert list(ok) == [True, True, True, False, False]
+    assert abs(s[1] + 2.0) < 0.3 and np.allclose(c0, -100.0)

@@ -510,25 +510,41 @@ def _project(K, T_camera_object, P):
 
 
 @njit
-def _normal_search(grad, uv, n, offs, min_grad, near_frac=0.0):
+def _normal_search(grad, uv, n, offs, min_grad, near_frac=0.0, expect=None, ratio_lo=0.0, ratio_hi=np.inf):
     """The 1D edge search of :func:`refine_subpixel` for each sample, compiled.
 
     At ``q = uv + offs[o] n`` the bilinear gradient ``(gx, gy)`` of ``grad``
     (2, H, W) float32 (NaN outside ``[0, W - 1.001] x [0, H - 1.001]``) gives
-    ``g = |gx n_u + gy n_v|`` (0 where not finite); its first maximum over the
-    offsets, and a parabola through it and its neighbours, give the edge
-    point's offset ``sstar`` (S,); ``ok`` (S,) where the peak is at least
-    ``min_grad`` and not at either end. With ``near_frac`` > 0, the peak taken
-    is the local maximum nearest the sample (smallest ``|offs|``) among those
-    at least ``near_frac`` times the highest (and ``min_grad``). With
-    ``near_frac`` 0, the NumPy code's operations in its order: the same bits.
+    the signed contrast ``c = gx n_u + gy n_v`` (0 where not finite) and
+    ``g = |c|``; its first maximum over the offsets, and a parabola through it
+    and its neighbours, give the edge point's offset ``sstar`` (S,); ``ok``
+    (S,) where the peak is at least ``min_grad`` and not at either end. With
+    ``near_frac`` > 0, the peak taken is the local maximum nearest the sample
+    (smallest ``|offs|``) among those at least ``near_frac`` times the highest
+    (and ``min_grad``). With ``near_frac`` 0, the NumPy code's operations in
+    its order: the same bits.
+
+    ``expect`` (S,), optional: each sample's expected signed contrast (NaN:
+    unknown, the search above). Where known, only local maxima of ``c`` of
+    its sign, inside the ends, with ``ratio_lo |e| <= |c| <= ratio_hi |e|``
+    (and ``|c| >= min_grad``) count as peaks; the highest of them, or with
+    ``near_frac`` the nearest of those at least ``near_frac`` times it.
+
+    Returns ``(sstar, ok, c0)``, ``c0`` (S,) the signed contrast at the offset
+    nearest 0 (the sample's own position).
     """
     _, H, W = grad.shape
     umax, vmax = W - 1.001, H - 1.001
     S, O = uv.shape[0], offs.shape[0]
     sstar = np.empty(S)
     ok = np.empty(S, np.bool_)
+    c0 = np.empty(S)
     g = np.empty(O)
+    cs = np.empty(O)
+    o0 = 0
+    for o in range(1, O):
+        if abs(offs[o]) < abs(offs[o0]):
+            o0 = o
     for s in range(S):
         n0, n1 = n[s, 0], n[s, 1]
         for o in range(O):
@@ -541,26 +557,51 @@ def _normal_search(grad, uv, n, offs, min_grad, near_frac=0.0):
                     + (grad[0, v0 + 1, u0] * (1 - fu) + grad[0, v0 + 1, u0 + 1] * fu) * fv
                 gy = (grad[1, v0, u0] * (1 - fu) + grad[1, v0, u0 + 1] * fu) * (1 - fv) \
                     + (grad[1, v0 + 1, u0] * (1 - fu) + grad[1, v0 + 1, u0 + 1] * fu) * fv
-                go = abs(gx * n0 + gy * n1)
-                g[o] = go if np.isfinite(go) else 0.0
+                co = gx * n0 + gy * n1
+                cs[o] = co if np.isfinite(co) else 0.0
             else:
-                g[o] = 0.0  # NaN outside the image, then not finite
-        k = 0
-        for o in range(1, O):
-            if g[o] > g[k]:
-                k = o
-        if near_frac > 0:
-            floor = max(near_frac * g[k], min_grad)
+                cs[o] = 0.0  # NaN outside the image, then not finite
+            g[o] = abs(cs[o])
+        c0[s] = cs[o0]
+        if expect is None:
+            e = np.nan
+        else:
+            e = expect[s]
+        if np.isfinite(e):
+            sg = 1.0 if e > 0 else -1.0
+            lo = max(ratio_lo * abs(e), min_grad)
+            hi = ratio_hi * abs(e)
+            for o in range(O):
+                g[o] = max(sg * cs[o], 0.0)
+            k = -1
             for o in range(1, O - 1):
-                if g[o] >= floor and g[o] >= g[o - 1] and g[o] >= g[o + 1] and abs(offs[o]) < abs(offs[k]):
+                if g[o] >= lo and g[o] <= hi and g[o] >= g[o - 1] and g[o] >= g[o + 1] and (k < 0 or g[o] > g[k]):
                     k = o
-        ok[s] = g[k] >= min_grad and k > 0 and k < O - 1
+            if k >= 0 and near_frac > 0:
+                floor = max(near_frac * g[k], lo)
+                for o in range(1, O - 1):
+                    if g[o] >= floor and g[o] <= hi and g[o] >= g[o - 1] and g[o] >= g[o + 1] \
+                            and abs(offs[o]) < abs(offs[k]):
+                        k = o
+            ok[s] = k >= 0
+            k = max(k, 1)
+        else:
+            k = 0
+            for o in range(1, O):
+                if g[o] > g[k]:
+                    k = o
+            if near_frac > 0:
+                floor = max(near_frac * g[k], min_grad)
+                for o in range(1, O - 1):
+                    if g[o] >= floor and g[o] >= g[o - 1] and g[o] >= g[o + 1] and abs(offs[o]) < abs(offs[k]):
+                        k = o
+            ok[s] = g[k] >= min_grad and k > 0 and k < O - 1
         kk = min(max(k, 1), O - 2)
         gm, g0, gp = g[kk - 1], g[kk], g[kk + 1]
         den = gm - 2 * g0 + gp
         frac = 0.5 * (gm - gp) / den if abs(den) > 1e-9 else 0.0
         sstar[s] = offs[kk] + min(max(frac, -0.5), 0.5) * 0.5
-    return sstar, ok
+    return sstar, ok, c0
 
 
 def shared_edge_losers(uv: np.ndarray, edge: np.ndarray, edge_dir: np.ndarray, cost: np.ndarray,
@@ -851,6 +892,12 @@ class EdgeFit:
         ``G^T G``, ``G`` the per-edge sums of the weighted Jacobian rows
         (``sum w J`` over each fitted edge's samples): how the step answers an
         offset common to all samples of one edge (see :meth:`covariance`).
+    edge_contrast : tuple of ndarray (E,)
+        Per view, each model edge's mean signed image contrast at its projected
+        samples (the gradient along the edge's projected normal,
+        ``rot90(b - a)``, at the pose of the last round), NaN for an edge not
+        seen: what an edge looks like, for the next frame's search
+        (``expect`` of :func:`refine_subpixel`).
     """
 
     normal: np.ndarray
@@ -862,6 +909,7 @@ class EdgeFit:
     found_weight: float
     searched_weight: float
     offset_gram: np.ndarray
+    edge_contrast: tuple = ()
 
     @property
     def found_frac(self) -> float:
@@ -910,7 +958,8 @@ class EdgeFit:
 def refine_subpixel(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFeatures, tree=None,
                     rounds: int = 4, search_px: float = 3.0, min_grad: float = 40.0, f_scale: float = 0.7,
                     shared_edge_px: float = 1.5, spacing_px: float = 0.0, edge_outlier_px: float = 0.0,
-                    near_peak_frac: float = 0.0, info: bool = False):
+                    near_peak_frac: float = 0.0, expect: list | None = None,
+                    contrast_ratio: tuple[float, float] = (0.4, 3.0), info: bool = False):
     """Final sub-pixel refinement by 1D edge search along the projected normals.
 
     Each visible edge sample looks along its projected edge normal (within
@@ -937,8 +986,14 @@ def refine_subpixel(T_world_object: np.ndarray, views: list[CameraView], mf: Mod
     edges). With ``near_peak_frac``, a sample takes the nearest gradient peak
     of those at least that fraction of the highest (a face seen edge on is a
     line a pixel wide whose far side may be the stronger edge; see
-    :class:`vespro.edgeaid.EdgeAid`). Canny pixels and the distance maps are
-    only pixel-accurate; this removes that quantisation from the final pose.
+    :class:`vespro.edgeaid.EdgeAid`). With ``expect`` (per view, each model
+    edge's expected signed contrast, NaN where unknown; see
+    :attr:`EdgeFit.edge_contrast`), an edge's samples take only gradient peaks
+    of that sign whose strength is within ``contrast_ratio`` times the expected
+    (as the moving-edge trackers check each site's contrast against its last;
+    see :class:`vespro.edgeaid.EdgeContrast`). Canny pixels and the distance
+    maps are only pixel-accurate; this removes that quantisation from the
+    final pose.
 
     Returns
     -------
@@ -953,10 +1008,12 @@ def refine_subpixel(T_world_object: np.ndarray, views: list[CameraView], mf: Mod
         rows_J, rows_r, rows_e, rows_d = [], [], [], []
         n_searched = 0
         w_searched = w_shared = 0.0  # summed sample weights: searched; found but lost to a parallel edge
-        for v in views:
+        contrast = []
+        for iv, v in enumerate(views):
             T_cw = invert_transform(v.T_world_camera)
             T_co = T_cw @ T
             idx = visible_samples(T_co, mf, tree)
+            contrast.append(np.full(len(mf.edge_a), np.nan))
             if idx.size == 0:
                 continue
             n_searched += idx.size
@@ -965,9 +1022,9 @@ def refine_subpixel(T_world_object: np.ndarray, views: list[CameraView], mf: Mod
             ub, _ = _project(K, T_co, mf.edge_b)
             se = mf.sample_edge[idx]
             edge_len = np.linalg.norm(ub - ua, axis=1)
+            per_edge = np.bincount(se, minlength=len(mf.edge_a))
             dens = np.ones(idx.size)
             if spacing_px > 0:
-                per_edge = np.bincount(se, minlength=len(mf.edge_a))
                 dens = np.minimum(1.0, edge_len[se] / (spacing_px * per_edge[se]))
             w_searched += float(dens.sum())
             d = (ub - ua)[se]
@@ -977,7 +1034,11 @@ def refine_subpixel(T_world_object: np.ndarray, views: list[CameraView], mf: Mod
             X = P @ T_co[:3, :3].T + T_co[:3, 3]
             z = X[:, 2]
             uv = X[:, :2] / z[:, None] * K[[0, 1], [0, 1]] + K[:2, 2]
-            sstar, ok = _normal_search(v.feat.grad, uv, n, offs, float(min_grad), float(near_peak_frac))
+            exp = None if expect is None or expect[iv] is None else np.asarray(expect[iv], float)[se]
+            sstar, ok, c0 = _normal_search(v.feat.grad, uv, n, offs, float(min_grad), float(near_peak_frac), exp,
+                                           float(contrast_ratio[0]), float(contrast_ratio[1]))
+            with np.errstate(invalid="ignore"):
+                contrast[-1] = np.bincount(se, c0, len(mf.edge_a)) / np.where(per_edge > 0, per_edge, np.nan)
             if not ok.any():
                 continue
             if shared_edge_px > 0:
@@ -1032,7 +1093,8 @@ def refine_subpixel(T_world_object: np.ndarray, views: list[CameraView], mf: Mod
         # Per-edge sums of the weighted rows (JW is the last solve's, with the final weights).
         G = np.stack([np.bincount(inv, JW[:, j], len(u)) for j in range(6)], 1)
         fit = EdgeFit(A, float(np.sqrt(np.sum(w * r * r) / np.sum(w))), int(keep.sum()), len(np.unique(eid[keep])),
-                      n_searched, float(np.sum(dens[keep])), float(np.sum(dens[keep])) + w_shared, w_searched, G.T @ G)
+                      n_searched, float(np.sum(dens[keep])), float(np.sum(dens[keep])) + w_shared, w_searched, G.T @ G,
+                      tuple(contrast))
         T = _perturbed(T, step)
         if np.linalg.norm(step[:3]) < 1e-5 and np.linalg.norm(step[3:]) < 1e-6:
             break
