@@ -67,52 +67,56 @@ class EdgeMeasurement:
 
 
 class EdgeContrast:
-    """What each model edge looks like in one camera, learnt over the frames of a track.
+    """What each edge sample of the part looks like in one camera, learnt over a track's frames.
 
-    A model edge's image edge has a sign (which side is brighter, along the
-    edge's projected normal) and a strength; both stay put from frame to frame
-    while the part moves a little, and a search that knows them does not take
-    a neighbouring image edge of the other sign or of another strength for it
-    (the moving-edge trackers check each site's contrast against its last the
-    same way). Seen on one-camera tracks: a box whose top edge meets a brighter
-    plate behind it (grey 127 against 134) shows there a dark seam a pixel wide,
-    a weak falling and a strong rising edge 2.5 px apart, and the nearest
-    comparable peak flipped between them frame to frame; an L-block edge with
-    no contrast at the true pose (grey levels alike on both sides) found a
-    strong edge 3 px away once the pose had moved half way to it, and the fits
+    A point of a model edge shows in the image as an edge of some sign (which
+    side is brighter, along the edge's projected normal) and strength, and both
+    stay put from frame to frame while the part moves a little. A search that
+    knows them does not take a neighbouring image edge of the other sign, or
+    far stronger, for it (the moving-edge trackers check each site's contrast
+    against its last the same way). Seen on one-camera tracks: a box whose top
+    edge meets a brighter plate behind it (grey 127 against 134) shows there a
+    dark seam a pixel wide, a weak falling and a strong rising edge 2.5 px
+    apart, and the nearest comparable peak flipped between them frame to frame;
+    an L-block edge with no contrast at the true pose found a strong edge of the
+    other sign 3 px away once the pose had moved half way to it, and the fits
     that then explained more of the outline slid the track 15-23% of the
-    diameter along the line of sight.
+    diameter along the line of sight. Kept per sample, not per edge: along one
+    edge the background changes (belt, plate, rail), and an edge's mean
+    contrast fitted none of its parts.
 
-    The contrast learnt is each edge's mean signed gradient at its projected
-    samples (:attr:`vespro.init.search.EdgeFit.edge_contrast`), averaged with
-    rate ``rate`` over the frames whose measurement the filter accepted; an
-    edge is expected once it has ``min_frames`` such frames with the same
-    visible faces (the key ``edge_side``: which of its two faces are seen,
-    which fixes its normal's orientation relative to them; a change of faces
-    seen changes what lies either side, so the edge starts again).
+    The contrast learnt is :attr:`vespro.init.search.EdgeFit.sample_contrast`,
+    averaged with weight ``rate`` for the new frame over the frames whose
+    measurement the filter accepted; a sample is expected once it has
+    ``min_frames`` such frames with the same faces of its edge seen (``side``,
+    :meth:`EdgeAid.edge_side`: which faces are seen fixes the normal's
+    orientation relative to them and what lies either side, so the sample
+    starts again when it changes).
 
     Parameters
     ----------
-    n_edges : int
+    edge_of_sample : ndarray (S,), int
     rate : float
-        Weight of a new frame in the running mean.
     min_frames : int
     """
 
-    def __init__(self, n_edges: int, rate: float = 0.3, min_frames: int = 2):
+    def __init__(self, edge_of_sample: np.ndarray, rate: float = 0.3, min_frames: int = 2):
+        self.edge = np.asarray(edge_of_sample)
         self.rate = rate
         self.min_frames = min_frames
-        self.contrast = np.full(n_edges, np.nan)
-        self.frames = np.zeros(n_edges, np.int64)
-        self.side = np.full(n_edges, -1, np.int64)
+        n = len(self.edge)
+        self.contrast = np.full(n, np.nan)
+        self.frames = np.zeros(n, np.int64)
+        self.side = np.full(n, -1, np.int64)
 
-    def expect(self, side: np.ndarray) -> np.ndarray:
-        """Each edge's expected signed contrast for faces seen as ``side`` (NaN: unknown)."""
-        known = (self.frames >= self.min_frames) & (self.side == side)
+    def expect(self, edge_side: np.ndarray) -> np.ndarray:
+        """Each sample's expected signed contrast with its edge's faces seen as ``edge_side`` (E,) (NaN: unknown)."""
+        known = (self.frames >= self.min_frames) & (self.side == edge_side[self.edge])
         return np.where(known, self.contrast, np.nan)
 
-    def learn(self, contrast: np.ndarray, side: np.ndarray) -> None:
-        """A frame's contrasts (NaN: edge not seen) with the faces seen as ``side``."""
+    def learn(self, contrast: np.ndarray, edge_side: np.ndarray) -> None:
+        """A frame's sample contrasts (S,) (NaN: not seen), the edges' faces seen as ``edge_side`` (E,)."""
+        side = edge_side[self.edge]
         seen = np.isfinite(contrast)
         fresh = seen & ((self.side != side) | (self.frames == 0))
         same = seen & ~fresh
@@ -253,7 +257,7 @@ class EdgeAid:
         gradient is taken in a box around the model's projection only. ``contrast``:
         what the edges looked like in this camera's last frames (the search takes
         only image edges like them; :class:`EdgeContrast`); the measurement's
-        ``fit.edge_contrast[0]`` and ``edge_side`` are what to teach it when the
+        ``fit.sample_contrast[0]`` and ``edge_side`` are what to teach it when the
         measurement is accepted.
         """
         T_wc = np.asarray(T_world_camera, float)

@@ -753,7 +753,7 @@ class Tracker:
             if T_wc is None or img is None:
                 continue
             T = self.ekf.pose
-            memory = self._contrast.setdefault(name, EdgeContrast(len(self.edge_aid.mf.edge_a)))
+            memory = self._contrast.setdefault(name, EdgeContrast(self.edge_aid.mf.sample_edge))
             m = self.edge_aid.measure(name, img, T_wc, T, memory)
             if m is None:
                 continue
@@ -765,7 +765,7 @@ class Tracker:
             nis = self.ekf.update_pose(m.T_world_object, m.cov6)
             self.edge_updates += 1
             if nis <= _CHI2_6_99:
-                memory.learn(m.fit.edge_contrast[0], m.edge_side)
+                memory.learn(m.fit.sample_contrast[0], m.edge_side)
             frac = m.fit.found_frac
             support.append(nis <= _CHI2_6_99 and m.fit.n_edges >= c.confirm_edge_min_edges
                            and frac >= c.confirm_edge_min_found)

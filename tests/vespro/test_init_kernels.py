@@ -253,7 +253,7 @@ def normal_search_ref(grad, uv, n, offs, min_grad, near_frac=0.0, expect=None, r
     with np.errstate(divide="ignore", invalid="ignore"):
         frac = np.where(np.abs(den) > 1e-9, 0.5 * (gm - gp) / den, 0.0)
     sstar = offs[kk] + np.clip(frac, -0.5, 0.5) * 0.5
-    return sstar, ok, np.ascontiguousarray(c[:, np.argmin(np.abs(offs))])
+    return sstar, ok, c[np.arange(S), kk], np.ascontiguousarray(c[:, np.argmin(np.abs(offs))])
 
 
 def segments_blocked_ref(tree, A, B, t_lo=0.0, t_hi=1.0, min_length=0.0):
@@ -545,31 +545,33 @@ def test_normal_search_can_take_the_nearest_of_comparable_peaks():
     uv = np.array([[10.0, 10.0]])
     n = np.array([[1.0, 0.0]])
     offs = np.arange(-3.0, 3.0 + 1e-9, 0.5)
-    s_hi, ok_hi, _ = search._normal_search(grad, uv, n, offs, 40.0)
-    s_near, ok_near, _ = search._normal_search(grad, uv, n, offs, 40.0, 0.6)
-    s_far, _, _ = search._normal_search(grad, uv, n, offs, 40.0, 0.9)
+    s_hi, ok_hi = search._normal_search(grad, uv, n, offs, 40.0)[:2]
+    s_near, ok_near = search._normal_search(grad, uv, n, offs, 40.0, 0.6)[:2]
+    s_far = search._normal_search(grad, uv, n, offs, 40.0, 0.9)[0]
     assert ok_hi[0] and ok_near[0]
     assert abs(s_hi[0] - 2.0) < 0.3 and abs(s_near[0]) < 0.3 and abs(s_far[0] - 2.0) < 0.3
 
 
 def test_normal_search_takes_only_edges_like_the_expected_contrast():
-    """A rising edge of 100 at the sample and a falling one of 60 two pixels out (a dark
-    seam beside an edge): unknown contrast (NaN) takes the stronger; a falling edge
-    expected takes the falling one; a rising one of about 100 the rising one; a much
-    stronger or a much weaker edge expected finds neither (``ratio_lo``/``ratio_hi`` 0.4
-    and 3). The contrast at the sample's own position comes back signed."""
+    """Along a sample's normal: a rising edge of 100 at the sample, a falling one of 60 two
+    pixels out (a dark seam beside an edge) and a rising one of 400 two pixels in. Unknown
+    contrast (NaN) takes the strongest; a falling edge expected takes the falling one; a
+    rising one of about 100 the one at the sample, not the one 4 times as strong; a rising
+    one of 400 that one; a falling one of 300 none (60 is under 0.4 times it); a sample that
+    saw no edge (5) one of its sign up to 3 times ``min_grad`` (``ratio_lo``/``ratio_hi`` 0.4
+    and 3). The contrasts at the peak taken and at the sample's own position come back
+    signed; the normal the other way round flips every sign."""
     grad = np.zeros((2, 20, 20), np.float32)
+    grad[0, :, 8] = 400.0
     grad[0, :, 10] = 100.0
     grad[0, :, 12] = -60.0
-    uv = np.array([[10.0, 10.0]] * 5)
-    n = np.array([[1.0, 0.0]] * 5)
+    expect = np.array([np.nan, -60.0, 90.0, 400.0, -300.0, 5.0])
+    uv = np.array([[10.0, 10.0]] * len(expect))
+    n = np.array([[1.0, 0.0]] * len(expect))
     offs = np.arange(-3.0, 3.0 + 1e-9, 0.5)
-    expect = np.array([np.nan, -60.0, 90.0, -300.0, 20.0])
-    s, ok, c0 = search._normal_search(grad, uv, n, offs, 40.0, 0.6, expect, 0.4, 3.0)
-    assert list(ok) == [True, True, True, False, False]
-    assert abs(s[0]) < 0.3 and abs(s[1] - 2.0) < 0.3 and abs(s[2]) < 0.3
-    assert np.allclose(c0, 100.0)
-    # The normal the other way round: the same edges with the other signs.
-    s, ok, c0 = search._normal_search(grad, uv, -n, offs, 40.0, 0.6, -expect, 0.4, 3.0)
-    assert list(ok) == [True, True, True, False, False]
-    assert abs(s[1] + 2.0) < 0.3 and np.allclose(c0, -100.0)
+    for sign in (1.0, -1.0):
+        s, ok, c_peak, c0 = search._normal_search(grad, uv, sign * n, offs, 40.0, 0.6, sign * expect, 0.4, 3.0)
+        assert list(ok) == [True, True, True, True, False, True]
+        assert np.allclose(sign * s[ok], [-2.0, 2.0, 0.0, -2.0, 0.0], atol=0.3)
+        assert np.allclose(sign * c_peak[ok], [400.0, -60.0, 100.0, 400.0, 100.0])
+        assert np.allclose(sign * c0, 100.0)

@@ -526,12 +526,14 @@ def _normal_search(grad, uv, n, offs, min_grad, near_frac=0.0, expect=None, rati
 
     ``expect`` (S,), optional: each sample's expected signed contrast (NaN:
     unknown, the search above). Where known, only local maxima of ``c`` of
-    its sign, inside the ends, with ``ratio_lo |e| <= |c| <= ratio_hi |e|``
-    (and ``|c| >= min_grad``) count as peaks; the highest of them, or with
-    ``near_frac`` the nearest of those at least ``near_frac`` times it.
+    its sign, inside the ends, with ``max(ratio_lo |e|, min_grad) <= |c| <=
+    ratio_hi max(|e|, min_grad)`` count as peaks (a sample that saw no edge
+    takes one of its sign up to ``ratio_hi min_grad``); the highest of them,
+    or with ``near_frac`` the nearest of those at least ``near_frac`` times it.
 
-    Returns ``(sstar, ok, c0)``, ``c0`` (S,) the signed contrast at the offset
-    nearest 0 (the sample's own position).
+    Returns ``(sstar, ok, c_peak, c0)``: ``c_peak`` (S,) the signed contrast
+    at the peak taken (valid where ``ok``), ``c0`` (S,) at the offset nearest
+    0 (the sample's own position).
     """
     _, H, W = grad.shape
     umax, vmax = W - 1.001, H - 1.001
@@ -539,6 +541,7 @@ def _normal_search(grad, uv, n, offs, min_grad, near_frac=0.0, expect=None, rati
     sstar = np.empty(S)
     ok = np.empty(S, np.bool_)
     c0 = np.empty(S)
+    c_peak = np.empty(S)
     g = np.empty(O)
     cs = np.empty(O)
     o0 = 0
@@ -570,7 +573,7 @@ def _normal_search(grad, uv, n, offs, min_grad, near_frac=0.0, expect=None, rati
         if np.isfinite(e):
             sg = 1.0 if e > 0 else -1.0
             lo = max(ratio_lo * abs(e), min_grad)
-            hi = ratio_hi * abs(e)
+            hi = ratio_hi * max(abs(e), min_grad)
             for o in range(O):
                 g[o] = max(sg * cs[o], 0.0)
             k = -1
@@ -601,7 +604,8 @@ def _normal_search(grad, uv, n, offs, min_grad, near_frac=0.0, expect=None, rati
         den = gm - 2 * g0 + gp
         frac = 0.5 * (gm - gp) / den if abs(den) > 1e-9 else 0.0
         sstar[s] = offs[kk] + min(max(frac, -0.5), 0.5) * 0.5
-    return sstar, ok, c0
+        c_peak[s] = cs[kk]
+    return sstar, ok, c_peak, c0
 
 
 def shared_edge_losers(uv: np.ndarray, edge: np.ndarray, edge_dir: np.ndarray, cost: np.ndarray,
@@ -892,12 +896,12 @@ class EdgeFit:
         ``G^T G``, ``G`` the per-edge sums of the weighted Jacobian rows
         (``sum w J`` over each fitted edge's samples): how the step answers an
         offset common to all samples of one edge (see :meth:`covariance`).
-    edge_contrast : tuple of ndarray (E,)
-        Per view, each model edge's mean signed image contrast at its projected
-        samples (the gradient along the edge's projected normal,
-        ``rot90(b - a)``, at the pose of the last round), NaN for an edge not
-        seen: what an edge looks like, for the next frame's search
-        (``expect`` of :func:`refine_subpixel`).
+    sample_contrast : tuple of ndarray (S,)
+        Per view, what each edge sample saw in the last round: the signed image
+        contrast (the gradient along its edge's projected normal,
+        ``rot90(b - a)``) of the image edge it took, or where it took none, at
+        its own projected position; NaN for a sample not seen. For the next
+        frame's search (``expect`` of :func:`refine_subpixel`).
     """
 
     normal: np.ndarray
@@ -909,7 +913,7 @@ class EdgeFit:
     found_weight: float
     searched_weight: float
     offset_gram: np.ndarray
-    edge_contrast: tuple = ()
+    sample_contrast: tuple = ()
 
     @property
     def found_frac(self) -> float:
@@ -986,9 +990,9 @@ def refine_subpixel(T_world_object: np.ndarray, views: list[CameraView], mf: Mod
     edges). With ``near_peak_frac``, a sample takes the nearest gradient peak
     of those at least that fraction of the highest (a face seen edge on is a
     line a pixel wide whose far side may be the stronger edge; see
-    :class:`vespro.edgeaid.EdgeAid`). With ``expect`` (per view, each model
-    edge's expected signed contrast, NaN where unknown; see
-    :attr:`EdgeFit.edge_contrast`), an edge's samples take only gradient peaks
+    :class:`vespro.edgeaid.EdgeAid`). With ``expect`` (per view, each edge
+    sample's expected signed contrast, NaN where unknown; see
+    :attr:`EdgeFit.sample_contrast`), a sample takes only gradient peaks
     of that sign whose strength is within ``contrast_ratio`` times the expected
     (as the moving-edge trackers check each site's contrast against its last;
     see :class:`vespro.edgeaid.EdgeContrast`). Canny pixels and the distance
@@ -1013,7 +1017,7 @@ def refine_subpixel(T_world_object: np.ndarray, views: list[CameraView], mf: Mod
             T_cw = invert_transform(v.T_world_camera)
             T_co = T_cw @ T
             idx = visible_samples(T_co, mf, tree)
-            contrast.append(np.full(len(mf.edge_a), np.nan))
+            contrast.append(np.full(len(mf.sample_p), np.nan))
             if idx.size == 0:
                 continue
             n_searched += idx.size
@@ -1034,11 +1038,10 @@ def refine_subpixel(T_world_object: np.ndarray, views: list[CameraView], mf: Mod
             X = P @ T_co[:3, :3].T + T_co[:3, 3]
             z = X[:, 2]
             uv = X[:, :2] / z[:, None] * K[[0, 1], [0, 1]] + K[:2, 2]
-            exp = None if expect is None or expect[iv] is None else np.asarray(expect[iv], float)[se]
-            sstar, ok, c0 = _normal_search(v.feat.grad, uv, n, offs, float(min_grad), float(near_peak_frac), exp,
-                                           float(contrast_ratio[0]), float(contrast_ratio[1]))
-            with np.errstate(invalid="ignore"):
-                contrast[-1] = np.bincount(se, c0, len(mf.edge_a)) / np.where(per_edge > 0, per_edge, np.nan)
+            exp = None if expect is None or expect[iv] is None else np.asarray(expect[iv], float)[idx]
+            sstar, ok, c_peak, c0 = _normal_search(v.feat.grad, uv, n, offs, float(min_grad), float(near_peak_frac),
+                                                   exp, float(contrast_ratio[0]), float(contrast_ratio[1]))
+            contrast[-1][idx] = c0
             if not ok.any():
                 continue
             if shared_edge_px > 0:
@@ -1052,6 +1055,7 @@ def refine_subpixel(T_world_object: np.ndarray, views: list[CameraView], mf: Mod
                     thin = face_widths_px(T_co, K, mf, edge_len) < 2.0 * shared_edge_px
                     ef = mf.edge_faces[se[lost]]
                     w_shared += float(dens[lost][np.any(thin[ef], axis=1)].sum())
+            contrast[-1][idx[ok]] = c_peak[ok]  # the image edge a sample took (or, above, none near it)
             # Residual: n . (uv - target) = -s*; Jacobian n^T d(uv)/dx.
             X, z, n, sstar, P = X[ok], z[ok], n[ok], sstar[ok], P[ok]
             rows_d.append(dens[ok])
