@@ -558,8 +558,8 @@ def test_normal_search_takes_only_edges_like_the_expected_contrast():
     contrast (NaN) takes the strongest; a falling edge expected takes the falling one; a
     rising one of about 100 the one at the sample, not the one 4 times as strong; a rising
     one of 400 that one; a falling one of 300 none (60 is under 0.4 times it); a sample that
-    saw no edge (5) one of its sign up to 3 times ``min_grad`` (``ratio_lo``/``ratio_hi`` 0.4
-    and 3). The contrasts at the peak taken and at the sample's own position come back
+    saw no edge (5, under ``min_grad``) the strongest of its sign (``ratio_lo``/``ratio_hi``
+    0.4 and 3). The contrasts at the peak taken and at the sample's own position come back
     signed; the normal the other way round flips every sign."""
     grad = np.zeros((2, 20, 20), np.float32)
     grad[0, :, 8] = 400.0
@@ -572,6 +572,6 @@ def test_normal_search_takes_only_edges_like_the_expected_contrast():
     for sign in (1.0, -1.0):
         s, ok, c_peak, c0 = search._normal_search(grad, uv, sign * n, offs, 40.0, 0.6, sign * expect, 0.4, 3.0)
         assert list(ok) == [True, True, True, True, False, True]
-        assert np.allclose(sign * s[ok], [-2.0, 2.0, 0.0, -2.0, 0.0], atol=0.3)
-        assert np.allclose(sign * c_peak[ok], [400.0, -60.0, 100.0, 400.0, 100.0])
+        assert np.allclose(sign * s[ok], [-2.0, 2.0, 0.0, -2.0, -2.0], atol=0.3)
+        assert np.allclose(sign * c_peak[ok], [400.0, -60.0, 100.0, 400.0, 400.0])
         assert np.allclose(sign * c0, 100.0)

@@ -527,9 +527,10 @@ def _normal_search(grad, uv, n, offs, min_grad, near_frac=0.0, expect=None, rati
     ``expect`` (S,), optional: each sample's expected signed contrast (NaN:
     unknown, the search above). Where known, only local maxima of ``c`` of
     its sign, inside the ends, with ``max(ratio_lo |e|, min_grad) <= |c| <=
-    ratio_hi max(|e|, min_grad)`` count as peaks (a sample that saw no edge
-    takes one of its sign up to ``ratio_hi min_grad``); the highest of them,
-    or with ``near_frac`` the nearest of those at least ``near_frac`` times it.
+    ratio_hi |e|`` count as peaks (no upper bound where ``|e| < min_grad``: a
+    sample that saw no edge of its own, its pose a little off, must still
+    take its edge when it comes within reach); the highest of them, or with
+    ``near_frac`` the nearest of those at least ``near_frac`` times it.
 
     Returns ``(sstar, ok, c_peak, c0)``: ``c_peak`` (S,) the signed contrast
     at the peak taken (valid where ``ok``), ``c0`` (S,) at the offset nearest
@@ -573,7 +574,7 @@ def _normal_search(grad, uv, n, offs, min_grad, near_frac=0.0, expect=None, rati
         if np.isfinite(e):
             sg = 1.0 if e > 0 else -1.0
             lo = max(ratio_lo * abs(e), min_grad)
-            hi = ratio_hi * max(abs(e), min_grad)
+            hi = ratio_hi * abs(e) if abs(e) >= min_grad else np.inf
             for o in range(O):
                 g[o] = max(sg * cs[o], 0.0)
             k = -1
