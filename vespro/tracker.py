@@ -204,7 +204,10 @@ class TrackerConfig:
         (:mod:`vespro.edgeaid`) and the fitted pose updates the filter; a lone
         camera's 6-8 corners leave the depth and tilt loose (tracks slid to
         10-20% of the diameter with every corner within 3 px). ``"always"``:
-        every camera with corners, each frame; ``"off"``: corners only.
+        every camera with corners, each frame; ``"off"``: corners only. Each
+        camera's fits search with what its edge samples looked like in the
+        fits the filter accepted since the start (:class:`vespro.edgeaid.EdgeContrast`,
+        forgotten at every start).
     edge_offset_px : float
         The edge fits' covariance allows each image edge to lie this far (std)
         off its model edge as a whole (:attr:`vespro.edgeaid.EdgeAid.edge_offset_px`):
