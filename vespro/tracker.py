@@ -994,7 +994,9 @@ class Tracker:
                 self._disagree = 0
                 self.reassociations += 1
                 ekf.widen_pose(c.init_sigma_pos, c.init_sigma_rot)
-        if not self.confirmed and self._good >= c.confirm_frames and not self.provisional:
+        if not self.confirmed and self._good >= c.confirm_frames and not self.provisional and not bad:
+            # (Not on a bad frame: a start the initialiser confirmed on one was published
+            # ``lost`` though never ``tracking``; it now waits for a frame that is not bad.)
             self.confirmed = True
         T = ekf.pose
         stage_ms = {k: v * 1e3 for k, v in stage.items()}
