@@ -1027,9 +1027,9 @@ def refine_subpixel(T_world_object: np.ndarray, views: list[CameraView], mf: Mod
             ub, _ = _project(K, T_co, mf.edge_b)
             se = mf.sample_edge[idx]
             edge_len = np.linalg.norm(ub - ua, axis=1)
-            per_edge = np.bincount(se, minlength=len(mf.edge_a))
             dens = np.ones(idx.size)
             if spacing_px > 0:
+                per_edge = np.bincount(se, minlength=len(mf.edge_a))
                 dens = np.minimum(1.0, edge_len[se] / (spacing_px * per_edge[se]))
             w_searched += float(dens.sum())
             d = (ub - ua)[se]
