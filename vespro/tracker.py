@@ -360,6 +360,9 @@ class TrackerConfig:
             raise ValueError("need at least 3 features per camera")
         if not (np.isfinite(self.edge_offset_px) and self.edge_offset_px >= 0):
             raise ValueError(f"edge_offset_px must be a finite number >= 0, got {self.edge_offset_px}")
+        if not 1 <= self.min_accepted_with_edges <= self.min_accepted:
+            raise ValueError(f"min_accepted_with_edges must be 1..min_accepted ({self.min_accepted}), "
+                             f"got {self.min_accepted_with_edges}")
 
 
 @dataclass(frozen=True)

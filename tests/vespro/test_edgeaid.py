@@ -260,6 +260,9 @@ def test_three_corners_and_the_outline_keep_a_one_camera_track():
     tr.start(InitResult(frames[0][1]), frames[0][0].t_ns)
     statuses = [tr.process(fs).status for fs, _ in frames]
     assert statuses[3] == "tracking" and set(statuses[4:]) == {"lost"}, statuses
+    for bad in (0, 5):
+        with pytest.raises(ValueError, match="min_accepted_with_edges"):
+            TrackerConfig(min_accepted_with_edges=bad)
     tr = Tracker(rig, model, TrackerConfig())
     tr.start(InitResult(frames[0][1]), frames[0][0].t_ns)
     errs = _published_errors(tr, frames, model, syms)
