@@ -769,7 +769,9 @@ class Tracker:
             if T_wc is None or img is None:
                 continue
             T = self.ekf.pose
-            memory = self._contrast.setdefault(name, EdgeContrast(self.edge_aid.mf.sample_edge))
+            memory = self._contrast.get(name)
+            if memory is None:
+                memory = self._contrast[name] = EdgeContrast(self.edge_aid.mf.sample_edge)
             m = self.edge_aid.measure(name, img, T_wc, T, memory)
             if m is None:
                 continue

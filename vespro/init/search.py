@@ -1018,7 +1018,7 @@ def refine_subpixel(T_world_object: np.ndarray, views: list[CameraView], mf: Mod
             T_cw = invert_transform(v.T_world_camera)
             T_co = T_cw @ T
             idx = visible_samples(T_co, mf, tree)
-            contrast.append(np.full(len(mf.sample_p), np.nan))
+            contrast.append(np.full(len(mf.sample_p), np.nan) if info else None)
             if idx.size == 0:
                 continue
             n_searched += idx.size
@@ -1042,7 +1042,8 @@ def refine_subpixel(T_world_object: np.ndarray, views: list[CameraView], mf: Mod
             exp = None if expect is None or expect[iv] is None else np.asarray(expect[iv], float)[idx]
             sstar, ok, c_peak, c0 = _normal_search(v.feat.grad, uv, n, offs, float(min_grad), float(near_peak_frac),
                                                    exp, float(contrast_ratio[0]), float(contrast_ratio[1]))
-            contrast[-1][idx] = c0
+            if info:
+                contrast[-1][idx] = c0
             if not ok.any():
                 continue
             if shared_edge_px > 0:
@@ -1056,7 +1057,8 @@ def refine_subpixel(T_world_object: np.ndarray, views: list[CameraView], mf: Mod
                     thin = face_widths_px(T_co, K, mf, edge_len) < 2.0 * shared_edge_px
                     ef = mf.edge_faces[se[lost]]
                     w_shared += float(dens[lost][np.any(thin[ef], axis=1)].sum())
-            contrast[-1][idx[ok]] = c_peak[ok]  # the image edge a sample took (or, above, none near it)
+            if info:
+                contrast[-1][idx[ok]] = c_peak[ok]  # the image edge a sample took (or, above, none near it)
             # Residual: n . (uv - target) = -s*; Jacobian n^T d(uv)/dx.
             X, z, n, sstar, P = X[ok], z[ok], n[ok], sstar[ok], P[ok]
             rows_d.append(dens[ok])
@@ -1095,11 +1097,12 @@ def refine_subpixel(T_world_object: np.ndarray, views: list[CameraView], mf: Mod
             w = np.where(keep, w, 0.0)
         if keep.sum() < 12:
             break
-        # Per-edge sums of the weighted rows (JW is the last solve's, with the final weights).
-        G = np.stack([np.bincount(inv, JW[:, j], len(u)) for j in range(6)], 1)
-        fit = EdgeFit(A, float(np.sqrt(np.sum(w * r * r) / np.sum(w))), int(keep.sum()), len(np.unique(eid[keep])),
-                      n_searched, float(np.sum(dens[keep])), float(np.sum(dens[keep])) + w_shared, w_searched, G.T @ G,
-                      tuple(contrast))
+        if info:  # the record of the round (what the caller asked for; not needed for the pose)
+            # Per-edge sums of the weighted rows (JW is the last solve's, with the final weights).
+            G = np.stack([np.bincount(inv, JW[:, j], len(u)) for j in range(6)], 1)
+            fit = EdgeFit(A, float(np.sqrt(np.sum(w * r * r) / np.sum(w))), int(keep.sum()),
+                          len(np.unique(eid[keep])), n_searched, float(np.sum(dens[keep])),
+                          float(np.sum(dens[keep])) + w_shared, w_searched, G.T @ G, tuple(contrast))
         T = _perturbed(T, step)
         if np.linalg.norm(step[:3]) < 1e-5 and np.linalg.norm(step[3:]) < 1e-6:
             break
