@@ -349,27 +349,63 @@ def test_a_face_seen_as_a_strip_leaves_the_outline_whole(seed):
     assert min(found) > 0.95, found
 
 
-@pytest.mark.parametrize("seed", [200, 17])
-def test_a_box_seen_from_above_by_one_camera_is_published(seed):
-    """Box lying flat, one camera above it (rig seeds 200 and 17), initialiser on every 5th
-    frame: one open face and 5-6 edges, under the 7 a one-camera pose needs. Accepted as
-    provisional with 5 (``min_supported_edges_confirm``, off by default: see its note),
-    found again by the next call and confirmed by the tracker, it is published from frame 5
-    and stays within 10% of the diameter (measured 3-7%); by default nothing is published
-    in the second."""
+def _box_run(seed, n, rig_kind=1, hide=False, **opts):
+    """Published errors of a box trial (rig seed as in bench/init.py; the initialiser on
+    every 5th frame, options ``opts``); ``hide``: a paddle hides the rig's first camera."""
+    from dataclasses import replace
+
     from vespro.init import make_initializer
+    from vespro.sim.cell import OccluderSweep
 
-    rig, model, frames = _one_camera_frames("box", seed, 26)
+    rig = random_rig(np.random.default_rng(10_000 + seed), rig_kind)
+    config, motion, mesh = trial_config("box", rig, seed)
+    if hide:
+        config = replace(config, occluders=(OccluderSweep(rig.cameras[0].name, 0.0, duration=1e3, half_travel=0.0),))
+    model = load_model(mesh)
     syms = model_symmetries(model.vertices)
+    ini = make_initializer(rig, model, **opts)
+    tr = Tracker(rig, model, initializer=lambda fs: None if fs.index % 5 else ini(fs))
+    frames = []
+    with SimCell(config, motion) as cell:
+        cell.settle_arm()
+        for _ in range(n):
+            frames.append((cell.next_frameset(), cell.true_object_pose()))
+    return _published_errors(tr, frames, model, syms)
 
-    def run(**opts):
-        ini = make_initializer(rig, model, **opts)
-        tr = Tracker(rig, model, initializer=lambda fs: None if fs.index % 5 else ini(fs))
-        return _published_errors(tr, frames, model, syms)
 
-    errs = run(min_supported_edges_confirm=5)
+def test_a_box_seen_from_above_with_a_side_face_apart_is_published():
+    """Box lying flat, one camera above it (rig seed 803): one open face and 5 edges, under
+    the 7 a one-camera pose needs; a side face's strip stands apart from the top face in the
+    image. Accepted as provisional (``min_supported_edges_confirm``), found again by the
+    next call and confirmed by the tracker, it is published from frame 5 within 10% of the
+    diameter (measured 2-3%); with 7 edges asked for, nothing is published in the second."""
+    errs = _box_run(803, 26)
     assert len(errs) >= 18 and max(errs) < 0.1, errs
-    assert run() == []
+    assert _box_run(803, 26, min_supported_edges_confirm=7) == []
+
+
+@pytest.mark.parametrize("seed", [200, 17])
+def test_a_box_seen_head_on_by_one_camera_is_not_published(seed):
+    """Box lying flat, one camera straight above it (rig seeds 200 and 17): one open face,
+    the side faces' strips under a few px, so their far edges lie on the image edges of
+    the top face's own and the tilt rests on nothing (``min_distinct_edges_confirm``).
+    Nothing is published in the second; not asking for distinct edges, these two tracks
+    happen to stay within 10% of the diameter (3-7%), but see the next test."""
+    assert _box_run(seed, 26) == []
+    errs = _box_run(seed, 26, min_distinct_edges_confirm=0)
+    assert len(errs) >= 18 and max(errs) < 0.1, errs
+
+
+def test_a_box_seen_head_on_past_a_paddle_is_not_locked_wrong():
+    """Two cameras (rig seed 4), a paddle hiding the first: the other sees the box's top
+    face 9-12 deg from head-on, 110 px across. A pose 7.6% of the diameter off, its
+    tilt wrong, explains 6 edges there, but only the top face's 4 stand apart: not asking
+    for distinct edges, it was confirmed and published 12-22% off (a wrong lock); by
+    default nothing wrong is published."""
+    errs = _box_run(4, 20, rig_kind=2, hide=True, min_distinct_edges_confirm=0)
+    assert errs and max(errs) >= 0.1, errs  # the premise
+    errs = _box_run(4, 20, rig_kind=2, hide=True)
+    assert all(e < 0.1 for e in errs), errs
 
 
 @pytest.fixture(scope="module")

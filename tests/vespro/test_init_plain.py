@@ -136,6 +136,7 @@ def _check(**kw):
                 n_cameras=1, mean_dist=3.5, unseen_fixed=0, min_size_px=150.0, inlier_px=400.0, open_faces=2,
                 overrun_frac=0.1, interior_edge_frac=0.0, crease_edges=3, crease_supported=3)
     base.update(kw)
+    base.setdefault("distinct_supported", base["supported_edges"])
     return PoseCheck(**base)
 
 
@@ -168,7 +169,16 @@ def test_one_open_face_is_provisional_with_one_camera():
     assert _verdict(_check(**strict_pass, open_faces=1), opt) == (True, True, "")
     assert not _verdict(_check(open_faces=1), opt)[0]  # not under the plain-face limits as well
     assert not _verdict(_check(**strict_pass, open_faces=0), opt)[0]
-    assert not _verdict(_check(**{**strict_pass, "supported_edges": 5}, open_faces=1), opt)[0]
+    assert not _verdict(_check(**{**strict_pass, "supported_edges": 4}, open_faces=1), opt)[0]
+    assert _verdict(_check(**{**strict_pass, "supported_edges": 5, "visible_edges": 5}, open_faces=1),
+                    opt) == (True, True, "")  # a box seen from above: its top face and a side face's strip
+    # The side faces' strips so thin that their far edges lie on the face's own
+    # (within two tolerances): six edges supported, four apart, the tilt unseen.
+    thin = _check(**{**strict_pass, "supported_edges": 6, "visible_edges": 6, "distinct_supported": 4}, open_faces=1)
+    assert not _verdict(thin, opt)[0]
+    assert _verdict(thin, replace(opt, min_distinct_edges_confirm=4)) == (True, True, "")
+    # Two open faces: not asked (the strict limits count supported edges).
+    assert _verdict(replace(thin, open_faces=2, supported_edges=7, visible_edges=7), opt) == (True, False, "")
     assert not _verdict(_check(**strict_pass, open_faces=1), replace(opt, min_open_faces_confirm=2))[0]
 
 
@@ -210,3 +220,38 @@ def test_edges_running_on_past_some_corners_is_provisional_with_one_camera():
     assert not _verdict(_check(**strict_pass, overrun_frac=0.44, interior_edge_frac=0.05), opt)[0]
     two = _check(**{**strict_pass, "per_camera": {"a": 0.95, "b": 0.95}}, n_cameras=2, overrun_frac=0.6)
     assert not _verdict(two, opt)[0]
+
+
+def test_distinct_segments_merge_near_parallel_overlapping_ones():
+    from vespro.init.search import _distinct_segments
+
+    a = np.array([[0.0, 0.0], [0.0, 3.0], [0.0, 9.0], [0.0, 0.0], [200.0, 2.0]])
+    b = np.array([[100.0, 0.0], [80.0, 3.5], [100.0, 9.0], [0.0, 50.0], [300.0, 2.0]])
+    # 0 and 1: 3-3.5 px apart, overlapping -> one; 2: 9 px off; 3: perpendicular;
+    # 4: on 0's line but past its end (no overlap).
+    assert _distinct_segments(a, b, 4.0) == 4
+    assert _distinct_segments(a, b, 2.0) == 5
+    assert _distinct_segments(a, b, 10.0) == 3  # 2 joins 0 and 1
+    assert _distinct_segments(a[:0], b[:0], 4.0) == 0
+
+
+@pytest.mark.parametrize("tilt_deg,strip_apart", [(5.0, False), (12.0, True)])
+def test_a_side_face_seen_as_a_thin_strip_adds_no_distinct_edge(tilt_deg, strip_apart):
+    """A box's top face seen nearly head-on, tilted to show one side face as a
+    strip: 0.6 px wide at 5 deg (at 0.5 m, the perspective turning it against
+    the tilt), its far edge lies on the image edge of the top face's own (both
+    supported, counted once); 11 px wide at 12 deg, it stands apart."""
+    from vespro.model import box_model
+
+    box = box_model([0.12, 0.08, 0.06], center=[0, 0, 0.03])
+    mf = model_features(box)
+    c, s_ = np.cos(np.deg2rad(tilt_deg)), np.sin(np.deg2rad(tilt_deg))
+    T = transform_from_rt(np.diag([1.0, -1.0, -1.0]), [0.0, 0.0, 0.5]) @ \
+        transform_from_rt(np.array([[1, 0, 0], [0, c, -s_], [0, s_, c]]), [0.0, 0.0, 0.0])
+    img = render(box, T, np.random.default_rng(0), clutter=0)
+    chk = check_pose(T, [CameraView(extract_features("c", img, K, EdgeOptions()), np.eye(4))], mf)
+    assert chk.open_faces == 1 and chk.supported_edges >= 5
+    if strip_apart:
+        assert chk.distinct_supported == chk.supported_edges
+    else:
+        assert chk.distinct_supported == chk.supported_edges - 1 == 4

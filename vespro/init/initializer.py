@@ -185,13 +185,26 @@ class InitOptions:
         best candidates 2-9% of the diameter off. Provisional, so confirmed
         by the next call and then by the tracker (whose edge fits count a
         face seen as a strip as found, see
-        :attr:`vespro.init.search.EdgeFit.found_weight`). With 5, one camera
-        published 345 of 360 trials within the second instead of 336, none
-        wrong; but with a paddle hiding one of two cameras a box so started
-        9 deg / 19 mm off (14% of the diameter) was confirmed and published
-        for 11 frames, its four corners and whole outline agreeing, the
-        filter claiming 0.3-1 deg: a rectangle seen head-on leaves its tilt to
-        the side faces' strips, which fit either way. So 7 (off) by default.
+        :attr:`vespro.init.search.EdgeFit.found_weight`).
+    min_distinct_edges_confirm : int
+        ... and this many of them standing apart in the image
+        (:attr:`vespro.init.search.PoseCheck.distinct_supported`): a rectangle
+        seen head-on leaves its tilt to the side faces' strips, and a strip
+        whose far edge lies within two tolerances of the face's own edge
+        supports any tilt. With 5 supported edges and no such count, one
+        camera published 345 of 360 trials within the second instead of 336,
+        none wrong; but with a paddle hiding one of two cameras (rig seed 4)
+        a box started 9 deg / 19 mm off (14% of the diameter) was confirmed
+        and published 12-22% off, its four corners and whole outline
+        agreeing: 6 edges supported there, 4 apart (the true pose: 6 apart,
+        but refined on that camera alone it slides to the wrong one).
+        With 5 and 5: 569 of 600 one-camera trials published within the
+        second instead of 564 (20 trials from each of seeds 0, 40, 200, 400,
+        600, 800 and the held-out 1000, 1200, 1400, 1600; ``bench/init.py
+        --track 52``), none wrong; the
+        paddle trial and the 108 of ``--hide`` as before (103, none wrong). The
+        boxes seen straight from above (within about 10 deg of head-on, the
+        strips under 4 px) stay out of one camera's reach.
     min_size_px : float
         Least projected size of the part (bounding-box diagonal, px) in every
         judging camera: tiny far-away fits of background texture are rejected,
@@ -337,7 +350,8 @@ class InitOptions:
     hidden_camera: bool = True
     min_supported_edges: int = 6
     min_supported_edges_single: int = 7
-    min_supported_edges_confirm: int = 7
+    min_supported_edges_confirm: int = 5
+    min_distinct_edges_confirm: int = 5
     min_size_px: float = 40.0
     min_size_px_single: float = 90.0
     max_mean_dist_single: float = 2.5
@@ -540,7 +554,7 @@ def _verdict(chk, opt: InitOptions) -> tuple[bool, bool, str]:
                         min_supported_edges_single=(min(opt.min_supported_edges_single,
                                                         opt.min_supported_edges_confirm) if few_faces
                                                     else opt.min_supported_edges_single))
-        if _accept(chk, loose)[0]:
+        if _accept(chk, loose)[0] and not (few_faces and chk.distinct_supported < opt.min_distinct_edges_confirm):
             return True, True, ""
     return False, False, why
 

@@ -1220,6 +1220,14 @@ class PoseCheck:
         the silhouette), summed over cameras, and how many are supported.
         Two faces at an angle rarely have the same shade, so a crease shows
         in the image even where a face matches its background.
+    distinct_supported : int
+        Supported edges that stand apart in the image, summed over cameras:
+        supported edges lying nearly parallel within ``2 tol_px`` of each
+        other over a common stretch count once (one image edge can support
+        both; :func:`_distinct_segments`). A face seen nearly edge-on (the
+        strip of a box's side face beside its top face seen head-on) adds
+        its far edge to ``supported_edges`` for nothing: that edge lies on
+        the crease's image edge whatever the tilt.
     hidden : str
         A camera left out of these statistics because the part is hidden
         there (``InitOptions.hidden_camera``); empty when none is.
@@ -1247,6 +1255,42 @@ class PoseCheck:
     crease_supported: int = 0
     hidden: str = ""
     explained: tuple = ()
+    distinct_supported: int = 0
+
+
+def _distinct_segments(a: np.ndarray, b: np.ndarray, sep_px: float, max_deg: float = 10.0,
+                       min_overlap: float = 0.3) -> int:
+    """How many groups the image segments ``a[i]-b[i]`` (px) form when near ones merge.
+
+    Two segments merge when they run within ``max_deg`` of parallel, both
+    ends of one lie within ``sep_px`` of the other's line, and they overlap
+    along it by at least ``min_overlap`` of the shorter (groups are the
+    connected sets of merged pairs).
+    """
+    n = len(a)
+    parent = np.arange(n)
+
+    def root(i):
+        while parent[i] != i:
+            i = parent[i]
+        return i
+
+    d = b - a
+    L = np.linalg.norm(d, axis=1)
+    u = d / np.maximum(L, 1e-9)[:, None]
+    cos_max = np.cos(np.deg2rad(max_deg))
+    for i in range(n):
+        nrm = np.array([-u[i, 1], u[i, 0]])
+        for j in range(i + 1, n):
+            if abs(u[i] @ u[j]) < cos_max:
+                continue
+            if max(abs((a[j] - a[i]) @ nrm), abs((b[j] - a[i]) @ nrm)) > sep_px:
+                continue
+            t0, t1 = sorted(((a[j] - a[i]) @ u[i], (b[j] - a[i]) @ u[i]))
+            if min(t1, L[i]) - max(t0, 0.0) < min_overlap * min(L[i], t1 - t0):
+                continue
+            parent[root(i)] = root(j)
+    return len({root(i) for i in range(n)})
 
 
 def _continued_in_view(ends_xyz: np.ndarray, dirs: np.ndarray, mf: ModelFeatures, ua: np.ndarray, ub: np.ndarray,
@@ -1302,6 +1346,7 @@ def check_pose(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFea
     n_over, n_ends = 0, 0
     clutter = 0.0
     cr_e, cr_sup = 0, 0
+    n_distinct = 0
     explained = []
     cos_open = np.cos(np.deg2rad(open_face_deg))
     for v in views:
@@ -1363,6 +1408,8 @@ def check_pose(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFea
                 ends_uv.append(ue[k]); dirs.append(-u); ebins.append(bins[m[0]]); ends_xyz.append(mf.edge_a[k])
             if idx[m[-1]] == allk[-1] and inl[m[-1]] and mf.end_free[k, 1]:
                 ends_uv.append(ub[k]); dirs.append(u); ebins.append(bins[m[-1]]); ends_xyz.append(mf.edge_b[k])
+        if sup_k:
+            n_distinct += _distinct_segments(ue[sup_k], ub[sup_k], 2.0 * tol_px)
         if ends_uv:
             s_ = np.linspace(3.0, 8.0, 5)
             q = np.asarray(ends_uv)[:, None, :] + s_[None, :, None] * np.asarray(dirs)[:, None, :]
@@ -1376,7 +1423,7 @@ def check_pose(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFea
     return PoseCheck(n_in / n_all if n_all else 0.0, per, n_all, sup_e, vis_e, ncam,
                      dsum / n_all if n_all else float("inf"), unseen, size if np.isfinite(size) else 0.0,
                      inl_px, open_min if ncam else 0, n_over / n_ends if n_ends else 0.0, clutter, cr_e, cr_sup,
-                     explained=tuple(explained))
+                     explained=tuple(explained), distinct_supported=n_distinct)
 
 
 def unshared_px(a: PoseCheck, b: PoseCheck, tol_px: float = 2.0) -> float:
