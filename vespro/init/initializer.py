@@ -201,10 +201,10 @@ class InitOptions:
         With 5 and 5: 569 of 600 one-camera trials published within the
         second instead of 564 (20 trials from each of seeds 0, 40, 200, 400,
         600, 800 and the held-out 1000, 1200, 1400, 1600; ``bench/init.py
-        --track 52``), none wrong; the
-        paddle trial and the 108 of ``--hide`` as before (103, none wrong). The
-        boxes seen straight from above (within about 10 deg of head-on, the
-        strips under 4 px) stay out of one camera's reach.
+        --track 52``), none wrong; the paddle trial and the 108 of ``--hide``
+        as before (103, none wrong). The boxes seen straight from above
+        (within about 10 deg of head-on, the strips under 4 px) stay out of
+        one camera's reach.
     min_size_px : float
         Least projected size of the part (bounding-box diagonal, px) in every
         judging camera: tiny far-away fits of background texture are rejected,
