@@ -97,6 +97,18 @@ class InitOptions:
         before, and changed an eye-in-hand start (218/240 and 91/96 with one
         wrong lock, against 220/240 and 92/96, none, as a fallback). 0 turns
         it off.
+    quick_when_pending : bool
+        Run that fallback in a call confirming a provisional pose too (the
+        pending pose itself does not count as a passing candidate): such a
+        call confirms the pose when it comes first among what the search
+        finds, so the search must look as hard as any other call. Skipped
+        there, a one-camera L-block (rig seed 2017) provisionally started
+        58% of the diameter off, its true pose's P3P hypotheses ranked out
+        (5-9% off), was confirmed by the next call and published from frame
+        44; searched, that call puts a pose 3% off first (the true pose
+        explains 420-500 px of edges, the wrong one 267), the filter starts
+        again there, the next call confirms it and the track is published
+        from frame 39 at 1.4%.
     quick_nfev, quick_max_move : int, float
         Steps of that refinement, and the most it may move a hypothesis
         (mean model-vertex displacement, fraction of the diameter); one that
@@ -339,6 +351,7 @@ class InitOptions:
     n_quick: int = 60
     quick_nfev: int = 10
     quick_max_move: float = 0.5
+    quick_when_pending: bool = True
     n_refine: int = 6
     n_refine_extra: int = 3
     refine_windows: int = 5
@@ -822,7 +835,8 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
         w0 = opt.n_refine + opt.n_refine_extra * ((attempt - 1) % max(opt.refine_windows, 1))
         wanted |= set(range(w0, w0 + opt.n_refine_extra))
     refine_distinct(order, wanted)
-    if opt.n_quick > 0 and pending is None and not any(_verdict(c, opt)[0] for _, c in refined):
+    if opt.n_quick > 0 and (pending is None or opt.quick_when_pending) and \
+            not any(_verdict(c, opt)[0] for _, c in refined):
         # None passes: the best n_quick again after a brief refinement, and the
         # best few of those (the ones not refined already) refined and verified.
         q = order[:opt.n_quick]
