@@ -18,9 +18,17 @@ from vespro.startpose import InitResult
 from vespro.tracker import Tracker, TrackerConfig
 
 
-def _one_camera_frames(obj, seed, n):
-    rig = random_rig(np.random.default_rng(10_000 + seed), 1)
+def _trial_frames(obj, seed, n, n_cameras=1, hide=False):
+    """(rig, model, [(frame set, true pose)] * n) of a trial (rig seed as in bench/init.py;
+    ``hide``: a paddle held between the rig's first camera and the part)."""
+    from dataclasses import replace
+
+    from vespro.sim.cell import OccluderSweep
+
+    rig = random_rig(np.random.default_rng(10_000 + seed), n_cameras)
     config, motion, mesh = trial_config(obj, rig, seed)
+    if hide:
+        config = replace(config, occluders=(OccluderSweep(rig.cameras[0].name, 0.0, duration=1e3, half_travel=0.0),))
     model = load_model(mesh)
     out = []
     with SimCell(config, motion) as cell:
@@ -47,7 +55,7 @@ def test_edges_fit_the_pose_a_lone_camera_sees_loosely(obj, seed):
     0.5% of the diameter; measured 0.3%),
     within 3% of the truth (measured 2.2-2.3%: one view's edges fix the depth to a few
     mm), with a covariance its error agrees with (NEES 5-8; under the 0.999 chi-square)."""
-    rig, model, frames = _one_camera_frames(obj, seed, 1)
+    rig, model, frames = _trial_frames(obj, seed, 1)
     fs, T_true = frames[0]
     cam = rig.cameras[0]
     T_wc = cam.T_world_camera
@@ -82,7 +90,7 @@ def test_one_camera_track_held_by_the_edges():
     within 10% (measured 0.3-4.5%)."""
     from vespro.init import make_initializer
 
-    rig, model, frames = _one_camera_frames("bracket", 3, 12)
+    rig, model, frames = _trial_frames("bracket", 3, 12)
     ini = make_initializer(rig, model)
     res = ini(frames[0][0])
     assert res is not None
@@ -107,7 +115,7 @@ def test_four_corners_and_the_whole_outline_confirm_a_lone_camera():
     second frame on and stays within 10% of the diameter (measured 0.4-5.4%); asking for
     more than the whole outline (``confirm_outline_min_found`` above 1) leaves it
     unpublished: 4 corners alone never confirm."""
-    rig, model, frames = _one_camera_frames("box", 18, 14)
+    rig, model, frames = _trial_frames("box", 18, 14)
     syms = model_symmetries(model.vertices)
     rng = np.random.default_rng(0)
     fs0, T0_true = frames[0]
@@ -145,7 +153,7 @@ def test_edges_veto_a_start_that_slid_on_wrong_corners():
     the veto); the veto stays as the guard behind that."""
     from vespro.init import make_initializer
 
-    rig, model, frames = _one_camera_frames("bracket", 210, 26)
+    rig, model, frames = _trial_frames("bracket", 210, 26)
     ini = make_initializer(rig, model)
     syms = model_symmetries(model.vertices)
     starts = {}
@@ -184,7 +192,7 @@ def test_fits_that_find_half_the_outline_count_for_less():
     contrast memory (``contrast_ratio`` None), as when this was found: with it, the fits taken
     at their word also stay within 10% (measured 5.4%), the edges that found a neighbour's
     image edge no longer finding one of another sign and strength."""
-    rig, model, frames = _one_camera_frames("lblock", 610, 58)
+    rig, model, frames = _trial_frames("lblock", 610, 58)
     syms = model_symmetries(model.vertices)
 
     def run(found_power, contrast_ratio=None):
@@ -230,7 +238,7 @@ def test_the_edge_contrast_memory_keeps_a_one_camera_box_off_a_dark_seam():
     published track slides to 11.5% of the diameter at frames 34-35 (the premise, checked
     here); with it each sample keeps to the edge it saw and the track stays within 8%
     (measured 6.1%), as many frames published."""
-    rig, model, frames = _one_camera_frames("box", 1618, 45)
+    rig, model, frames = _trial_frames("box", 1618, 45)
     syms = model_symmetries(model.vertices)
 
     def run(contrast_ratio):
@@ -253,7 +261,7 @@ def test_three_corners_and_the_outline_keep_a_one_camera_track():
     fits find 84-91% of the outline. With ``min_accepted_with_edges`` 3 the track is published
     on every frame from the second (within 5% of the diameter; measured 4.9%); with 4 (the
     corners alone decide) every frame from 4 on is bad and the track is lost (the premise)."""
-    rig, model, frames = _one_camera_frames("box", 41, 14)
+    rig, model, frames = _trial_frames("box", 41, 14)
     syms = model_symmetries(model.vertices)
 
     tr = Tracker(rig, model, TrackerConfig(min_accepted_with_edges=4))
@@ -336,7 +344,7 @@ def test_a_face_seen_as_a_strip_leaves_the_outline_whole(seed):
     samples of an edge foreshortened to 2-3 px count one each): the outline looked half
     missing and the track was never confirmed. Weighted by image length, with the samples
     that lost their edge to a strip's other side counted as found, 98-100% is found."""
-    rig, model, frames = _one_camera_frames("box", seed, 6)
+    rig, model, frames = _trial_frames("box", seed, 6)
     cam = rig.cameras[0]
     aid = EdgeAid(rig, model)
     raw, found = [], []
@@ -350,27 +358,13 @@ def test_a_face_seen_as_a_strip_leaves_the_outline_whole(seed):
 
 
 def _box_run(seed, n, rig_kind=1, hide=False, **opts):
-    """Published errors of a box trial (rig seed as in bench/init.py; the initialiser on
-    every 5th frame, options ``opts``); ``hide``: a paddle hides the rig's first camera."""
-    from dataclasses import replace
-
+    """Published errors of a box trial (the initialiser, options ``opts``, on every 5th frame)."""
     from vespro.init import make_initializer
-    from vespro.sim.cell import OccluderSweep
 
-    rig = random_rig(np.random.default_rng(10_000 + seed), rig_kind)
-    config, motion, mesh = trial_config("box", rig, seed)
-    if hide:
-        config = replace(config, occluders=(OccluderSweep(rig.cameras[0].name, 0.0, duration=1e3, half_travel=0.0),))
-    model = load_model(mesh)
-    syms = model_symmetries(model.vertices)
+    rig, model, frames = _trial_frames("box", seed, n, rig_kind, hide)
     ini = make_initializer(rig, model, **opts)
     tr = Tracker(rig, model, initializer=lambda fs: None if fs.index % 5 else ini(fs))
-    frames = []
-    with SimCell(config, motion) as cell:
-        cell.settle_arm()
-        for _ in range(n):
-            frames.append((cell.next_frameset(), cell.true_object_pose()))
-    return _published_errors(tr, frames, model, syms)
+    return _published_errors(tr, frames, model, model_symmetries(model.vertices))
 
 
 def test_a_box_seen_from_above_with_a_side_face_apart_is_published():

@@ -1262,35 +1262,27 @@ def _distinct_segments(a: np.ndarray, b: np.ndarray, sep_px: float, max_deg: flo
                        min_overlap: float = 0.3) -> int:
     """How many groups the image segments ``a[i]-b[i]`` (px) form when near ones merge.
 
-    Two segments merge when they run within ``max_deg`` of parallel, both
-    ends of one lie within ``sep_px`` of the other's line, and they overlap
-    along it by at least ``min_overlap`` of the shorter (groups are the
-    connected sets of merged pairs).
+    Segments ``i < j`` merge when they run within ``max_deg`` of parallel, both
+    ends of ``j`` lie within ``sep_px`` of ``i``'s line, and they overlap along
+    it by at least ``min_overlap`` of the shorter (groups are the connected
+    components of the merged pairs).
     """
-    n = len(a)
-    parent = np.arange(n)
+    from scipy.sparse.csgraph import connected_components
 
-    def root(i):
-        while parent[i] != i:
-            i = parent[i]
-        return i
-
+    if len(a) == 0:
+        return 0
     d = b - a
     L = np.linalg.norm(d, axis=1)
     u = d / np.maximum(L, 1e-9)[:, None]
-    cos_max = np.cos(np.deg2rad(max_deg))
-    for i in range(n):
-        nrm = np.array([-u[i, 1], u[i, 0]])
-        for j in range(i + 1, n):
-            if abs(u[i] @ u[j]) < cos_max:
-                continue
-            if max(abs((a[j] - a[i]) @ nrm), abs((b[j] - a[i]) @ nrm)) > sep_px:
-                continue
-            t0, t1 = sorted(((a[j] - a[i]) @ u[i], (b[j] - a[i]) @ u[i]))
-            if min(t1, L[i]) - max(t0, 0.0) < min_overlap * min(L[i], t1 - t0):
-                continue
-            parent[root(i)] = root(j)
-    return len({root(i) for i in range(n)})
+    nrm = np.stack([-u[:, 1], u[:, 0]], axis=1)
+    ra, rb = a[None, :, :] - a[:, None, :], b[None, :, :] - a[:, None, :]  # [i, j]: j's ends from i's start
+    off = np.maximum(np.abs(np.einsum("ijk,ik->ij", ra, nrm)), np.abs(np.einsum("ijk,ik->ij", rb, nrm)))
+    ta, tb = np.einsum("ijk,ik->ij", ra, u), np.einsum("ijk,ik->ij", rb, u)
+    t0, t1 = np.minimum(ta, tb), np.maximum(ta, tb)
+    overlap = np.minimum(t1, L[:, None]) - np.maximum(t0, 0.0)
+    merge = (np.abs(u @ u.T) >= np.cos(np.deg2rad(max_deg))) & (off <= sep_px) & \
+        (overlap >= min_overlap * np.minimum(L[:, None], t1 - t0))
+    return int(connected_components(np.triu(merge, 1), directed=False)[0])
 
 
 def _continued_in_view(ends_xyz: np.ndarray, dirs: np.ndarray, mf: ModelFeatures, ua: np.ndarray, ub: np.ndarray,
