@@ -242,6 +242,20 @@ class EdgeAid:
         self.edge_offset_px = edge_offset_px
         self.near_peak_frac = near_peak_frac
         self.contrast_ratio = contrast_ratio
+        # Per model corner, the edge sample nearest it on each sharp edge that ends there (-1: none).
+        ends = []
+        ev = model.edge_vertices
+        for v in model.corner_vertex:
+            row = []
+            for e in np.flatnonzero((ev[:, 0] == v) | (ev[:, 1] == v)):
+                on = np.flatnonzero(self.mf.sample_edge == e)
+                if on.size:
+                    row.append(on[0] if ev[e, 0] == v else on[-1])
+            ends.append(row)
+        width = max((len(r) for r in ends), default=0)
+        self.corner_ends = np.full((len(ends), width), -1, np.int64)
+        for i, r in enumerate(ends):
+            self.corner_ends[i, :len(r)] = r
 
     def _roi(self, K, T_world_camera, T_world_object, width, height):
         """Pixel box (x0, y0, x1, y1) around the model's projection, with room for the search."""
@@ -261,6 +275,33 @@ class EdgeAid:
         front = _front(T_camera_object[None, :3, :3], T_camera_object[None, :3, 3], self.mf)[0]
         ef = self.mf.edge_faces
         return front[ef[:, 0]].astype(np.int64) + 2 * front[ef[:, 1]].astype(np.int64)
+
+    def corners_shown(self, contrast: EdgeContrast, T_camera_object: np.ndarray, corner_ids: np.ndarray,
+                      min_frac: float) -> np.ndarray:
+        """Which of the corners ``corner_ids`` can show as an image corner, by what their edges looked like.
+
+        An image corner is where two edges with contrast meet. A corner of a dark face
+        against a dark background has none there: its window holds at best a weaker
+        corner response than a neighbouring feature's (a hole's rim, a nearby corner of
+        the part), and the extractor, taking the nearest of the candidates within
+        ``rel_quality`` of the window's best, measures that one 2-4 px off. A corner is
+        dim when fewer than two of its edges' samples next to it were seen (by
+        ``contrast``, learnt with the same faces of the edge seen as now) with a contrast
+        of at least ``min_frac`` of the median of all the samples seen, counting a sample
+        not yet learnt as seen. True where not dim (all True while nothing is learnt).
+        """
+        ids = np.asarray(corner_ids, np.int64)
+        side = self.edge_side(T_camera_object)
+        known = (contrast.frames >= 1) & (contrast.side == side[contrast.edge]) & np.isfinite(contrast.contrast)
+        if not known.any() or ids.size == 0:
+            return np.ones(ids.size, bool)
+        level = min_frac * float(np.median(np.abs(contrast.contrast[known])))
+        s = self.corner_ends[ids]
+        valid = s >= 0
+        sk = np.where(valid, s, 0)
+        strong = valid & known[sk] & (np.abs(np.nan_to_num(contrast.contrast[sk])) >= level)
+        unknown = valid & ~known[sk]
+        return (strong | unknown).sum(axis=1) >= 2
 
     def measure(self, name: str, image: np.ndarray, T_world_camera: np.ndarray,
                 T_world_object: np.ndarray, contrast: EdgeContrast | None = None) -> EdgeMeasurement | None:

@@ -341,6 +341,7 @@ class TrackerConfig:
     confirm_edge_veto: bool = True
     veto_found_ratio: float = 0.7
     veto_drop_frames: int = 5
+    dim_corner_frac: float = 0.45
     confirm_outline_min_accepted: int = 4
     confirm_outline_min_found: float = 0.9
     adaptive_noise: bool = True
@@ -485,6 +486,7 @@ class Tracker:
             self.edge_aid = EdgeAid(rig, model, self.tree, edge_offset_px=config.edge_offset_px)
         self.edge_updates = 0  # edge-fitted poses the filter was updated with
         self.edge_rejects = 0  # edge fits too far from the filter's pose to use
+        self.dim_skipped = 0  # corner candidates passed over as dim (dim_corner_frac)
         self._contrast = {}  # camera -> EdgeContrast (see start)
         self._edge_ok = False  # this frame's edge fits support the filter (see confirm_edge_*)
         self._edge_found = 0.0  # least fraction of visible edge samples found by this frame's fits
@@ -693,6 +695,19 @@ class Tracker:
         # visibility query is asked not to check again.
         return None if T is None else check_transform(T, f"T_world_{name}")
 
+    def _shown(self, name: str, T_wc: np.ndarray, T_pred: np.ndarray, vis: "_Candidates") -> "_Candidates":
+        """The candidates less the corners this camera's edge fits found dim (see ``dim_corner_frac``),
+        as long as ``min_accepted`` remain."""
+        memory = self._contrast.get(name)
+        if memory is None or self.config.dim_corner_frac <= 0 or vis.indices.size == 0:
+            return vis
+        T_co = np.linalg.solve(T_wc, T_pred)
+        keep = self.edge_aid.corners_shown(memory, T_co, vis.indices, self.config.dim_corner_frac)
+        if keep.all() or keep.sum() < self.config.min_accepted:
+            return vis
+        self.dim_skipped += int((~keep).sum())
+        return _Candidates(vis.indices[keep], vis.points[keep], vis.view_angle[keep], vis.silhouette_distance[keep])
+
     def _window_half_sizes(self, k: int, J: np.ndarray, corner_ids: np.ndarray, P6: np.ndarray) -> np.ndarray:
         """Search-window half-sizes (px) of camera ``k``'s corners: ``window_sigma`` std of
         their innovation ``J P6 J^T + sigma^2 f`` (f: each corner's learnt noise factor)."""
@@ -818,6 +833,7 @@ class Tracker:
                 per_cam.append(None)
                 continue
             vis = _Candidates.of(self.scene.query(0, T_wc, [T_pred], cam.intrinsics, check=False), self.salient)
+            vis = self._shown(cam.name, T_wc, T_pred, vis)
             if vis.indices.size == 0:
                 per_cam.append((cam, img, T_wc, vis, None, None))
                 continue
