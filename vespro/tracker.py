@@ -697,13 +697,13 @@ class Tracker:
 
     def _shown(self, name: str, T_wc: np.ndarray, T_pred: np.ndarray, vis: "_Candidates") -> "_Candidates":
         """The candidates less the corners this camera's edge fits found dim (see ``dim_corner_frac``),
-        as long as ``min_accepted`` remain."""
+        when ``features_per_camera`` remain."""
         memory = self._contrast.get(name)
         if memory is None or self.config.dim_corner_frac <= 0 or vis.indices.size == 0:
             return vis
         T_co = np.linalg.solve(T_wc, T_pred)
         keep = self.edge_aid.corners_shown(memory, T_co, vis.indices, self.config.dim_corner_frac)
-        if keep.all() or keep.sum() < self.config.min_accepted:
+        if keep.all() or keep.sum() < self.config.features_per_camera:
             return vis
         self.dim_skipped += int((~keep).sum())
         return _Candidates(vis.indices[keep], vis.points[keep], vis.view_angle[keep], vis.silhouette_distance[keep])

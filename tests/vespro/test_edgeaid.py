@@ -464,3 +464,70 @@ def test_an_edge_offset_the_depth_absorbs_lies_inside_the_offset_covariance(box_
     assert np.all(np.linalg.eigvalsh(m1.cov6 - m0.cov6) > -1e-12)
     with pytest.raises(ValueError, match="edge_offset_px"):
         TrackerConfig(edge_offset_px=-1.0)
+
+
+def test_a_corner_whose_edges_showed_no_contrast_is_dim():
+    """Box, one camera: a corner is dim when fewer than two of its edges' samples next to it
+    were seen with at least ``min_frac`` of the median contrast of the samples seen (a sample
+    not learnt, or learnt with other faces of its edge seen, counts as seen); nothing learnt,
+    nothing dim."""
+    from vespro.edgeaid import EdgeContrast
+
+    rig, model, frames = _trial_frames("box", 6, 1)
+    aid = EdgeAid(rig, model)
+    T_co = np.linalg.solve(rig.cameras[0].T_world_camera, frames[0][1])
+    side = aid.edge_side(T_co)
+    ids = np.arange(model.n_corners)
+    mem = EdgeContrast(aid.mf.sample_edge)
+    assert aid.corners_shown(mem, T_co, ids, 0.45).all()  # nothing learnt
+    c = np.full(len(aid.mf.sample_p), 200.0)
+    ends = aid.corner_ends
+    assert ends.shape == (8, 3) and np.all(ends >= 0)  # a box: three edges at every corner
+    c[ends[0]] = -30.0  # corner 0's three edges dim next to it
+    c[ends[1, :2]] = 50.0  # corner 1: one edge bright
+    c[ends[2, :2]] = [50.0, np.nan]  # corner 2: one bright, one not seen this frame
+    mem.learn(c, side)
+    shown = aid.corners_shown(mem, T_co, ids, 0.45)
+    assert not shown[0] and not shown[1] and shown[2:].all()
+    mem.frames[ends[2, 0]] = 0  # corner 2: now one dim edge not learnt either
+    assert aid.corners_shown(mem, T_co, ids, 0.45)[2]
+    mem.frames[ends[2, 0]] = 1
+    mem.side[aid.mf.sample_edge == aid.mf.sample_edge[ends[1, 0]]] = -1  # learnt with other faces seen
+    assert aid.corners_shown(mem, T_co, ids, 0.45)[1]
+    assert aid.corners_shown(mem, T_co, ids, 0.2)[0] == False  # noqa: E712 (30 < 0.2 * 200 = 40)
+    assert aid.corners_shown(mem, T_co, ids, 0.1)[0]
+
+
+@pytest.mark.parametrize("seed", [2800, 3219])
+def test_a_one_camera_bracket_does_not_slide_on_the_corners_of_its_dark_face(seed):
+    """Bracket, one camera (fresh rig seeds 2800 and 3219), the initialiser on every 5th frame:
+    found at frame 0 within 1% of the diameter. A side face shows dark on a dark background:
+    its outer corners have no image corner, and their windows (5-6 px, the velocity still
+    unknown) measured a hole's rim or a nearby corner of the part 2-4 px off. Taking them,
+    the track slid 4 deg and was published 11.3% / 10.8% off (the premise, ``dim_corner_frac``
+    0, checked here). By default the corners whose edges the first edge fit saw without
+    contrast are not selected: published from frames 1-2, all within 5% (measured 2.1% / 2.7%)."""
+    from vespro.init import make_initializer
+
+    rig, model, frames = _trial_frames("bracket", seed, 26)
+    syms = model_symmetries(model.vertices)
+
+    class Every5th:  # as the server's worker calls it, with the tracker's hand-over hooks
+        def __init__(self, ini):
+            self.ini = ini
+
+        def __call__(self, fs):
+            return None if fs.index % 5 else self.ini(fs)
+
+        def __getattr__(self, name):
+            return getattr(self.ini, name)
+
+    def run(**cfg):
+        tr = Tracker(rig, model, TrackerConfig(**cfg), initializer=Every5th(make_initializer(rig, model)))
+        return tr, _published_errors(tr, frames, model, syms)
+
+    _, errs_off = run(dim_corner_frac=0.0)
+    assert errs_off and max(errs_off) > 0.1, errs_off
+    tr, errs = run()
+    assert len(errs) >= 23 and max(errs) < 0.05, errs
+    assert tr.dim_skipped > 0
