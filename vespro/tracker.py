@@ -299,7 +299,11 @@ class TrackerConfig:
         on fresh seeds: two one-camera bracket starts found within 1% of the diameter
         took those corners in the next frames (the velocity not yet known, windows of
         5-6 px), slid 4 deg and were published 11.3% and 10.8% off; now they stay
-        within 2.1% and 2.7%. Only where edges are fitted (one camera seeing). 0: off.
+        within 2.1% and 2.7%. Only where edges are fitted (one camera seeing) and
+        with the edge contrast memory on (``EdgeAid.contrast_ratio`` set): without
+        it each fit takes whatever image edge is nearest, a neighbour's among them,
+        and what it learns is not its edge's contrast (L-block 610 with the memory
+        off slid to 16% on the corners left). 0: off.
     adaptive_noise : bool
         Adapt the measurement noise to the innovations (covariance matching):
         the corner error differs between objects, backgrounds and lenses, and
@@ -722,7 +726,8 @@ class Tracker:
         when the corners not dim fill the selection as all would (``features_per_camera``, or
         as many as are selectable): the rule chooses among corners, never selects fewer."""
         memory = self._contrast.get(name)
-        if memory is None or self.config.dim_corner_frac <= 0 or vis.indices.size == 0:
+        if (memory is None or self.edge_aid.contrast_ratio is None or self.config.dim_corner_frac <= 0
+                or vis.indices.size == 0):
             return vis, uv, J
         T_co = np.linalg.solve(T_wc, T_pred)
         keep = self.edge_aid.corners_shown(memory, T_co, vis.indices, self.config.dim_corner_frac)
