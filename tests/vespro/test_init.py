@@ -553,12 +553,14 @@ def test_the_start_pose_comes_with_its_edge_fit_covariance():
     (measured 0.2-3%). With the tracker's wide default instead the windows took two wrong
     image corners 9-12 px off, the first update moved the pose to 8.6% and the filter slid
     to 20% (the premise, checked here with the edge fits as they were then: every sample
-    weighing alike, no edge dropped; with today's the wide start stays within 7.3%)."""
+    weighing alike, no edge dropped, and no dim corner passed over; with today's edge fits
+    the wide start stays within 7.3%, and with the old ones but dim corners passed over
+    within 7.4%)."""
     from scipy.stats import chi2
 
     from vespro.ekf import nees
     from vespro.startpose import InitResult
-    from vespro.tracker import Tracker
+    from vespro.tracker import Tracker, TrackerConfig
 
     rig = _rig("1", 5)
     config, motion, mesh = trial_config("bracket", rig, 5)
@@ -577,7 +579,7 @@ def test_the_start_pose_comes_with_its_edge_fit_covariance():
     assert np.sqrt(np.max(np.linalg.eigvalsh(res.cov6[:3, :3]))) < 0.005
 
     def run(start, old_edge_fits=False):
-        tr = Tracker(rig, model)
+        tr = Tracker(rig, model, TrackerConfig(dim_corner_frac=0.0) if old_edge_fits else TrackerConfig())
         if old_edge_fits:
             tr.edge_aid.spacing_px = tr.edge_aid.edge_outlier_px = 0.0
         tr.start(start, frames[0][0].t_ns)
