@@ -6,6 +6,7 @@ Simulator frames; ground truth for scoring only.
 import numpy as np
 import pytest
 from scipy.stats import chi2
+from strided import Strided
 
 from vespro.edgeaid import EdgeAid
 from vespro.ekf import nees
@@ -531,18 +532,8 @@ def test_a_one_camera_bracket_does_not_slide_on_the_corners_of_its_dark_face(see
     rig, model, frames = _trial_frames("bracket", seed, 26)
     syms = model_symmetries(model.vertices)
 
-    class Every5th:  # as the server's worker calls it, with the tracker's hand-over hooks
-        def __init__(self, ini):
-            self.ini = ini
-
-        def __call__(self, fs):
-            return None if fs.index % 5 else self.ini(fs)
-
-        def __getattr__(self, name):
-            return getattr(self.ini, name)
-
     def run(**cfg):
-        tr = Tracker(rig, model, TrackerConfig(**cfg), initializer=Every5th(make_initializer(rig, model)))
+        tr = Tracker(rig, model, TrackerConfig(**cfg), initializer=Strided(make_initializer(rig, model)))
         return tr, _published_errors(tr, frames, model, syms)
 
     _, errs_off = run(dim_corner_frac=0.0)

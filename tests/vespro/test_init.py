@@ -10,6 +10,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from strided import Strided
 
 from vespro.cmd_record import object_mesh_path
 from vespro.frames import FrameSet
@@ -676,18 +677,8 @@ def test_a_call_confirming_a_provisional_pose_searches_as_hard_as_any():
         for _ in range(46):
             frames.append((cell.next_frameset(), cell.true_object_pose()))
 
-    class Every5th:  # as the server's worker calls it, with the tracker's hand-over hooks
-        def __init__(self, ini):
-            self.ini = ini
-
-        def __call__(self, fs):
-            return None if fs.index % 5 else self.ini(fs)
-
-        def __getattr__(self, name):
-            return getattr(self.ini, name)
-
     def published(**opts):
-        tr = Tracker(rig, model, initializer=Every5th(make_initializer(rig, model, **opts)))
+        tr = Tracker(rig, model, initializer=Strided(make_initializer(rig, model, **opts)))
         out = []
         for fs, T in frames:
             o = tr.process(fs)
