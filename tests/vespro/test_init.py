@@ -369,7 +369,8 @@ def test_only_a_plain_pose_that_passed_every_check_is_tried_again(monkeypatch):
               (None, mod.InitReport(0.1, 0.1, "none", 5, False, reason="x"))]
     seen = []
 
-    def fake(setup, frameset, seed, rng, pending, attempt, age_s):
+    def fake(setup, frameset, seed, rng, pending, attempt, age_s, recall=()):
+        assert recall == ()  # no call found an ambiguity between poses it returned as rivals
         seen.append((pending, attempt, age_s))
         return script[len(seen) - 1]
 
@@ -379,6 +380,37 @@ def test_only_a_plain_pose_that_passed_every_check_is_tried_again(monkeypatch):
         assert ini(FrameSet(i, i, {})) is None
     assert seen[0] == (None, 0, 0.0) and seen[1] == (None, 1, 0.0)
     assert seen[2][0] is T_b and seen[2][1] == 2 and seen[2][2] == 1e-9  # stamps 1 ns apart
+
+
+def test_an_ambiguity_found_is_recalled_for_a_second_unless_a_pose_is_returned(monkeypatch):
+    """A call that finds the view ambiguous hands its two poses (``InitReport.rivals``) to
+    the calls of the next ``recall_rivals_s`` (a later call whose own search misses one
+    of them still weighs it); a returned pose or an older ambiguity clears them."""
+    from types import SimpleNamespace
+
+    from vespro.init import initializer as mod
+    from vespro.startpose import InitResult
+
+    T_a, T_b = np.eye(4), transform_from_rt(np.eye(3), [0.1, 0.0, 0.0])
+    amb = mod.InitReport(0.1, 0.1, "none", 5, False, reason="ambiguous", rivals=(T_a, T_b))
+    none = mod.InitReport(0.1, 0.1, "none", 5, False, reason="x")
+    found = mod.InitReport(0.1, 0.1, "search", 5, True)
+    script = [(None, amb), (None, none), (InitResult(T_a), found), (None, amb), (None, none)]
+    seen = []
+
+    def fake(setup, frameset, seed, rng, pending, attempt, age_s, recall=()):
+        seen.append(recall)
+        return script[len(seen) - 1]
+
+    monkeypatch.setattr(mod, "initialize", fake)
+    ini = mod.Initializer(setup=SimpleNamespace(options=InitOptions()))
+    s = int(1e9)
+    for t_ns in (0, s // 2, 9 * s // 10, 2 * s, 3 * s + 1):
+        ini(FrameSet(len(seen), t_ns, {}))
+    assert seen[0] == ()
+    assert seen[1] == (T_a, T_b) and seen[2] == (T_a, T_b)  # 0.5 and 0.9 s after it
+    assert seen[3] == ()  # a pose was returned
+    assert seen[4] == ()  # found at 2 s: over a second old at 3 s
 
 
 def test_single_camera_turned_over_lblock_is_not_a_lock():

@@ -330,6 +330,24 @@ class InitOptions:
         Found again means within ``confirm_frac`` of the diameter plus
         ``confirm_speed`` (m/s) times the time since the previous call
         (ADD-S): a part on a conveyor moves between two calls.
+    recall_rivals_s : float
+        A call that finds the view ambiguous (two distinct poses explaining the
+        images about alike) hands both poses to the calls of the next this many
+        seconds: each refines them again on its own frame set and counts them
+        among its candidates, so the view stays ambiguous until a frame rules
+        one out, and a call whose search happens to miss one of them does not
+        take the other as unrivalled. Seen on a fresh seed (box, one camera,
+        rig seed 3406): calls at frames 5-15 found the true pose and a rival
+        turned about the line of sight (0.85-0.87 against 0.91-0.92) and
+        returned nothing; the call at frame 25 found only the rival, 56% of the
+        diameter off, took it and the track was published from frame 26. 0: off.
+    recall_margin_factor : float
+        A recalled pose is a rival within this many times the ambiguity margin
+        (``ambiguity_margin*``): a view found ambiguous stays so until a frame
+        rules the rival out clearly, not by the noise of one frame's agreement
+        (box 3406: the wrong pose scored 0.04-0.07 above the true one on the
+        ambiguous calls and 0.10 above it, over the one-camera margin of 0.08,
+        on the call that took it).
     start_covariance : bool
         Hand the tracker the returned pose's covariance from its sub-pixel edge
         fit (:meth:`vespro.init.search.EdgeFit.covariance`, as the tracker's own
@@ -400,6 +418,8 @@ class InitOptions:
     provisional_start: bool = True
     confirm_frac: float = 0.05
     confirm_speed: float = 0.3
+    recall_rivals_s: float = 1.0
+    recall_margin_factor: float = 2.0
     start_covariance: bool = True
 
 
@@ -441,6 +461,9 @@ class InitReport:
     candidates : tuple
         ``(T_world_object, PoseCheck)`` of every refined candidate, best first
         (diagnostics).
+    rivals : tuple
+        When the call found the view ambiguous: the best pose and its rival
+        (``InitOptions.recall_rivals_s``); else empty.
     plain : bool
         The best pose passed every check under the looser single-camera
         limits (``plain_*``); not yet accepted when ``confirm_plain`` (it is
@@ -459,6 +482,7 @@ class InitReport:
     reason: str = ""
     candidates: tuple = ()
     plain: bool = False
+    rivals: tuple = ()
 
 
 def make_setup(rig: Rig, model: Model, options: InitOptions | None = None, tree=None) -> InitSetup:
@@ -658,12 +682,13 @@ def _part_of(c2, chk, opt: InitOptions) -> bool:
             and unshared_px(chk, c2, opt.verify_tol_px) >= opt.subset_margin_frac * chk.inlier_px)
 
 
-def _probe(T_world_object: np.ndarray, chk, views, setup: InitSetup) -> tuple[bool, str]:
-    """Refine again from turns of a single-camera pose: (no rival found, why not); see ``InitOptions.probe_single``."""
+def _probe(T_world_object: np.ndarray, chk, views, setup: InitSetup) -> tuple[bool, str, np.ndarray | None]:
+    """Refine again from turns of a single-camera pose: (no rival found, why not, the rival);
+    see ``InitOptions.probe_single``."""
     opt, mf = setup.options, setup.mf
     v = next((v for v in views if np.isfinite(chk.per_camera.get(v.feat.name, np.nan))), None)
     if v is None:
-        return True, ""
+        return True, "", None
     c_w = T_world_object[:3, :3] @ (0.5 * (mf.vertices.min(0) + mf.vertices.max(0))) + T_world_object[:3, 3]
     ray = c_w - v.T_world_camera[:3, 3]
     ray /= np.linalg.norm(ray)
@@ -686,8 +711,9 @@ def _probe(T_world_object: np.ndarray, chk, views, setup: InitSetup) -> tuple[bo
                 c2.inlier_px >= (1 - opt.ambiguity_px_frac) * chk.inlier_px and \
                 not (opt.plain_faces and c2.interior_edge_frac > 2 * opt.plain_max_interior_edge_frac) and \
                 not _part_of(c2, chk, opt):
-            return False, f"ambiguous: a restart settles on a pose scoring {c2.inlier_frac:.2f} vs {chk.inlier_frac:.2f}"
-    return True, ""
+            return False, (f"ambiguous: a restart settles on a pose scoring {c2.inlier_frac:.2f} vs "
+                           f"{chk.inlier_frac:.2f}"), Tr
+    return True, "", None
 
 
 def _adds(mf: ModelFeatures, T1, T2) -> float:
@@ -698,7 +724,8 @@ def _adds(mf: ModelFeatures, T1, T2) -> float:
 
 def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.ndarray | None = None,
                rng: np.random.Generator | None = None, pending_T_world_object: np.ndarray | None = None,
-               attempt: int = 0, pending_age_s: float = 0.0) -> tuple[InitResult | None, InitReport]:
+               attempt: int = 0, pending_age_s: float = 0.0,
+               recall: tuple = ()) -> tuple[InitResult | None, InitReport]:
     """Find the part in one frame set: a verified pose or None.
 
     A pure function of its inputs (the set-up is read-only; ``rng`` only
@@ -720,6 +747,10 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
         Calls so far without a pose: selects the extra refinement window.
     pending_age_s : float
         Time from the pending pose's frame set to this one, s.
+    recall : tuple of ndarray (4, 4)
+        Poses an earlier call found ambiguous with each other (its report's
+        ``rivals``): refined again here and counted among the candidates
+        (``InitOptions.recall_rivals_s``).
 
     Returns
     -------
@@ -847,6 +878,12 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
         refine_distinct(q[np.argsort(-_joint_scores(cand[q], views, setup), kind="stable")], set(range(opt.n_refine)))
     if pending is not None and not any(_adds(mf, pending[0], T) < 0.02 * mf.diameter for T, _ in refined):
         refined.append(pending)
+    # An earlier call's ambiguity, measured again on this frame set: a rival this
+    # call's search missed still counts.
+    again = [_refined(np.asarray(T, float), views, setup) for T in recall]
+    for Tr in again:
+        if not any(_adds(mf, Tr, T2) < 0.02 * mf.diameter for T2, _ in refined):
+            refined.append((Tr, _checked(Tr, views, setup)))
     if opt.hidden_camera and not any(_verdict(c, opt)[0] for _, c in refined):
         refined = _without_hidden(refined, views, setup)
     # Candidates that pass every check first, then by the image edge length
@@ -855,6 +892,7 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
     refined.sort(key=lambda r: (not _verdict(r[1], opt)[0], -r[1].inlier_px, -r[1].inlier_frac))
     T_best, chk = refined[0]
     ok, plain, why = _verdict(chk, opt)
+    rivals = ()
     # The pending pose found again and still first: its own call looked for
     # rivals already.
     confirmed = ok and Tp is not None and _adds(mf, T_best, Tp) < near
@@ -872,7 +910,9 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
             # A rival need not pass every check (the true pose of an
             # accidental view may fail one): seen by the same cameras, about
             # as good an agreement, about as much edge length explained.
-            rival = c2.inlier_frac >= chk.inlier_frac - _margin(chk, opt) and \
+            recalled = any(_adds(mf, T2, Tr) < 0.02 * mf.diameter for Tr in again)
+            margin = _margin(chk, opt) * (opt.recall_margin_factor if recalled else 1.0)
+            rival = c2.inlier_frac >= chk.inlier_frac - margin and \
                 c2.inlier_px >= (1 - opt.ambiguity_px_frac) * chk.inlier_px
             # Under the looser limits, any clear-faced rival explaining nearly
             # as much edge length makes the view ambiguous.
@@ -883,16 +923,18 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
                 ok, why = False, (f"ambiguous: another pose scores {c2.inlier_frac:.2f} vs {chk.inlier_frac:.2f}"
                                   if rival else f"ambiguous (plain faces): another pose explains "
                                   f"{c2.inlier_px:.0f} px vs {chk.inlier_px:.0f}")
+                rivals = (T_best, T2)
                 break
     if ok and not confirmed and opt.probe_single and chk.n_cameras == 1:
-        ok, why = _probe(T_best, chk, _judging(views, chk), setup)
+        ok, why, T2 = _probe(T_best, chk, _judging(views, chk), setup)
+        rivals = () if T2 is None else (T_best, T2)
     plain = plain and ok  # passed every check, under the looser limits
     provisional = plain and opt.confirm_plain and not confirmed
     if provisional and not opt.provisional_start:
         ok, why = False, "plain faces: to be confirmed on the next call"
     if not ok:
         return None, InitReport(time.perf_counter() - t0, time.thread_time() - c0, "none", nh, False, chk.inlier_frac, chk.per_camera,
-                                chk.supported_edges, chk.visible_edges, why, tuple(refined), plain)
+                                chk.supported_edges, chk.visible_edges, why, tuple(refined), plain, rivals)
     mode = "provisional" if provisional else "confirm" if plain and opt.confirm_plain else "search"
     res, rep = finish(T_best, chk, mode, nh)
     return replace(res, provisional=provisional), replace(rep, candidates=tuple(refined), plain=plain)
@@ -905,8 +947,10 @@ class Initializer:
     a loss), a pose awaiting confirmation (accepted by one camera under the
     plain-face limits: returned as provisional, confirmed if a later call
     finds it again; the tracker keeps it current with
-    :meth:`await_confirmation`) and the report of the last call
-    (``last_report``, with its compute time).
+    :meth:`await_confirmation`), the poses of the last ambiguity found, for the
+    calls of the next ``InitOptions.recall_rivals_s`` (cleared when a pose is
+    returned) and the report of the last call (``last_report``, with its
+    compute time).
     """
 
     def __init__(self, setup: InitSetup):
@@ -914,6 +958,7 @@ class Initializer:
         self._seed = None  # (T_world_object, velocity (6,) or None, t_ns)
         self._pending = None  # (T_world_object, t_ns) awaiting confirmation (plain-face limits)
         self._attempt = 0  # calls without a pose since the last one (or the last reseed)
+        self._rivals = None  # (poses, t_ns): the last ambiguity found (InitOptions.recall_rivals_s)
         self.last_report: InitReport | None = None
 
     def reseed(self, T_world_object: np.ndarray, velocity: np.ndarray | None = None, t_ns: int | None = None) -> None:
@@ -943,6 +988,7 @@ class Initializer:
     def clear_seed(self) -> None:
         self._seed = None
         self._pending = None
+        self._rivals = None
 
     def predicted_seed(self, t_ns: int) -> np.ndarray | None:
         """The seed pose propagated to ``t_ns`` (None without a seed)."""
@@ -981,15 +1027,25 @@ class Initializer:
         seed = self.predicted_seed(frameset.t_ns)
         pend, age = (None, 0.0) if self._pending is None else (self._pending[0],
                                                                (frameset.t_ns - self._pending[1]) * 1e-9)
+        recall = ()
+        if self._rivals is not None:
+            age_r = (frameset.t_ns - self._rivals[1]) * 1e-9
+            if 0.0 <= age_r <= self.setup.options.recall_rivals_s:
+                recall = self._rivals[0]
+            else:
+                self._rivals = None
         result, report = initialize(self.setup, frameset, seed, np.random.default_rng(frameset.index), pend,
-                                    self._attempt, age)
+                                    self._attempt, age, recall)
         self.last_report = report
+        if report.rivals and self.setup.options.recall_rivals_s > 0:
+            self._rivals = (report.rivals, frameset.t_ns)
         self._pending = (report.candidates[0][0], frameset.t_ns) if report.plain and (
             result is None or result.provisional) else None
         settled = result is not None and not result.provisional
         self._attempt = 0 if settled else self._attempt + 1
         if settled:
             self._seed = None
+            self._rivals = None
         return result
 
 
