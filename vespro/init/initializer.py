@@ -331,8 +331,9 @@ class InitOptions:
         ``confirm_speed`` (m/s) times the time since the previous call
         (ADD-S): a part on a conveyor moves between two calls.
     recall_rivals_s : float
-        A call that finds the view ambiguous (two distinct poses explaining the
-        images about alike) hands both poses to the calls of the next this many
+        A call that finds the view ambiguous (two distinct poses agreeing with
+        the images about alike, or a restart of the probe settling on another
+        pose) hands both poses to the calls of the next this many
         seconds: each refines them again on its own frame set and counts them
         among its candidates, so the view stays ambiguous until a frame rules
         one out, and a call whose search happens to miss one of them does not
@@ -340,7 +341,11 @@ class InitOptions:
         rig seed 3406): calls at frames 5-15 found the true pose and a rival
         turned about the line of sight (0.85-0.87 against 0.91-0.92) and
         returned nothing; the call at frame 25 found only the rival, 56% of the
-        diameter off, took it and the track was published from frame 26. 0: off.
+        diameter off, took it and the track was published from frame 26. Not
+        for a plain rival (a clear-faced pose explaining nearly as much edge
+        length, often a fit to static clutter several diameters away): recalled,
+        such a fit held back a box found within 2.5% on every call of the
+        second (3816, published at frame 15 without). 0: off.
     recall_margin_factor : float
         A recalled pose is a rival within this many times the ambiguity margin
         (``ambiguity_margin*``): a view found ambiguous stays so until a frame
@@ -923,7 +928,10 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
                 ok, why = False, (f"ambiguous: another pose scores {c2.inlier_frac:.2f} vs {chk.inlier_frac:.2f}"
                                   if rival else f"ambiguous (plain faces): another pose explains "
                                   f"{c2.inlier_px:.0f} px vs {chk.inlier_px:.0f}")
-                rivals = (T_best, T2)
+                # Recalled by the next calls: a rival by agreement (a plain rival, a fit to
+                # static clutter, is found again on every frame, and the provisional start
+                # waits for a second call anyway).
+                rivals = (T_best, T2) if rival else ()
                 break
     if ok and not confirmed and opt.probe_single and chk.n_cameras == 1:
         ok, why, T2 = _probe(T_best, chk, _judging(views, chk), setup)
