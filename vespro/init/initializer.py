@@ -727,6 +727,11 @@ def _adds(mf: ModelFeatures, T1, T2) -> float:
     return add_sym(T1, T2, mf.vertices, mf.symmetries)
 
 
+def _same_as_any(mf: ModelFeatures, T: np.ndarray, poses) -> bool:
+    """Pose ``T`` is within 2% of the diameter (:func:`_adds`) of one of ``poses``: the same candidate."""
+    return any(_adds(mf, T, T2) < 0.02 * mf.diameter for T2 in poses)
+
+
 def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.ndarray | None = None,
                rng: np.random.Generator | None = None, pending_T_world_object: np.ndarray | None = None,
                attempt: int = 0, pending_age_s: float = 0.0,
@@ -857,13 +862,13 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
         for k in order:
             if len(distinct) > max(wanted):
                 break
-            if any(_adds(mf, cand[k], T) < 0.02 * mf.diameter for T in distinct):
+            if _same_as_any(mf, cand[k], distinct):
                 continue
             distinct.append(cand[k])
             if len(distinct) - 1 not in wanted:
                 continue
             Tr = _refined(cand[k], views, setup)
-            if not any(_adds(mf, Tr, T) < 0.02 * mf.diameter for T, _ in refined):
+            if not _same_as_any(mf, Tr, [T for T, _ in refined]):
                 refined.append((Tr, _checked(Tr, views, setup)))
 
     wanted = set(range(opt.n_refine))
@@ -881,13 +886,13 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
             if _adds(mf, Tq, cand[k]) <= opt.quick_max_move * mf.diameter:
                 cand[k] = Tq
         refine_distinct(q[np.argsort(-_joint_scores(cand[q], views, setup), kind="stable")], set(range(opt.n_refine)))
-    if pending is not None and not any(_adds(mf, pending[0], T) < 0.02 * mf.diameter for T, _ in refined):
+    if pending is not None and not _same_as_any(mf, pending[0], [T for T, _ in refined]):
         refined.append(pending)
     # An earlier call's ambiguity, measured again on this frame set: a rival this
     # call's search missed still counts.
     again = [_refined(np.asarray(T, float), views, setup) for T in recall]
     for Tr in again:
-        if not any(_adds(mf, Tr, T2) < 0.02 * mf.diameter for T2, _ in refined):
+        if not _same_as_any(mf, Tr, [T for T, _ in refined]):
             refined.append((Tr, _checked(Tr, views, setup)))
     if opt.hidden_camera and not any(_verdict(c, opt)[0] for _, c in refined):
         refined = _without_hidden(refined, views, setup)
@@ -915,7 +920,7 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
             # A rival need not pass every check (the true pose of an
             # accidental view may fail one): seen by the same cameras, about
             # as good an agreement, about as much edge length explained.
-            recalled = any(_adds(mf, T2, Tr) < 0.02 * mf.diameter for Tr in again)
+            recalled = _same_as_any(mf, T2, again)
             margin = _margin(chk, opt) * (opt.recall_margin_factor if recalled else 1.0)
             rival = c2.inlier_frac >= chk.inlier_frac - margin and \
                 c2.inlier_px >= (1 - opt.ambiguity_px_frac) * chk.inlier_px
