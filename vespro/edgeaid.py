@@ -304,7 +304,8 @@ class EdgeAid:
         return (strong | unknown).sum(axis=1) >= 2
 
     def measure(self, name: str, image: np.ndarray, T_world_camera: np.ndarray,
-                T_world_object: np.ndarray, contrast: EdgeContrast | None = None) -> EdgeMeasurement | None:
+                T_world_object: np.ndarray, contrast: EdgeContrast | None = None,
+                edge_offset_px: float | None = None) -> EdgeMeasurement | None:
         """The pose near ``T_world_object`` that fits camera ``name``'s image edges, or None.
 
         ``image``: the camera's image as captured, 8-bit grey (undistorted here); the
@@ -312,7 +313,8 @@ class EdgeAid:
         what the edges looked like in this camera's last frames (the search takes
         only image edges like them; :class:`EdgeContrast`); the measurement's
         ``fit.sample_contrast[0]`` and ``edge_side`` are what to teach it when the
-        measurement is accepted.
+        measurement is accepted. ``edge_offset_px``: this call's instead of
+        :attr:`edge_offset_px`.
         """
         T_wc = np.asarray(T_world_camera, float)
         if not (np.all(np.isfinite(T_wc)) and np.all(np.isfinite(T_world_object))):
@@ -338,7 +340,8 @@ class EdgeAid:
                                  expect=expect, contrast_ratio=self.contrast_ratio or (0.0, np.inf))
         if fit is None or fit.n_samples < self.min_samples or fit.n_edges < self.min_edges:
             return None
-        cov = fit.covariance(T[:3, :3], self.min_sigma_px, self.max_independent_edges, self.edge_offset_px)
+        offset = self.edge_offset_px if edge_offset_px is None else edge_offset_px
+        cov = fit.covariance(T[:3, :3], self.min_sigma_px, self.max_independent_edges, offset)
         if cov is None:
             return None
         return EdgeMeasurement(T, cov / max(fit.found_frac, 0.05) ** self.found_power, fit, self.edge_side(T_cw @ T))

@@ -359,6 +359,7 @@ class TrackerConfig:
     confirm_max_rot_std: float = 0.035
     edge_aid: str = "single"
     edge_offset_px: float = 0.0
+    start_edge_offset_px: float = 0.6
     edge_aid_max_move: float = 0.25
     confirm_edge_min_accepted: int = 5
     confirm_edge_min_found: float = 0.6
@@ -384,8 +385,10 @@ class TrackerConfig:
             raise ValueError(f"edge_aid must be 'single', 'always' or 'off', got {self.edge_aid!r}")
         if self.features_per_camera < 3:
             raise ValueError("need at least 3 features per camera")
-        if not (np.isfinite(self.edge_offset_px) and self.edge_offset_px >= 0):
-            raise ValueError(f"edge_offset_px must be a finite number >= 0, got {self.edge_offset_px}")
+        for name in ("edge_offset_px", "start_edge_offset_px"):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v >= 0):
+                raise ValueError(f"{name} must be a finite number >= 0, got {v}")
         if not 1 <= self.min_accepted_with_edges <= self.min_accepted:
             raise ValueError(f"min_accepted_with_edges must be 1..min_accepted ({self.min_accepted}), "
                              f"got {self.min_accepted_with_edges}")
@@ -820,7 +823,8 @@ class Tracker:
             memory = self._contrast.get(name)
             if memory is None:
                 memory = self._contrast[name] = EdgeContrast(self.edge_aid.mf.sample_edge)
-            m = self.edge_aid.measure(name, img, T_wc, T, memory)
+            m = self.edge_aid.measure(name, img, T_wc, T, memory,
+                                      None if self.confirmed else c.start_edge_offset_px)
             if m is None:
                 continue
             if add(m.T_world_object, T, self.model.vertices) > c.edge_aid_max_move * self.model.diameter:
