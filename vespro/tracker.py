@@ -179,6 +179,15 @@ class TrackerConfig:
         the real-time demo after a 0.6 s gap: the right camera accepted 8 of 8,
         the left 2 of 8, the pose was 15 mm off along the right camera's line of
         sight and the totals (10 of 16) confirmed it.
+    confirm_camera_min_agreeing : int
+        A camera below that fraction still agrees when it accepts at least this
+        many corners and ``confirm_min_inlier_fraction`` of those it found: it
+        finds few, rejects none (the demo's left camera found its corners off
+        the pose and rejected them). Seen with two cameras on L-blocks whose top
+        faces are as grey as the belt (rig seeds 1206, 1611): one camera finds
+        2-5 of its 8 corners and accepts nearly all, every frame; tracked within
+        1% of the diameter from frame 0, the tracks were published at frames 42
+        and 32. 0: off (a camera agrees only by the fraction).
     disagree_frames : int
         When the cameras of a confirmed track disagree this many frames in a row
         (one accepts under half of the corners selected in it, at least
@@ -352,6 +361,7 @@ class TrackerConfig:
     confirm_min_inlier_fraction: float = 0.75
     confirm_min_selected_fraction: float = 0.6
     confirm_min_camera_fraction: float = 0.5
+    confirm_camera_min_agreeing: int = 3
     disagree_frames: int = 3
     refine_window_px: int = 12
     confirm_within_s: float = 0.75
@@ -1003,6 +1013,19 @@ class Tracker:
         self.blind_frames += 1
         return [ob for ob, b in zip(obs, blind) if not b]
 
+    def _camera_agrees(self, ob, fraction: float) -> bool:
+        """Camera ``ob`` supports the pose: it accepted ``fraction`` of the corners selected in
+        it, or (``confirm_camera_min_agreeing``) at least that many and nearly all it found
+        (``confirm_min_inlier_fraction``): a camera that finds few of its corners (faces
+        as grey as what lies behind them) but rejects none does not disagree."""
+        c = self.config
+        n_acc = int(ob.accepted.sum())
+        if n_acc >= fraction * ob.feature_ids.size:
+            return True
+        n_found = int(np.isfinite(ob.uv_meas[:, 0]).sum()) if ob.uv_meas.size else 0
+        return (c.confirm_camera_min_agreeing > 0 and n_acc >= c.confirm_camera_min_agreeing
+                and n_acc >= c.confirm_min_inlier_fraction * n_found)
+
     def _status(self, fs: FrameSet, obs: list, n_found: int, n_acc: int, mean_nis: float,
                 stage: dict, seen: list) -> TrackerOutput:
         """Bad/strong frame bookkeeping, loss and confirmation; the published output.
@@ -1027,7 +1050,7 @@ class Tracker:
         strong = (not bad and enough and not (c.confirm_edge_veto and self._edge_veto)
                   and n_acc >= c.confirm_min_inlier_fraction * max(n_found, 1)
                   and n_acc >= c.confirm_min_selected_fraction * n_sel
-                  and all(int(ob.accepted.sum()) >= c.confirm_min_camera_fraction * ob.feature_ids.size
+                  and all(self._camera_agrees(ob, c.confirm_min_camera_fraction)
                           for ob in seen if ob.feature_ids.size >= c.min_accepted)
                   and pos_std < c.confirm_max_pos_std * self.model.diameter and rot_std < c.confirm_max_rot_std)
         if strong:
@@ -1040,10 +1063,9 @@ class Tracker:
             self._good = 0
         self._vetoes += int(self._edge_veto)
         if self.confirmed and not bad:
-            # Cameras disagreeing: one accepts under half of the corners selected in it while
-            # another accepts at least half of its own.
-            agree = [int(ob.accepted.sum()) >= 0.5 * ob.feature_ids.size
-                     for ob in seen if ob.feature_ids.size >= c.min_accepted]
+            # Cameras disagreeing: one accepts under half of the corners selected in it (and
+            # rejects some it found) while another accepts at least half of its own.
+            agree = [self._camera_agrees(ob, 0.5) for ob in seen if ob.feature_ids.size >= c.min_accepted]
             self._disagree = self._disagree + 1 if (False in agree and True in agree) else 0
             if self._disagree >= c.disagree_frames:
                 # Widen the pose covariance: the windows open and the next frames associate

@@ -279,23 +279,30 @@ def test_confirmation_needs_every_camera_to_agree(recs):
     _, _, T = read_groundtruth(recs["box_conveyor"])
     fs = rec.frameset(0)
 
-    def frames(accepted_left, n=6):
+    def frames(accepted_left, n=6, found_left=8):
         tr = make_tracker(rec)
         tr.start(InitResult(T[0], cov6=np.diag([1e-6] * 3 + [1e-6] * 3)), fs.t_ns)
         ids = np.arange(8)
 
-        def ob(name, n_acc):
+        def ob(name, n_acc, n_found=8):
             acc = np.zeros(8, bool)
             acc[:n_acc] = True
-            return CameraObservation(name, True, 12, ids, np.zeros((8, 2)), np.full(8, 3.0), np.zeros((8, 2)), acc)
+            uv = np.zeros((8, 2))
+            uv[n_found:] = np.nan
+            return CameraObservation(name, True, 12, ids, np.zeros((8, 2)), np.full(8, 3.0), uv, acc)
 
-        obs = [ob("cam_left", accepted_left), ob("cam_right", 8)]
+        obs = [ob("cam_left", accepted_left, found_left), ob("cam_right", 8)]
         n_acc = accepted_left + 8
         # 12 corners found of 16 selected: totals pass the inlier (10/12) and selected (10/16) fractions.
         return [_judge(tr, fs, obs, 12, n_acc).status for _ in range(n)]
 
     assert "tracking" not in frames(accepted_left=2)  # 10 of 16 accepted, one camera rejecting
     assert frames(accepted_left=6)[-1] == "tracking"  # both cameras agree: confirmed
+    # A camera finding only 3 of its 8 corners and accepting them all does not disagree
+    # (confirm_camera_min_agreeing); with 2 of them, or 3 of 6 found, it does.
+    assert frames(accepted_left=3, found_left=3)[-1] == "tracking"
+    assert "tracking" not in frames(accepted_left=2, found_left=2)
+    assert "tracking" not in frames(accepted_left=3, found_left=6)
 
 
 def test_cameras_disagreeing_on_a_confirmed_track_reopen_the_windows(recs):
