@@ -244,6 +244,16 @@ class TrackerConfig:
         default: it buys a calibrated covariance with accuracy (measured before
         the edge search took the nearest of comparable peaks,
         :attr:`vespro.edgeaid.EdgeAid.near_peak_frac`).
+    start_edge_offset_px : float
+        The same allowance for the edge fits of a start not yet confirmed (it
+        replaces ``edge_offset_px`` until then): a start is confirmed on what
+        its corners and fits agree on, not on fits that claim a depth their
+        edges do not fix. Seen on one camera (box, rig seed 1618): one side face
+        seen edge on, a start 15.7% of the diameter off whose fits claimed a
+        1.2-1.6 mm position std while 10-16 mm off along the line of sight was
+        confirmed at 9.4% and reached 10.6%; with 0.6 it is dropped unconfirmed
+        and nothing is published. The confirmed track's fits keep
+        ``edge_offset_px`` (its accuracy is unchanged). 0: as confirmed.
     edge_aid_max_move : float
         An edge fit that lands further than this from the filter's pose (mean
         model-vertex displacement, fraction of the diameter) is not used
