@@ -247,15 +247,15 @@ class TrackerConfig:
         the edge search took the nearest of comparable peaks,
         :attr:`vespro.edgeaid.EdgeAid.near_peak_frac`).
     start_edge_offset_px : float
-        The same allowance for the edge fits of a start not yet confirmed (it
-        replaces ``edge_offset_px`` until then): a start is confirmed on what
+        The same allowance for the edge fits of a start not yet confirmed (the
+        larger of the two is used until then): a start is confirmed on what
         its corners and fits agree on, not on fits that claim a depth their
         edges do not fix. Seen on one camera (box, rig seed 1618): one side face
         seen edge on, a start 15.7% of the diameter off whose fits claimed a
         1.2-1.6 mm position std while 10-16 mm off along the line of sight was
         confirmed at 9.4% and reached 10.6%; with 0.6 it is dropped unconfirmed
         and nothing is published. The confirmed track's fits keep
-        ``edge_offset_px`` (its accuracy is unchanged). Off (0, as confirmed)
+        ``edge_offset_px`` (its accuracy is unchanged). Off (0: as confirmed)
         by default: over 1320 one-camera trials (``bench/init.py``) 0.6 published
         1248 against 1246, none wrong against one (1618), but more starts 6-8% off
         (54 trials with a frame 6% or more off, 40 without), and on a fresh set
@@ -855,7 +855,7 @@ class Tracker:
             if memory is None:
                 memory = self._contrast[name] = EdgeContrast(self.edge_aid.mf.sample_edge)
             m = self.edge_aid.measure(name, img, T_wc, T, memory,
-                                      None if self.confirmed else c.start_edge_offset_px)
+                                      None if self.confirmed else max(c.edge_offset_px, c.start_edge_offset_px))
             if m is None:
                 continue
             if add(m.T_world_object, T, self.model.vertices) > c.edge_aid_max_move * self.model.diameter:
