@@ -255,14 +255,17 @@ class TrackerConfig:
         1.2-1.6 mm position std while 10-16 mm off along the line of sight was
         confirmed at 9.4% and reached 10.6%; with 0.6 it is dropped unconfirmed
         and nothing is published. The confirmed track's fits keep
-        ``edge_offset_px`` (its accuracy is unchanged). Off (0: as confirmed)
-        by default: over 1320 one-camera trials (``bench/init.py``) 0.6 published
-        1248 against 1246, none wrong against one (1618), but more starts 6-8% off
-        (54 trials with a frame 6% or more off, 40 without), and on a fresh set
-        (4600-4619) a box start 1.7 diameters off (one face seen, matched to
-        another face at another depth; the initialiser found it again and
-        confirmed it) was published: the filter, leaning less on the fits,
-        accepted 4 corners where without it 3 were, one short of confirming.
+        ``edge_offset_px`` (its accuracy is unchanged). Over 1320 one-camera
+        trials (``bench/init.py``) 0.6 published 1248 against 1246 with 0, none
+        wrong against one (1618), with more starts 6-8% off (54 trials with a
+        frame 6% or more off, 40 with 0). Session 20 left it off (0) because on
+        a fresh set (4600-4619) a box start 1.7 diameters off (one face seen,
+        matched to another face at another depth; the initialiser found it
+        again and confirmed it) was published with 0.6: the filter, leaning
+        less on the fits, accepted 4 corners where with 0 it accepted 3, one
+        short of confirming. That start is the initialiser's to refuse
+        (:attr:`vespro.init.initializer.InitOptions.min_strips_apart_confirm`);
+        since it does, 0.6 is the default.
     edge_aid_max_move : float
         An edge fit that lands further than this from the filter's pose (mean
         model-vertex displacement, fraction of the diameter) is not used
@@ -388,7 +391,7 @@ class TrackerConfig:
     confirm_max_rot_std: float = 0.035
     edge_aid: str = "single"
     edge_offset_px: float = 0.0
-    start_edge_offset_px: float = 0.0
+    start_edge_offset_px: float = 0.6
     edge_aid_max_move: float = 0.25
     confirm_edge_min_accepted: int = 5
     confirm_edge_min_found: float = 0.6

@@ -137,6 +137,7 @@ def _check(**kw):
                 overrun_frac=0.1, interior_edge_frac=0.0, crease_edges=3, crease_supported=3)
     base.update(kw)
     base.setdefault("distinct_supported", base["supported_edges"])
+    base.setdefault("strips_apart", 1)
     return PoseCheck(**base)
 
 
@@ -179,6 +180,13 @@ def test_one_open_face_is_provisional_with_one_camera():
     assert _verdict(thin, replace(opt, min_distinct_edges_confirm=4)) == (True, True, "")
     # Two open faces: not asked (the strict limits count supported edges).
     assert _verdict(replace(thin, open_faces=2, supported_edges=7, visible_edges=7), opt) == (True, False, "")
+    # Five edges apart but no strip's far edge apart from its crease (box 4610:
+    # a face head-on, its side faces edge on; the fifth edge a strip's end
+    # lying on a background line): the tilt and depth unseen.
+    endwise = _check(**{**strict_pass, "supported_edges": 6, "visible_edges": 6, "distinct_supported": 5},
+                     open_faces=1, strips_apart=0)
+    assert not _verdict(endwise, opt)[0]
+    assert _verdict(endwise, replace(opt, min_strips_apart_confirm=0)) == (True, True, "")
     assert not _verdict(_check(**strict_pass, open_faces=1), replace(opt, min_open_faces_confirm=2))[0]
 
 
@@ -233,6 +241,14 @@ def test_distinct_segments_merge_near_parallel_overlapping_ones():
     assert _distinct_segments(a, b, 2.0) == 5
     assert _distinct_segments(a, b, 10.0) == 3  # 2 joins 0 and 1
     assert _distinct_segments(a[:0], b[:0], 4.0) == 0
+    # Judged from the longer one's line: a 13 px segment on a 92 px one, 4 deg
+    # off its direction (box 4610's end edge on its crease), is one with it in
+    # either order; carried along the short one's line the long one's far end
+    # lies 5 px off.
+    long_a, long_b = np.array([313.2, 285.9]), np.array([239.6, 341.0])
+    short_a, short_b = np.array([239.6, 341.0]), np.array([250.2, 334.2])
+    assert _distinct_segments(np.array([short_a, long_a]), np.array([short_b, long_b]), 4.0) == 1
+    assert _distinct_segments(np.array([long_a, short_a]), np.array([long_b, short_b]), 4.0) == 1
 
 
 @pytest.mark.parametrize("tilt_deg,strip_apart", [(5.0, False), (12.0, True)])
@@ -253,5 +269,7 @@ def test_a_side_face_seen_as_a_thin_strip_adds_no_distinct_edge(tilt_deg, strip_
     assert chk.open_faces == 1 and chk.supported_edges >= 5
     if strip_apart:
         assert chk.distinct_supported == chk.supported_edges
+        assert chk.strips_apart == 1
     else:
         assert chk.distinct_supported == chk.supported_edges - 1 == 4
+        assert chk.strips_apart == 0

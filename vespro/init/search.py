@@ -1228,6 +1228,10 @@ class PoseCheck:
         strip of a box's side face beside its top face seen head-on) adds
         its far edge to ``supported_edges`` for nothing: that edge lies on
         the crease's image edge whatever the tilt.
+    strips_apart : int
+        Supported far edges of strips (faces toward the camera, not seen
+        openly) standing apart from their creases, parallel to them, summed
+        over cameras (:func:`_strips_apart`): the side faces' widths seen.
     hidden : str
         A camera left out of these statistics because the part is hidden
         there (``InitOptions.hidden_camera``); empty when none is.
@@ -1256,16 +1260,22 @@ class PoseCheck:
     hidden: str = ""
     explained: tuple = ()
     distinct_supported: int = 0
+    strips_apart: int = 0
 
 
 def _distinct_segments(a: np.ndarray, b: np.ndarray, sep_px: float, max_deg: float = 10.0,
                        min_overlap: float = 0.3) -> int:
     """How many groups the image segments ``a[i]-b[i]`` (px) form when near ones merge.
 
-    Segments ``i < j`` merge when they run within ``max_deg`` of parallel, both
-    ends of ``j`` lie within ``sep_px`` of ``i``'s line, and they overlap along
-    it by at least ``min_overlap`` of the shorter (groups are the connected
-    components of the merged pairs).
+    Two segments merge when they run within ``max_deg`` of parallel, both ends
+    of the shorter lie within ``sep_px`` of the longer's line, and they overlap
+    along it by at least ``min_overlap`` of the shorter (groups are the
+    connected components of the merged pairs). The longer one's line is the
+    reference: a short segment's direction is the less sure, and its line
+    carried 70 px along sweeps a collinear long one 5 px off (a box face seen
+    edge on, box 4610: its 13 px end edge lying on the 92 px crease was
+    counted apart from it, so a head-on face with a line for a strip passed
+    as a face and a strip).
     """
     from scipy.sparse.csgraph import connected_components
 
@@ -1282,7 +1292,53 @@ def _distinct_segments(a: np.ndarray, b: np.ndarray, sep_px: float, max_deg: flo
     overlap = np.minimum(t1, L[:, None]) - np.maximum(t0, 0.0)
     merge = (np.abs(u @ u.T) >= np.cos(np.deg2rad(max_deg))) & (off <= sep_px) & \
         (overlap >= min_overlap * np.minimum(L[:, None], t1 - t0))
-    return int(connected_components(np.triu(merge, 1), directed=False)[0])
+    longer = (L[:, None] > L[None, :]) | ((L[:, None] == L[None, :]) & np.triu(np.ones_like(merge), 1))
+    merge = merge & longer  # [i, j] judged from i's line: i the longer
+    return int(connected_components(merge | merge.T, directed=False)[0])
+
+
+def _strips_apart(supported, visible, ua: np.ndarray, ub: np.ndarray, edge_faces: np.ndarray, open_face: np.ndarray,
+                  front: np.ndarray, sep_px: float, max_deg: float = 10.0) -> int:
+    """How many supported far edges of strips stand apart from their creases in the image.
+
+    A strip is a face toward the camera but not seen openly; its crease a
+    visible edge it shares with an open face. A supported edge of the strip
+    bordering no open face counts when it runs within ``max_deg`` of parallel
+    to one of the strip's creases and its midpoint lies more than ``sep_px``
+    off that crease's line: the strip's width is seen, which is what fixes the
+    tilt and depth of a face seen head-on. A strip's end edges (across it) and
+    far edges on the crease do not count, nor edges of a strip with no crease
+    in view.
+
+    Parameters
+    ----------
+    supported, visible : sequence of int
+        Model edge indices supported by image edges / visible and long enough.
+    ua, ub : ndarray, shape (E, 2)
+        Projected edge end points, px.
+    edge_faces : ndarray of int, shape (E, 2)
+    open_face, front : ndarray of bool, shape (F,)
+        Faces seen openly / toward the camera.
+    """
+    strip = front & ~open_face
+    vis = np.zeros(len(edge_faces), bool)
+    vis[np.asarray(visible, np.int64)] = True
+    d = ub - ua
+    u = d / np.maximum(np.linalg.norm(d, axis=1), 1e-9)[:, None]
+    cos_max = np.cos(np.deg2rad(max_deg))
+    n = 0
+    for k in supported:
+        f0, f1 = edge_faces[k]
+        if open_face[f0] or open_face[f1] or not (strip[f0] or strip[f1]):
+            continue
+        mid = 0.5 * (ua[k] + ub[k])
+        for s_ in (f for f in (f0, f1) if strip[f]):
+            creases = np.flatnonzero(vis & ((edge_faces[:, 0] == s_) & open_face[edge_faces[:, 1]]
+                                            | (edge_faces[:, 1] == s_) & open_face[edge_faces[:, 0]]))
+            if any(abs(u[c] @ u[k]) >= cos_max and abs(np.cross(u[c], mid - ua[c])) > sep_px for c in creases):
+                n += 1
+                break
+    return n
 
 
 def _continued_in_view(ends_xyz: np.ndarray, dirs: np.ndarray, mf: ModelFeatures, ua: np.ndarray, ub: np.ndarray,
@@ -1338,7 +1394,7 @@ def check_pose(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFea
     n_over, n_ends = 0, 0
     clutter = 0.0
     cr_e, cr_sup = 0, 0
-    n_distinct = 0
+    n_distinct, n_strips = 0, 0
     explained = []
     cos_open = np.cos(np.deg2rad(open_face_deg))
     for v in views:
@@ -1366,7 +1422,8 @@ def check_pose(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFea
         Xf = mf.face_centroids @ T_co[:3, :3].T + T_co[:3, 3]
         nc = mf.face_normals @ T_co[:3, :3].T
         cosv = -np.sum(nc * Xf, 1) / np.linalg.norm(Xf, axis=1)
-        open_min = min(open_min, int(np.sum(big & (cosv >= cos_open))))
+        open_f = big & (cosv >= cos_open)
+        open_min = min(open_min, int(np.sum(open_f)))
         cf, _ = interior_clutter(T_co, v.feat, mf)
         clutter = max(clutter, cf if np.isfinite(cf) else 1.0)
         e = mf.sample_edge[idx]
@@ -1402,6 +1459,7 @@ def check_pose(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFea
                 ends_uv.append(ub[k]); dirs.append(u); ebins.append(bins[m[-1]]); ends_xyz.append(mf.edge_b[k])
         if sup_k:
             n_distinct += _distinct_segments(ue[sup_k], ub[sup_k], 2.0 * tol_px)
+            n_strips += _strips_apart(sup_k, np.unique(e), ue, ub, mf.edge_faces, open_f, front, 2.0 * tol_px)
         if ends_uv:
             s_ = np.linspace(3.0, 8.0, 5)
             q = np.asarray(ends_uv)[:, None, :] + s_[None, :, None] * np.asarray(dirs)[:, None, :]
@@ -1415,7 +1473,7 @@ def check_pose(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFea
     return PoseCheck(n_in / n_all if n_all else 0.0, per, n_all, sup_e, vis_e, ncam,
                      dsum / n_all if n_all else float("inf"), unseen, size if np.isfinite(size) else 0.0,
                      inl_px, open_min if ncam else 0, n_over / n_ends if n_ends else 0.0, clutter, cr_e, cr_sup,
-                     explained=tuple(explained), distinct_supported=n_distinct)
+                     explained=tuple(explained), distinct_supported=n_distinct, strips_apart=n_strips)
 
 
 def unshared_px(a: PoseCheck, b: PoseCheck, tol_px: float = 2.0) -> float:
