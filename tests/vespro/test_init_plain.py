@@ -187,6 +187,9 @@ def test_one_open_face_is_provisional_with_one_camera():
                      open_faces=1, strips_apart=0)
     assert not _verdict(endwise, opt)[0]
     assert _verdict(endwise, replace(opt, min_strips_apart_confirm=0)) == (True, True, "")
+    # A face of more sides than a rectangle (an L-block's L) fixes the pose by its outline.
+    assert _verdict(replace(endwise, open_edges_apart=6), opt) == (True, True, "")
+    assert not _verdict(replace(endwise, open_edges_apart=4), opt)[0]
     assert not _verdict(_check(**strict_pass, open_faces=1), replace(opt, min_open_faces_confirm=2))[0]
 
 
@@ -266,7 +269,7 @@ def test_a_side_face_seen_as_a_thin_strip_adds_no_distinct_edge(tilt_deg, strip_
         transform_from_rt(np.array([[1, 0, 0], [0, c, -s_], [0, s_, c]]), [0.0, 0.0, 0.0])
     img = render(box, T, np.random.default_rng(0), clutter=0)
     chk = check_pose(T, [CameraView(extract_features("c", img, K, EdgeOptions()), np.eye(4))], mf)
-    assert chk.open_faces == 1 and chk.supported_edges >= 5
+    assert chk.open_faces == 1 and chk.supported_edges >= 5 and chk.open_edges_apart == 4
     if strip_apart:
         assert chk.distinct_supported == chk.supported_edges
         assert chk.strips_apart == 1

@@ -217,15 +217,21 @@ class InitOptions:
         as before (103, none wrong). The boxes seen straight from above
         (within about 10 deg of head-on, the strips under 4 px) stay out of
         one camera's reach.
-    min_strips_apart_confirm : int
+    min_strips_apart_confirm, min_open_edges_apart_confirm : int
         ... and this many of the strips' far edges supported and standing apart
-        from their creases (:attr:`vespro.init.search.PoseCheck.strips_apart`).
+        from their creases (:attr:`vespro.init.search.PoseCheck.strips_apart`),
+        unless the open face shows at least ``min_open_edges_apart_confirm``
+        supported edges apart (:attr:`vespro.init.search.PoseCheck.open_edges_apart`):
+        a face of more sides than a rectangle (an L-block's L, whose side faces
+        are often seen edge on: L-block 17) fixes the pose by its own outline,
+        a rectangle head-on matches another face of the part at another depth.
         The distinct count alone is fooled by a strip's end edge: box 4610 (one
         camera, a grey box on the dark belt whose top and side faces share a
-        shade) was matched by another face of the box, head-on and 0.24 m
-        nearer (1.7 diameters off), its side faces seen edge on; a strip's end
-        edge lying on the rail's edge behind made the fifth distinct edge,
-        and the pose was confirmed by the next call.
+        shade, so the image shows a plain quadrilateral) was matched by another
+        face of the box, head-on and 0.24 m nearer (1.7 diameters off), its
+        side faces seen edge on; a strip's end edge lying on the rail's edge
+        behind made the fifth distinct edge, and the pose was confirmed by the
+        next call.
     min_size_px : float
         Least projected size of the part (bounding-box diagonal, px) in every
         judging camera: tiny far-away fits of background texture are rejected,
@@ -398,6 +404,7 @@ class InitOptions:
     min_supported_edges_confirm: int = 5
     min_distinct_edges_confirm: int = 5
     min_strips_apart_confirm: int = 1
+    min_open_edges_apart_confirm: int = 5
     min_size_px: float = 40.0
     min_size_px_single: float = 90.0
     max_mean_dist_single: float = 2.5
@@ -607,7 +614,8 @@ def _verdict(chk, opt: InitOptions) -> tuple[bool, bool, str]:
                                                         opt.min_supported_edges_confirm) if few_faces
                                                     else opt.min_supported_edges_single))
         thin = chk.distinct_supported < opt.min_distinct_edges_confirm or \
-            chk.strips_apart < opt.min_strips_apart_confirm
+            (chk.strips_apart < opt.min_strips_apart_confirm
+             and chk.open_edges_apart < opt.min_open_edges_apart_confirm)
         if _accept(chk, loose)[0] and not (few_faces and thin):
             return True, True, ""
     return False, False, why

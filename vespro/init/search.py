@@ -1232,6 +1232,10 @@ class PoseCheck:
         Supported far edges of strips (faces toward the camera, not seen
         openly) standing apart from their creases, parallel to them, summed
         over cameras (:func:`_strips_apart`): the side faces' widths seen.
+    open_edges_apart : int
+        Supported edges of the openly seen faces standing apart in the image
+        (as ``distinct_supported``), summed over cameras: four for a
+        rectangle seen head-on, six for an L-block's L.
     hidden : str
         A camera left out of these statistics because the part is hidden
         there (``InitOptions.hidden_camera``); empty when none is.
@@ -1261,6 +1265,7 @@ class PoseCheck:
     explained: tuple = ()
     distinct_supported: int = 0
     strips_apart: int = 0
+    open_edges_apart: int = 0
 
 
 def _distinct_segments(a: np.ndarray, b: np.ndarray, sep_px: float, max_deg: float = 10.0,
@@ -1394,7 +1399,7 @@ def check_pose(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFea
     n_over, n_ends = 0, 0
     clutter = 0.0
     cr_e, cr_sup = 0, 0
-    n_distinct, n_strips = 0, 0
+    n_distinct, n_strips, n_open_apart = 0, 0, 0
     explained = []
     cos_open = np.cos(np.deg2rad(open_face_deg))
     for v in views:
@@ -1460,6 +1465,8 @@ def check_pose(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFea
         if sup_k:
             n_distinct += _distinct_segments(ue[sup_k], ub[sup_k], 2.0 * tol_px)
             n_strips += _strips_apart(sup_k, np.unique(e), ue, ub, mf.edge_faces, open_f, front, 2.0 * tol_px)
+            on_open = [k for k in sup_k if open_f[mf.edge_faces[k, 0]] or open_f[mf.edge_faces[k, 1]]]
+            n_open_apart += _distinct_segments(ue[on_open], ub[on_open], 2.0 * tol_px)
         if ends_uv:
             s_ = np.linspace(3.0, 8.0, 5)
             q = np.asarray(ends_uv)[:, None, :] + s_[None, :, None] * np.asarray(dirs)[:, None, :]
@@ -1473,7 +1480,8 @@ def check_pose(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFea
     return PoseCheck(n_in / n_all if n_all else 0.0, per, n_all, sup_e, vis_e, ncam,
                      dsum / n_all if n_all else float("inf"), unseen, size if np.isfinite(size) else 0.0,
                      inl_px, open_min if ncam else 0, n_over / n_ends if n_ends else 0.0, clutter, cr_e, cr_sup,
-                     explained=tuple(explained), distinct_supported=n_distinct, strips_apart=n_strips)
+                     explained=tuple(explained), distinct_supported=n_distinct, strips_apart=n_strips,
+                     open_edges_apart=n_open_apart)
 
 
 def unshared_px(a: PoseCheck, b: PoseCheck, tol_px: float = 2.0) -> float:
