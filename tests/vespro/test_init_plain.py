@@ -269,7 +269,7 @@ def test_a_side_face_seen_as_a_thin_strip_adds_no_distinct_edge(tilt_deg, strip_
         transform_from_rt(np.array([[1, 0, 0], [0, c, -s_], [0, s_, c]]), [0.0, 0.0, 0.0])
     img = render(box, T, np.random.default_rng(0), clutter=0)
     chk = check_pose(T, [CameraView(extract_features("c", img, K, EdgeOptions()), np.eye(4))], mf)
-    assert chk.open_faces == 1 and chk.supported_edges >= 5 and chk.open_edges_apart == 4
+    assert chk.open_faces == 1 and chk.supported_edges >= 5 and chk.open_edges_apart <= 4
     if strip_apart:
         assert chk.distinct_supported == chk.supported_edges
         assert chk.strips_apart == 1
