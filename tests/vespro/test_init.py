@@ -726,9 +726,10 @@ def test_a_call_confirming_a_provisional_pose_searches_as_hard_as_any():
     ranked out). Its confirming call without the fallback refinement of the ranking
     (``quick_when_pending=False``) found it again first and it was published from frame
     44 (the premise); with it, that call puts the true pose first and nothing wrong is
-    published (measured: published from frame 39 at 1.4%)."""
+    published (measured: published from frame 39 at 1.4% in session 18; since session 21's
+    stricter count of distinct edges, from frame 48 at 2-3%)."""
     assert max(_published_one_camera("lblock", 2017, 46, quick_when_pending=False), default=0.0) >= 0.1
-    errs = _published_one_camera("lblock", 2017, 46)
+    errs = _published_one_camera("lblock", 2017, 52)
     assert errs and max(errs) < 0.1, errs
 
 
