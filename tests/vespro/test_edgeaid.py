@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 from strided import Strided
+from trial_frames import trial_frames as _trial_frames
 
 from vespro.edgeaid import EdgeAid
 from vespro.ekf import nees
@@ -17,26 +18,6 @@ from vespro.sim.cell import SimCell
 from vespro.sim.trials import model_symmetries, random_rig, trial_config
 from vespro.startpose import InitResult
 from vespro.tracker import Tracker, TrackerConfig
-
-
-def _trial_frames(obj, seed, n, n_cameras=1, hide=False):
-    """(rig, model, [(frame set, true pose)] * n) of a trial (rig seed as in bench/init.py;
-    ``hide``: a paddle held between the rig's first camera and the part)."""
-    from dataclasses import replace
-
-    from vespro.sim.cell import OccluderSweep
-
-    rig = random_rig(np.random.default_rng(10_000 + seed), n_cameras)
-    config, motion, mesh = trial_config(obj, rig, seed)
-    if hide:
-        config = replace(config, occluders=(OccluderSweep(rig.cameras[0].name, 0.0, duration=1e3, half_travel=0.0),))
-    model = load_model(mesh)
-    out = []
-    with SimCell(config, motion) as cell:
-        cell.settle_arm()
-        for _ in range(n):
-            out.append((cell.next_frameset(), cell.true_object_pose()))
-    return rig, model, out
 
 
 def _published_errors(tr, frames, model, syms):

@@ -11,6 +11,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 from strided import Strided
+from trial_frames import trial_frames
 
 from vespro.cmd_record import object_mesh_path
 from vespro.frames import FrameSet
@@ -691,26 +692,14 @@ def test_a_pose_explaining_part_of_what_the_best_explains_is_no_rival():
     assert res is None and "ambiguous" in rep.reason
 
 
-def _one_camera_frames(obj, seed, n_frames):
-    """(rig, model, symmetries, [(frame set, true pose)] * n_frames) of a one-camera bench trial."""
-    rig = _rig("1", seed)
-    config, motion, mesh = trial_config(obj, rig, seed)
-    model = load_model(mesh)
-    frames = []
-    with SimCell(config, motion) as cell:
-        cell.settle_arm()
-        for _ in range(n_frames):
-            frames.append((cell.next_frameset(), cell.true_object_pose()))
-    return rig, model, model_symmetries(model.vertices), frames
-
-
 def _published_one_camera(obj, seed, n_frames, tracker=None, **opts):
     """A one-camera bench trial (rig seed ``seed``) run through the tracker (options
     ``tracker``, a dict) with the initialiser (options ``opts``) called on every 5th frame,
     as the server's worker calls it: ADD / diameter of every frame published ``tracking``."""
     from vespro.tracker import Tracker, TrackerConfig
 
-    rig, model, syms, frames = _one_camera_frames(obj, seed, n_frames)
+    rig, model, frames = trial_frames(obj, seed, n_frames)
+    syms = model_symmetries(model.vertices)
     tr = Tracker(rig, model, TrackerConfig(**(tracker or {})), initializer=Strided(make_initializer(rig, model, **opts)))
     out = []
     for fs, T in frames:
@@ -771,7 +760,8 @@ def test_a_face_seen_head_on_whose_strips_show_no_width_is_not_confirmed():
     provisionally at frame 50 (the premise: 1.7 diameters off); with it
     (``min_strips_apart_confirm`` 1, the default) nothing wrong is published in 60 frames
     (measured: nothing published)."""
-    rig, model, syms, frames = _one_camera_frames("box", 4610, 51)
+    rig, model, frames = trial_frames("box", 4610, 51)
+    syms = model_symmetries(model.vertices)
     res = make_initializer(rig, model, min_strips_apart_confirm=0)(frames[50][0])
     assert res is not None and res.provisional
     assert _sym_add_frac(res.T_world_object, frames[50][1], model, syms) > 1.0

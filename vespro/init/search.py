@@ -1297,8 +1297,8 @@ def _distinct_segments(a: np.ndarray, b: np.ndarray, sep_px: float, max_deg: flo
     overlap = np.minimum(t1, L[:, None]) - np.maximum(t0, 0.0)
     merge = (np.abs(u @ u.T) >= np.cos(np.deg2rad(max_deg))) & (off <= sep_px) & \
         (overlap >= min_overlap * np.minimum(L[:, None], t1 - t0))
-    longer = (L[:, None] > L[None, :]) | ((L[:, None] == L[None, :]) & np.triu(np.ones_like(merge), 1))
-    merge = merge & longer  # [i, j] judged from i's line: i the longer
+    rank = np.argsort(np.argsort(-L, kind="stable"))  # 0 for the longest (ties: the first)
+    merge = merge & (rank[:, None] < rank[None, :])  # [i, j] judged from i's line: i the longer
     return int(connected_components(merge | merge.T, directed=False)[0])
 
 
@@ -1318,7 +1318,8 @@ def _strips_apart(supported, visible, ua: np.ndarray, ub: np.ndarray, edge_faces
     Parameters
     ----------
     supported, visible : sequence of int
-        Model edge indices supported by image edges / visible and long enough.
+        Model edge indices supported by image edges / with visible samples
+        (a crease is looked for among the latter, however short).
     ua, ub : ndarray, shape (E, 2)
         Projected edge end points, px.
     edge_faces : ndarray of int, shape (E, 2)
