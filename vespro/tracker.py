@@ -402,6 +402,8 @@ class TrackerConfig:
     dim_corner_frac: float = 0.45
     confirm_outline_min_accepted: int = 4
     confirm_outline_min_found: float = 0.9
+    confirm_slow_frames: int = 4
+    confirm_slow_min_accepted: int = 4
     adaptive_noise: bool = True
     sigma_min_px: float = 0.15
     sigma_max_px: float = 3.0
@@ -562,6 +564,7 @@ class Tracker:
         self._t_ns: int | None = None
         self._bad = 0
         self._good = 0
+        self._slow = 0  # frames towards the slower confirmation (confirm_slow_*)
         self._recover_t_ns: int | None = None  # a confirmed track coasted from here; not yet strong again
         self._disagree = 0
         self.reassociations = 0
@@ -656,6 +659,7 @@ class Tracker:
         frames counted so far still count."""
         self.confirmed = False
         self._good = self._good if keep_strong else 0
+        self._slow = self._slow if keep_strong else 0
         self._recover_t_ns = None
         self._vetoes = 0
         self._start_found = {}
@@ -1071,20 +1075,24 @@ class Tracker:
         enough = (n_acc >= c.confirm_min_accepted
                   or (self._edge_ok and n_acc >= c.confirm_edge_min_accepted)
                   or (self._edge_found >= c.confirm_outline_min_found and n_acc >= c.confirm_outline_min_accepted))
-        strong = (not bad and enough and not (c.confirm_edge_veto and self._edge_veto)
-                  and n_acc >= c.confirm_min_inlier_fraction * max(n_found, 1)
-                  and n_acc >= c.confirm_min_selected_fraction * n_sel
-                  and all(self._camera_agrees(ob, c.confirm_min_camera_fraction)
-                          for ob in seen if ob.feature_ids.size >= c.min_accepted)
-                  and pos_std < c.confirm_max_pos_std * self.model.diameter and rot_std < c.confirm_max_rot_std)
-        if strong:
-            self._good += 1
+        sound = (not bad and not (c.confirm_edge_veto and self._edge_veto)
+                 and n_acc >= c.confirm_min_inlier_fraction * max(n_found, 1)
+                 and all(self._camera_agrees(ob, c.confirm_min_camera_fraction)
+                         for ob in seen if ob.feature_ids.size >= c.min_accepted)
+                 and pos_std < c.confirm_max_pos_std * self.model.diameter and rot_std < c.confirm_max_rot_std)
+        strong = sound and enough and n_acc >= c.confirm_min_selected_fraction * n_sel
+        # Fewer corners, but the edge fit agreed: counts towards the slower confirmation.
+        weak = not self.confirmed and sound and self._edge_ok and n_acc >= c.confirm_slow_min_accepted
+        if strong or weak:
+            self._good += int(strong)
+            self._slow += 1
         elif (self.confirmed or not c.confirm_hold_neutral or self._edge_veto
               or n_acc < c.confirm_min_inlier_fraction * n_found
               or (np.isfinite(mean_nis) and mean_nis > c.max_mean_nis)):
             # Not a frame with too little support but nothing against the pose (the corners
             # it found agree, no edge veto): that one neither counts nor breaks the run.
             self._good = 0
+            self._slow = 0
         self._vetoes += int(self._edge_veto)
         if self.confirmed and not bad:
             # Cameras disagreeing: one accepts under half of the corners selected in it while
@@ -1101,7 +1109,8 @@ class Tracker:
                 self._disagree = 0
                 self.reassociations += 1
                 ekf.widen_pose(c.init_sigma_pos, c.init_sigma_rot)
-        if not self.confirmed and self._good >= c.confirm_frames and not self.provisional and not bad:
+        if not self.confirmed and (self._good >= c.confirm_frames or (
+                c.confirm_slow_frames > 0 and self._slow >= c.confirm_slow_frames)) and not self.provisional and not bad:
             # (Not on a bad frame: a start the initialiser confirmed on one was published
             # ``lost`` though never ``tracking``; it now waits for a frame that is not bad.)
             self.confirmed = True
