@@ -291,6 +291,19 @@ class TrackerConfig:
         edge fits found 93-96% of 306 samples on 9 edges and the track held
         1-5% of the diameter for a second, unpublished. The two tracks that
         slid from 4 corners found 40-86% (the dark face's outer edge missing).
+    confirm_slow_frames, confirm_slow_min_accepted : int, int
+        A start not yet confirmed is also confirmed after ``confirm_slow_frames``
+        frames (strong ones among them; neutral frames neither count nor break
+        the run, as for ``confirm_frames``) that pass every check of a strong
+        frame but the corner counts: at least ``confirm_slow_min_accepted``
+        corners accepted, whatever the fraction of those selected, on a frame
+        whose edge fit agreed (see ``confirm_edge_*``). A lone camera on a part
+        with dark faces selects 7-8 corners and finds 3-5 (all accepted): the
+        selected fraction (0.6) then asks for 5, and accurate starts (0.2-3.8%
+        of the diameter off) of two brackets were dropped unconfirmed or
+        published after a second; a box showing one face's 4 corners, its fits
+        finding 78-88% of the outline (under ``confirm_outline_min_found``),
+        never. 0: off.
     confirm_edge_veto, veto_found_ratio : bool, float
         A frame whose edge fit, in some camera, found an edge point for fewer
         than ``veto_found_ratio`` times the fraction of the visible samples the

@@ -388,9 +388,9 @@ def test_an_agreeing_edge_fit_lets_fewer_corners_confirm(recs):
     """Five of six corners accepted (fewer than confirm_min_accepted = 6) confirm a start only
     on frames whose edge fit agreed with the filter (``Tracker._edge_ok``, set by the edge
     update): a lone camera often finds 5 of a box's corners while its edges hold the pose.
-    Four do only when the fit found edge points for 90% of the visible samples
-    (``confirm_outline_*``); three never."""
-    from vespro.tracker import CameraObservation, InitResult
+    Four do in two frames only when the fit found edge points for 90% of the visible samples
+    (``confirm_outline_*``), otherwise in four (``confirm_slow_*``); three never."""
+    from vespro.tracker import CameraObservation, InitResult, TrackerConfig
 
     rec = Recording(recs["box_conveyor"])
     _, _, T = read_groundtruth(recs["box_conveyor"])
@@ -399,8 +399,8 @@ def test_an_agreeing_edge_fit_lets_fewer_corners_confirm(recs):
     acc = np.array([True] * 5 + [False])
     ob = CameraObservation("cam_left", True, 6, ids, np.zeros((6, 2)), np.full(6, 3.0), np.zeros((6, 2)), acc)
 
-    def statuses(edge_ok, found=0.7):
-        tr = make_tracker(rec)
+    def statuses(edge_ok, found=0.7, config=TrackerConfig(confirm_slow_frames=0)):
+        tr = make_tracker(rec, config)
         tr.start(InitResult(T[0], cov6=np.diag([1e-6] * 6)), fs.t_ns)
         out = []
         for _ in range(4):
@@ -412,11 +412,14 @@ def test_an_agreeing_edge_fit_lets_fewer_corners_confirm(recs):
 
     assert "tracking" not in statuses(edge_ok=False)
     assert statuses(edge_ok=True)[-1] == "tracking"
-    acc[4] = False  # four corners: only when the edge fit found the whole outline
+    acc[4] = False  # four corners: in two frames when the edge fit found the whole outline
     assert "tracking" not in statuses(edge_ok=True, found=0.86)
-    assert statuses(edge_ok=True, found=0.93)[-1] == "tracking"
+    assert statuses(edge_ok=True, found=0.93)[1] == "tracking"
+    # ... and in four on any agreeing fit (the slower confirmation, on by default), never without one
+    assert statuses(edge_ok=True, found=0.86, config=TrackerConfig()) == ["initializing"] * 3 + ["tracking"]
+    assert "tracking" not in statuses(edge_ok=False, config=TrackerConfig())
     acc[3] = False  # three: never
-    assert "tracking" not in statuses(edge_ok=True, found=1.0)
+    assert "tracking" not in statuses(edge_ok=True, found=1.0, config=TrackerConfig())
 
 
 def test_a_weak_frame_that_agrees_does_not_break_a_confirmation(recs):
