@@ -95,8 +95,9 @@ def test_four_corners_and_the_whole_outline_confirm_a_lone_camera():
     side face is dark on the dark belt). From a start 2.7% of the diameter off, the edge
     fits find 92-96% of the visible edge samples, so the track is published from the
     second frame on and stays within 10% of the diameter (measured 0.4-5.4%); asking for
-    more than the whole outline (``confirm_outline_min_found`` above 1) leaves it
-    unpublished: 4 corners alone never confirm."""
+    more than the whole outline (``confirm_outline_min_found`` above 1) and no slower
+    confirmation (``confirm_slow_frames`` 0) leaves it unpublished: 4 corners alone never
+    confirm. With the slower confirmation alone it is published two frames later."""
     rig, model, frames = _trial_frames("box", 18, 14)
     syms = model_symmetries(model.vertices)
     rng = np.random.default_rng(0)
@@ -115,8 +116,11 @@ def test_four_corners_and_the_whole_outline_confirm_a_lone_camera():
     tr, n_acc, errs = run(TrackerConfig())
     assert max(n_acc) == 4  # the premise: never more than four corners
     assert len(errs) >= len(frames) - 4 and max(errs) < 0.1, errs
-    _, _, errs_off = run(TrackerConfig(confirm_outline_min_found=1.01))
+    _, _, errs_off = run(TrackerConfig(confirm_outline_min_found=1.01, confirm_slow_frames=0))
     assert errs_off == []
+    # The slower confirmation (four such frames) publishes it two frames later.
+    _, _, errs_slow = run(TrackerConfig(confirm_outline_min_found=1.01))
+    assert len(errs_slow) == len(errs) - 2 and max(errs_slow) < 0.1, errs_slow
 
 
 def test_edges_veto_a_start_that_slid_on_wrong_corners():

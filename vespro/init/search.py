@@ -1341,10 +1341,16 @@ def _strips_apart(supported, visible, ua: np.ndarray, ub: np.ndarray, edge_faces
         for s_ in (f for f in (f0, f1) if strip[f]):
             creases = np.flatnonzero(vis & ((edge_faces[:, 0] == s_) & open_face[edge_faces[:, 1]]
                                             | (edge_faces[:, 1] == s_) & open_face[edge_faces[:, 0]]))
-            if any(abs(u[c] @ u[k]) >= cos_max and abs(np.cross(u[c], mid - ua[c])) > sep_px for c in creases):
+            # (distance of the midpoint from the crease's line: the 2-D cross product)
+            if any(abs(u[c] @ u[k]) >= cos_max and abs(_cross2(u[c], mid - ua[c])) > sep_px for c in creases):
                 n += 1
                 break
     return n
+
+
+def _cross2(a: np.ndarray, b: np.ndarray) -> float:
+    """z of the cross product of two 2-D vectors (``np.cross`` on 2-D vectors is deprecated)."""
+    return float(a[0] * b[1] - a[1] * b[0])
 
 
 def _continued_in_view(ends_xyz: np.ndarray, dirs: np.ndarray, mf: ModelFeatures, ua: np.ndarray, ub: np.ndarray,
