@@ -1100,7 +1100,8 @@ class Tracker:
         # Fewer corners, but the edge fit agreed: counts towards the slower confirmation.
         weak = not self.confirmed and sound and self._edge_ok and n_acc >= c.confirm_slow_min_accepted
         if strong or weak:
-            self._good += int(strong)
+            # (A weak frame is neutral to the strong run, or breaks it when runs must be unbroken.)
+            self._good = self._good + 1 if strong else self._good if c.confirm_hold_neutral else 0
             self._slow += 1
         elif (self.confirmed or not c.confirm_hold_neutral or self._edge_veto
               or n_acc < c.confirm_min_inlier_fraction * n_found
