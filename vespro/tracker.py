@@ -1100,9 +1100,11 @@ class Tracker:
         # Fewer corners, but the edge fit agreed: counts towards the slower confirmation.
         weak = not self.confirmed and sound and self._edge_ok and n_acc >= c.confirm_slow_min_accepted
         if strong or weak:
-            # (A weak frame is neutral to the strong run, or breaks it when runs must be unbroken.)
-            self._good = self._good + 1 if strong else self._good if c.confirm_hold_neutral else 0
             self._slow += 1
+            if strong:
+                self._good += 1
+            elif not c.confirm_hold_neutral:
+                self._good = 0  # a weak frame breaks a strong run that must be unbroken
         elif (self.confirmed or not c.confirm_hold_neutral or self._edge_veto
               or n_acc < c.confirm_min_inlier_fraction * n_found
               or (np.isfinite(mean_nis) and mean_nis > c.max_mean_nis)):
