@@ -716,8 +716,11 @@ def test_a_call_confirming_a_provisional_pose_searches_as_hard_as_any():
     (``quick_when_pending=False``) found it again first and it was published from frame
     44 (the premise); with it, that call puts the true pose first and nothing wrong is
     published (measured: published from frame 39 at 1.4% in session 18; since session 21's
-    stricter count of distinct edges, from frame 48 at 2-3%)."""
-    assert max(_published_one_camera("lblock", 2017, 46, quick_when_pending=False), default=0.0) >= 0.1
+    stricter count of distinct edges, from frame 48 at 2-3%). Since session 22 a confirming
+    call also refines deeper down the ranking (``n_refine_confirm``), which finds it too,
+    so the premise turns both off."""
+    assert max(_published_one_camera("lblock", 2017, 46, quick_when_pending=False, n_refine_confirm=0),
+               default=0.0) >= 0.1
     errs = _published_one_camera("lblock", 2017, 52)
     assert errs and max(errs) < 0.1, errs
 
@@ -765,6 +768,33 @@ def test_an_accurate_start_on_few_corners_is_published_within_the_second(obj, se
     assert _published_one_camera(obj, seed, 26, tracker={"confirm_slow_frames": 0}) == []
     errs = _published_one_camera(obj, seed, 26)
     assert errs and max(errs) < 0.1, errs
+
+
+def test_a_confirming_call_looks_deeper_than_a_proposing_one():
+    """One camera, L-block 4801 (a fresh set of session 22), the initialiser every 5th
+    frame: a pose 75% of the diameter off explains the L's lower step alone (439 px of
+    image edges). Taken provisionally at frame 0, it was confirmed by the call at frame
+    5 and published from frame 6 while the confirming call refined only the first 9
+    distinct candidates (``n_refine_confirm`` 0, the premise): the true pose (669 px)
+    lay further down the ranking. Refining the first 40 there puts the true pose first
+    (measured: 0.5% off at frame 5, published from frame 6 at 0.6-1.6%)."""
+    assert max(_published_one_camera("lblock", 4801, 8, n_refine_confirm=0)) >= 0.1
+    errs = _published_one_camera("lblock", 4801, 12)
+    assert errs and max(errs) < 0.1, errs
+
+
+def test_a_pose_with_a_side_face_beside_its_outline_is_not_taken():
+    """One camera, L-block 5008 (a fresh set of session 22), the initialiser every 5th
+    frame: the L face seen nearly head-on, a side face of its shade joining it in the image
+    into one larger L, the dark strip of another side face along its long edge. A pose
+    nearer and untilted matches that larger L (its six edges apart, no strip) and leaves
+    the dark strip outside its outline, the strip's far edge running beside it. Without
+    the rule (``max_outer_parallel_confirm`` negative, the premise) it is taken at frame 0
+    and published from frame 5 at 11-13% of the diameter; with it nothing wrong is
+    published (measured: nothing in 12 frames)."""
+    assert max(_published_one_camera("lblock", 5008, 8, max_outer_parallel_confirm=-1), default=0.0) >= 0.1
+    errs = _published_one_camera("lblock", 5008, 12)
+    assert max(errs, default=0.0) < 0.1, errs
 
 
 def test_a_face_seen_head_on_whose_strips_show_no_width_is_not_confirmed():

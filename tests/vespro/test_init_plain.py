@@ -191,6 +191,13 @@ def test_one_open_face_is_provisional_with_one_camera():
     assert _verdict(replace(endwise, open_edges_apart=6), opt) == (True, True, "")
     assert not _verdict(replace(endwise, open_edges_apart=4), opt)[0]
     assert not _verdict(_check(**strict_pass, open_faces=1), replace(opt, min_open_faces_confirm=2))[0]
+    # An image edge all along an outline edge just outside it (L-block 5008: the far
+    # edge of a side face the pose does not have): not even provisional.
+    beside = _check(**strict_pass, open_faces=1, outer_parallel=1)
+    assert not _verdict(beside, opt)[0]
+    assert _verdict(beside, replace(opt, max_outer_parallel_confirm=-1)) == (True, True, "")
+    assert _verdict(beside, replace(opt, max_outer_parallel_confirm=1)) == (True, True, "")
+    assert _verdict(replace(beside, open_faces=2), opt) == (True, False, "")  # two open faces: not asked
 
 
 def test_plain_limits_accept_half_the_creases():
@@ -276,3 +283,28 @@ def test_a_side_face_seen_as_a_thin_strip_adds_no_distinct_edge(tilt_deg, strip_
     else:
         assert chk.distinct_supported == chk.supported_edges - 1 == 4
         assert chk.strips_apart == 0
+
+
+@pytest.mark.parametrize("tilt_deg", [10.0, 12.0])
+def test_a_side_face_left_outside_the_outline_shows_beside_it(tilt_deg):
+    """A box's top face tilted to show one side face as a strip (7-9 px at 0.5 m).
+    The true pose's outline runs along the strip's far edge, with only background
+    beyond; the same top face head-on (the side faces turned away, its outline on
+    the top face's own edges) leaves the strip outside, its far edge running
+    beside the outline edge a few pixels out."""
+    from vespro.model import box_model
+
+    box = box_model([0.12, 0.08, 0.06], center=[0, 0, 0.03])
+    mf = model_features(box)
+    R0 = np.diag([1.0, -1.0, -1.0])
+    c, s_ = np.cos(np.deg2rad(tilt_deg)), np.sin(np.deg2rad(tilt_deg))
+    T = transform_from_rt(R0, [0.0, 0.0, 0.5]) @ transform_from_rt(np.array([[1, 0, 0], [0, c, -s_], [0, s_, c]]),
+                                                                    [0.0, 0.0, 0.0])
+    top = T[:3, :3] @ [0.0, 0.0, 0.06] + T[:3, 3]
+    T_head = transform_from_rt(R0, top - R0 @ [0.0, 0.0, 0.06])  # the top face where it is, untilted
+    img = render(box, T, np.random.default_rng(0), clutter=0)
+    views = [CameraView(extract_features("c", img, K, EdgeOptions()), np.eye(4))]
+    true, head = check_pose(T, views, mf), check_pose(T_head, views, mf)
+    assert true.outer_parallel == 0 and true.strips_apart == 1
+    assert head.open_faces == 1 and head.inlier_frac > 0.6
+    assert head.outer_parallel == 1

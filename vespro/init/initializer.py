@@ -122,6 +122,19 @@ class InitOptions:
         ``k >= 1`` takes distinct ranks ``n_refine + n_refine_extra * ((k - 1)
         % refine_windows)`` on): the frames of one second give the search the
         budget of several calls, and a first call that succeeds costs no more.
+    n_refine_confirm : int
+        A call confirming a provisional pose (``pending_T_world_object``)
+        refines the first this many distinct candidates of the ranking: it
+        confirms the pose when that comes first among what the search finds,
+        so it looks deeper than a call that only proposes. One camera, L-block
+        4801 (a fresh set of session 22): a pose 75% of the diameter off
+        explaining the L's lower step alone (439 px of image edges) was taken
+        provisionally and confirmed by the next call, the true pose (669 px)
+        lying below the 9 distinct candidates refined (its P3P hypotheses
+        were 20th in the camera's ranking, further down the distinct order).
+        With 40 that call puts the true pose first (0.5% off) and the track is
+        published from the next frame. Such a call costs about 0.1 s more. 0:
+        as any call.
     rank_tol_px : float
         Distance at which a sample's agreement reaches zero in the ranking.
     verify_tol_px : float
@@ -237,6 +250,19 @@ class InitOptions:
         strips, which had passed by the end edges, no longer published: box 4
         and box 1617, whose track had reached 9.6%); two and three cameras
         864/864, the paddle trials 103/108, none wrong.
+    max_outer_parallel_confirm : int
+        ... and at most this many of its silhouette edges may have an image
+        edge of their orientation running beside them just outside
+        (:attr:`vespro.init.search.PoseCheck.outer_parallel`): a line all along
+        an outline edge, a few pixels out, is the far edge of a side face the
+        pose does not have. One camera, L-block 5008 (a fresh set of session
+        22): the L face seen head-on, one side face the shade of the L face, so
+        the image showed the L face and that strip as one larger L; a pose
+        nearer and untilted matched it (its six edges apart), left the dark
+        strip along the other side outside its outline, and was confirmed and
+        published 11-13% of the diameter off. On 46 one-open-face candidates
+        of 21 such views the true poses (2-8% off) had none, the wrong ones
+        (10-90% off) one or two in 17 of 25. Negative: off.
     min_size_px : float
         Least projected size of the part (bounding-box diagonal, px) in every
         judging camera: tiny far-away fits of background texture are rejected,
@@ -397,6 +423,7 @@ class InitOptions:
     quick_when_pending: bool = True
     n_refine: int = 6
     n_refine_extra: int = 3
+    n_refine_confirm: int = 40
     refine_windows: int = 5
     rank_tol_px: float = 3.0
     verify_tol_px: float = 2.0
@@ -410,6 +437,7 @@ class InitOptions:
     min_distinct_edges_confirm: int = 5
     min_strips_apart_confirm: int = 1
     min_open_edges_apart_confirm: int = 5
+    max_outer_parallel_confirm: int = 0
     min_size_px: float = 40.0
     min_size_px_single: float = 90.0
     max_mean_dist_single: float = 2.5
@@ -621,7 +649,8 @@ def _verdict(chk, opt: InitOptions) -> tuple[bool, bool, str]:
         thin = chk.distinct_supported < opt.min_distinct_edges_confirm or \
             (chk.strips_apart < opt.min_strips_apart_confirm
              and chk.open_edges_apart < opt.min_open_edges_apart_confirm)
-        if _accept(chk, loose)[0] and not (few_faces and thin):
+        beside = opt.max_outer_parallel_confirm >= 0 and chk.outer_parallel > opt.max_outer_parallel_confirm
+        if _accept(chk, loose)[0] and not (few_faces and thin) and not beside:
             return True, True, ""
     return False, False, why
 
@@ -900,6 +929,8 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
     if attempt > 0:  # a first call that succeeds needs no more
         w0 = opt.n_refine + opt.n_refine_extra * ((attempt - 1) % max(opt.refine_windows, 1))
         wanted |= set(range(w0, w0 + opt.n_refine_extra))
+    if pending is not None:  # a confirming call: every distinct candidate kept
+        wanted |= set(range(opt.n_refine_confirm))
     refine_distinct(order, wanted)
     if opt.n_quick > 0 and (pending is None or opt.quick_when_pending) and \
             not any(_verdict(c, opt)[0] for _, c in refined):

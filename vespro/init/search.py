@@ -1266,6 +1266,56 @@ class PoseCheck:
     distinct_supported: int = 0
     strips_apart: int = 0
     open_edges_apart: int = 0
+    outer_parallel: int = 0
+
+
+def _outer_parallel(k_sil, ue, ub, elen, uv, e, bins, n_bins, dt, inward_uv, min_px: float, lo_px: float,
+                    hi_px: float, min_frac: float) -> int:
+    """How many silhouette edges have an image edge of their orientation running beside them just outside.
+
+    For each silhouette edge projected at least ``min_px`` long, its visible
+    samples look ``lo_px`` to ``hi_px`` outward (away from ``inward_uv``, a
+    point of its front face) for an image edge of their orientation bin
+    (within 1 px) that no other visible edge of the pose lies on (a sample of
+    another edge, of a neighbouring bin, within 2.5 px: a bracket's flange
+    beyond the silhouette of its web is the part's own); the edge counts when
+    at least ``min_frac`` of its samples find one. Beyond a true outline lies
+    the background: a line beside it, all along, says the part goes on past
+    the pose's outline (the far edge of a side face the pose does not have).
+
+    Parameters
+    ----------
+    k_sil : ndarray of int
+        Silhouette edges with visible samples.
+    ue, ub : ndarray, shape (E, 2)
+        Projected edge ends, px; ``elen`` their lengths.
+    uv, e, bins : ndarray
+        Visible samples: pixels, edges, orientation bins (``n_bins`` over pi).
+    dt : ndarray, shape (n_bins, H, W)
+        The image's oriented distance transform.
+    inward_uv : ndarray, shape (len(k_sil), 2)
+    """
+    n = 0
+    s_ = np.arange(lo_px, hi_px + 0.5, 1.0)
+    for k, c in zip(k_sil, inward_uv):
+        m = np.flatnonzero(e == k)
+        if elen[k] < min_px or len(m) < 5:
+            continue
+        d = (ub[k] - ue[k]) / elen[k]
+        nrm = np.array([-d[1], d[0]])
+        if nrm @ (c - ue[k]) > 0:
+            nrm = -nrm
+        q = uv[m][:, None, :] + s_[None, :, None] * nrm  # (samples, offsets, 2)
+        hit = lookup_dt(dt, np.broadcast_to(bins[m][:, None], q.shape[:2]), q, np.inf) <= 1.0
+        other = np.flatnonzero(e != k)
+        if len(other):
+            db = np.abs(bins[m][:, None] - bins[other][None]) % n_bins
+            near_bin = np.minimum(db, n_bins - db) <= 1  # (samples, other)
+            d2 = np.sum((q[:, :, None, :] - uv[other][None, None]) ** 2, axis=3)  # (samples, offsets, other)
+            own = np.any((d2 <= 2.5 ** 2) & near_bin[:, None, :], axis=2)
+            hit &= ~own
+        n += int(np.mean(np.any(hit, axis=1)) >= min_frac)
+    return n
 
 
 def _distinct_segments(a: np.ndarray, b: np.ndarray, sep_px: float, max_deg: float = 10.0,
@@ -1395,7 +1445,8 @@ def _continued_in_view(ends_xyz: np.ndarray, dirs: np.ndarray, mf: ModelFeatures
 
 def check_pose(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFeatures, tree=None,
                tol_px: float = 2.0, min_inside: float = 0.5, min_edge_px: float = 10.0,
-               require_fixed: bool = False, open_face_deg: float = 75.0) -> PoseCheck:
+               require_fixed: bool = False, open_face_deg: float = 75.0, outer_min_px: float = 30.0,
+               outer_max_px: float = 12.0) -> PoseCheck:
     """Verification statistics of a pose against all cameras (full visibility)."""
     per, n_in, n_all, sup_e, vis_e, ncam, dsum, unseen = {}, 0, 0, 0, 0, 0, 0.0, 0
     size = np.inf
@@ -1407,6 +1458,7 @@ def check_pose(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFea
     clutter = 0.0
     cr_e, cr_sup = 0, 0
     n_distinct, n_strips, n_open_apart = 0, 0, 0
+    n_outer = 0
     explained = []
     cos_open = np.cos(np.deg2rad(open_face_deg))
     for v in views:
@@ -1474,6 +1526,15 @@ def check_pose(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFea
             n_strips += _strips_apart(sup_k, np.unique(e), ue, ub, mf.edge_faces, open_f, front, 2.0 * tol_px)
             on_open = [k for k in sup_k if open_f[mf.edge_faces[k, 0]] or open_f[mf.edge_faces[k, 1]]]
             n_open_apart += _distinct_segments(ue[on_open], ub[on_open], 2.0 * tol_px)
+        # Silhouette edges (convex, one face toward the camera), each with a point of its front face.
+        ff = front[mf.edge_faces]
+        k_sil = np.flatnonzero((ff[:, 0] != ff[:, 1]) & mf.edge_convex)
+        k_sil = k_sil[np.isin(k_sil, e)]
+        if len(k_sil):
+            fin = np.where(ff[k_sil, 0], mf.edge_faces[k_sil, 0], mf.edge_faces[k_sil, 1])
+            cin, _ = _project(v.feat.K, T_co, mf.face_centroids[fin])
+            n_outer += _outer_parallel(k_sil, ue, ub, elen, uv, e, bins, v.feat.dt.shape[0], v.feat.dt, cin, outer_min_px, 4.0,
+                                       outer_max_px, 0.6)
         if ends_uv:
             s_ = np.linspace(3.0, 8.0, 5)
             q = np.asarray(ends_uv)[:, None, :] + s_[None, :, None] * np.asarray(dirs)[:, None, :]
@@ -1488,7 +1549,7 @@ def check_pose(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFea
                      dsum / n_all if n_all else float("inf"), unseen, size if np.isfinite(size) else 0.0,
                      inl_px, open_min if ncam else 0, n_over / n_ends if n_ends else 0.0, clutter, cr_e, cr_sup,
                      explained=tuple(explained), distinct_supported=n_distinct, strips_apart=n_strips,
-                     open_edges_apart=n_open_apart)
+                     open_edges_apart=n_open_apart, outer_parallel=n_outer)
 
 
 def unshared_px(a: PoseCheck, b: PoseCheck, tol_px: float = 2.0) -> float:
