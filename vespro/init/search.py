@@ -1236,6 +1236,12 @@ class PoseCheck:
         Supported edges of the openly seen faces standing apart in the image
         (as ``distinct_supported``), summed over cameras: four for a
         rectangle seen head-on, six for an L-block's L.
+    outer_parallel : int
+        Silhouette edges with an image edge of their orientation running beside
+        them just outside (:func:`_outer_parallel`), summed over
+        the cameras that see at most one face openly and no strip apart (the
+        views :attr:`vespro.init.initializer.InitOptions.max_outer_parallel_confirm`
+        judges; 0 elsewhere, not looked at).
     hidden : str
         A camera left out of these statistics because the part is hidden
         there (``InitOptions.hidden_camera``); empty when none is.
@@ -1307,7 +1313,12 @@ def _outer_parallel(k_sil, ue, ub, elen, uv, e, bins, n_bins, dt, inward_uv, min
             nrm = -nrm
         q = uv[m][:, None, :] + s_[None, :, None] * nrm  # (samples, offsets, 2)
         hit = lookup_dt(dt, np.broadcast_to(bins[m][:, None], q.shape[:2]), q, np.inf) <= 1.0
-        other = np.flatnonzero(e != k)
+        # Other edges' samples that can lie within 2.5 px of the band looked at (the
+        # samples of edge k lie on its line): the band's rectangle grown by 2.5 px.
+        rel = uv - ue[k]
+        along, across = rel @ d, rel @ nrm
+        other = np.flatnonzero((e != k) & (along >= -2.5) & (along <= elen[k] + 2.5)
+                               & (across >= lo_px - 2.5) & (across <= hi_px + 2.5))
         if len(other):
             db = np.abs(bins[m][:, None] - bins[other][None]) % n_bins
             near_bin = np.minimum(db, n_bins - db) <= 1  # (samples, other)
@@ -1521,16 +1532,20 @@ def check_pose(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFea
                 ends_uv.append(ue[k]); dirs.append(-u); ebins.append(bins[m[0]]); ends_xyz.append(mf.edge_a[k])
             if idx[m[-1]] == allk[-1] and inl[m[-1]] and mf.end_free[k, 1]:
                 ends_uv.append(ub[k]); dirs.append(u); ebins.append(bins[m[-1]]); ends_xyz.append(mf.edge_b[k])
+        strips_v = 0
         if sup_k:
             n_distinct += _distinct_segments(ue[sup_k], ub[sup_k], 2.0 * tol_px)
-            n_strips += _strips_apart(sup_k, np.unique(e), ue, ub, mf.edge_faces, open_f, front, 2.0 * tol_px)
+            strips_v = _strips_apart(sup_k, np.unique(e), ue, ub, mf.edge_faces, open_f, front, 2.0 * tol_px)
+            n_strips += strips_v
             on_open = [k for k in sup_k if open_f[mf.edge_faces[k, 0]] or open_f[mf.edge_faces[k, 1]]]
             n_open_apart += _distinct_segments(ue[on_open], ub[on_open], 2.0 * tol_px)
-        # Silhouette edges (convex, one face toward the camera), each with a point of its front face.
+        # Silhouette edges (convex, one face toward the camera), each with a point of its
+        # front face; looked at only where the initialiser asks (one face seen openly, no
+        # strip apart: InitOptions.max_outer_parallel_confirm).
         ff = front[mf.edge_faces]
         k_sil = np.flatnonzero((ff[:, 0] != ff[:, 1]) & mf.edge_convex)
         k_sil = k_sil[np.isin(k_sil, e)]
-        if len(k_sil):
+        if len(k_sil) and np.sum(open_f) <= 1 and strips_v == 0:
             fin = np.where(ff[k_sil, 0], mf.edge_faces[k_sil, 0], mf.edge_faces[k_sil, 1])
             cin, _ = _project(v.feat.K, T_co, mf.face_centroids[fin])
             n_outer += _outer_parallel(k_sil, ue, ub, elen, uv, e, bins, v.feat.dt.shape[0], v.feat.dt, cin, outer_min_px, 4.0,
