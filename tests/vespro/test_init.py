@@ -783,6 +783,20 @@ def test_a_confirming_call_looks_deeper_than_a_proposing_one():
     assert errs and max(errs) < 0.1, errs
 
 
+def test_what_only_the_deeper_confirming_search_finds_must_pass_strictly():
+    """One camera, box 5214 (a fresh set of session 22), the initialiser every 5th frame:
+    a provisional start at frame 20 that the filter takes to 2-8% of the diameter. The
+    call confirming it at frame 25 refines 40 distinct candidates; one of those past the
+    first nine, 1.9 diameters off, explains more edge length than the pending pose but
+    passes only provisionally. Counted as any candidate (``confirm_deeper_strict`` False,
+    the premise) it replaces the pending pose, the next call confirms it, and it is
+    published from frame 30; counted only on a strict pass, the pending pose is confirmed
+    (measured: published from frame 29 at 0.8-3.8%)."""
+    assert max(_published_one_camera("box", 5214, 32, confirm_deeper_strict=False), default=0.0) >= 0.1
+    errs = _published_one_camera("box", 5214, 34)
+    assert errs and max(errs) < 0.1, errs
+
+
 def test_a_pose_with_a_side_face_beside_its_outline_is_not_taken():
     """One camera, L-block 5008 (a fresh set of session 22), the initialiser every 5th
     frame: the L face seen nearly head-on, a side face of its shade joining it in the image

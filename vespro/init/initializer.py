@@ -133,8 +133,16 @@ class InitOptions:
         lying below the 9 distinct candidates refined (its P3P hypotheses
         were 20th in the camera's ranking, further down the distinct order).
         With 40 that call puts the true pose first (0.5% off) and the track is
-        published from the next frame. Such a call costs about 0.1 s more. 0:
-        as any call.
+        published from the next frame. A candidate only this deeper search
+        finds counts only when it passes every strict check (not provisionally):
+        on box 5214 (session 23, one camera) it found a pose 1.9 diameters off
+        explaining more edge length (412 px against 285) than the pending pose
+        (3% off), which it passed only provisionally (one open face, edges
+        running on past 44% of its ends); taken in its place and confirmed by
+        the next call, it was published (``confirm_deeper_strict`` False).
+        Such a call costs about 0.1-0.3 s more. 0: as any call.
+    confirm_deeper_strict : bool
+        See ``n_refine_confirm``.
     rank_tol_px : float
         Distance at which a sample's agreement reaches zero in the ranking.
     verify_tol_px : float
@@ -428,6 +436,7 @@ class InitOptions:
     n_refine: int = 6
     n_refine_extra: int = 3
     n_refine_confirm: int = 40
+    confirm_deeper_strict: bool = True
     refine_windows: int = 5
     rank_tol_px: float = 3.0
     verify_tol_px: float = 2.0
@@ -918,7 +927,8 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
     # Refine the best few distinct candidates and verify.
     refined = []
 
-    def refine_distinct(order, wanted):
+    def refine_distinct(order, wanted, strict_only=frozenset()):
+        # (candidates of the ranks in strict_only count only when they pass every strict check)
         distinct = []
         for k in order:
             if len(distinct) > max(wanted):
@@ -930,15 +940,19 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
                 continue
             Tr = _refined(cand[k], views, setup)
             if not _same_as_any(mf, Tr, [T for T, _ in refined]):
-                refined.append((Tr, _checked(Tr, views, setup)))
+                chk_k = _checked(Tr, views, setup)
+                if opt.confirm_deeper_strict and len(distinct) - 1 in strict_only and \
+                        _verdict(chk_k, opt)[:2] != (True, False):
+                    continue
+                refined.append((Tr, chk_k))
 
     wanted = set(range(opt.n_refine))
     if attempt > 0:  # a first call that succeeds needs no more
         w0 = opt.n_refine + opt.n_refine_extra * ((attempt - 1) % max(opt.refine_windows, 1))
         wanted |= set(range(w0, w0 + opt.n_refine_extra))
-    if pending is not None:  # a confirming call: every distinct candidate kept
-        wanted |= set(range(opt.n_refine_confirm))
-    refine_distinct(order, wanted)
+    # A confirming call looks deeper, but what only that finds must pass every strict check.
+    deeper = set(range(opt.n_refine_confirm)) - wanted if pending is not None else set()
+    refine_distinct(order, wanted | deeper, deeper)
     if opt.n_quick > 0 and (pending is None or opt.quick_when_pending) and \
             not any(_verdict(c, opt)[0] for _, c in refined):
         # None passes: the best n_quick again after a brief refinement, and the
