@@ -261,8 +261,8 @@ class InitOptions:
     max_outer_parallel_confirm : int
         ... and such a pose taken for its face's own outline (no strip's far
         edge apart, ``min_open_edges_apart_confirm``) may have at most this
-        many of its silhouette edges with an image
-        edge of their orientation running beside them just outside
+        many of its silhouette edges with an image edge of their orientation
+        running beside them just outside
         (:attr:`vespro.init.search.PoseCheck.outer_parallel`): a line all along
         an outline edge, a few pixels out, is the far edge of a side face the
         pose does not have. One camera, L-block 5008 (a fresh set of session

@@ -1458,7 +1458,12 @@ def check_pose(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFea
                tol_px: float = 2.0, min_inside: float = 0.5, min_edge_px: float = 10.0,
                require_fixed: bool = False, open_face_deg: float = 75.0, outer_min_px: float = 30.0,
                outer_max_px: float = 12.0) -> PoseCheck:
-    """Verification statistics of a pose against all cameras (full visibility)."""
+    """Verification statistics of a pose against all cameras (full visibility).
+
+    ``outer_min_px`` and ``outer_max_px``: the least projected length of a
+    silhouette edge looked beside, and how far out (from 4 px) it is looked
+    (:attr:`PoseCheck.outer_parallel`).
+    """
     per, n_in, n_all, sup_e, vis_e, ncam, dsum, unseen = {}, 0, 0, 0, 0, 0, 0.0, 0
     size = np.inf
     inl_px = 0.0
@@ -1548,8 +1553,8 @@ def check_pose(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFea
         if len(k_sil) and np.sum(open_f) <= 1 and strips_v == 0:
             fin = np.where(ff[k_sil, 0], mf.edge_faces[k_sil, 0], mf.edge_faces[k_sil, 1])
             cin, _ = _project(v.feat.K, T_co, mf.face_centroids[fin])
-            n_outer += _outer_parallel(k_sil, ue, ub, elen, uv, e, bins, v.feat.dt.shape[0], v.feat.dt, cin, outer_min_px, 4.0,
-                                       outer_max_px, 0.6)
+            n_outer += _outer_parallel(k_sil, ue, ub, elen, uv, e, bins, v.feat.dt.shape[0], v.feat.dt, cin,
+                                       outer_min_px, 4.0, outer_max_px, 0.6)
         if ends_uv:
             s_ = np.linspace(3.0, 8.0, 5)
             q = np.asarray(ends_uv)[:, None, :] + s_[None, :, None] * np.asarray(dirs)[:, None, :]
