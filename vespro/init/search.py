@@ -1285,9 +1285,13 @@ def _outer_parallel(k_sil, ue, ub, elen, uv, e, bins, n_bins, dt, inward_uv, min
     (within 1 px) that no other visible edge of the pose lies on (a sample of
     another edge, of a neighbouring bin, within 2.5 px: a bracket's flange
     beyond the silhouette of its web is the part's own); the edge counts when
-    at least ``min_frac`` of its samples find one. Beyond a true outline lies
-    the background: a line beside it, all along, says the part goes on past
-    the pose's outline (the far edge of a side face the pose does not have).
+    at least ``min_frac`` of its samples find one, unless that line (at the
+    median offset found) runs on 6-15 px past either end of the edge where no
+    edge of the pose lies. Beyond a true outline lies the background: a line
+    beside it, all along and ending with it, says the part goes on past the
+    pose's outline (the far edge of a side face the pose does not have); a
+    line running on is the background's (L-block 801 lying along the belt's
+    border, 11 px off its inner edge: the true pose, refused without this).
 
     Parameters
     ----------
@@ -1303,6 +1307,7 @@ def _outer_parallel(k_sil, ue, ub, elen, uv, e, bins, n_bins, dt, inward_uv, min
     """
     n = 0
     s_ = np.arange(lo_px, hi_px + 0.5, 1.0)
+    run_px = np.arange(6.0, 15.5, 1.5)
     for k, c in zip(k_sil, inward_uv):
         m = np.flatnonzero(e == k)
         if elen[k] < min_px or len(m) < 5:
@@ -1317,16 +1322,36 @@ def _outer_parallel(k_sil, ue, ub, elen, uv, e, bins, n_bins, dt, inward_uv, min
         # samples of edge k lie on its line): the band's rectangle grown by 2.5 px.
         rel = uv - ue[k]
         along, across = rel @ d, rel @ nrm
-        other = np.flatnonzero((e != k) & (along >= -2.5) & (along <= elen[k] + 2.5)
-                               & (across >= lo_px - 2.5) & (across <= hi_px + 2.5))
-        if len(other):
-            db = np.abs(bins[m][:, None] - bins[other][None]) % n_bins
-            near_bin = np.minimum(db, n_bins - db) <= 1  # (samples, other)
-            d2 = np.sum((q[:, :, None, :] - uv[other][None, None]) ** 2, axis=3)  # (samples, offsets, other)
-            own = np.any((d2 <= 2.5 ** 2) & near_bin[:, None, :], axis=2)
-            hit &= ~own
-        n += int(np.mean(np.any(hit, axis=1)) >= min_frac)
+        near = (e != k) & (across >= lo_px - 2.5) & (across <= hi_px + 2.5)
+        other = np.flatnonzero(near & (along >= -2.5) & (along <= elen[k] + 2.5))
+        hit &= ~_own_samples(q, bins[m], uv[other], bins[other], n_bins)
+        rows = np.any(hit, axis=1)
+        if np.mean(rows) < min_frac:
+            continue
+        # The line (at its median offset) running on past an end of the edge, where
+        # no edge of the pose lies, is the background's (a belt's border along the part).
+        off = float(np.median(s_[np.argmax(hit[rows], axis=1)]))
+        b_k = bins[m[len(m) // 2]]
+        other = np.flatnonzero(near & (along >= -run_px[-1] - 2.5) & (along <= elen[k] + run_px[-1] + 2.5))
+        runs_on = False
+        for end, sgn in ((ub[k], 1.0), (ue[k], -1.0)):
+            pts = end + run_px[:, None] * sgn * d + off * nrm
+            on = lookup_dt(dt, np.full(len(pts), b_k), pts, np.inf) <= 1.5
+            on &= ~_own_samples(pts[:, None, :], np.full(len(pts), b_k), uv[other], bins[other], n_bins)[:, 0]
+            runs_on |= bool(np.mean(on) >= 0.7)
+        n += int(not runs_on)
     return n
+
+
+def _own_samples(q, q_bins, uv_o, bins_o, n_bins, r_px: float = 2.5):
+    """Which points ``q`` (n, j, 2) lie within ``r_px`` of a sample ``uv_o`` of a neighbouring
+    orientation bin (``q_bins`` (n,) per row): where an edge of the pose lies."""
+    if len(uv_o) == 0:
+        return np.zeros(q.shape[:2], bool)
+    db = np.abs(q_bins[:, None] - bins_o[None]) % n_bins
+    near_bin = np.minimum(db, n_bins - db) <= 1  # (n, other)
+    d2 = np.sum((q[:, :, None, :] - uv_o[None, None]) ** 2, axis=3)  # (n, j, other)
+    return np.any((d2 <= r_px ** 2) & near_bin[:, None, :], axis=2)
 
 
 def _distinct_segments(a: np.ndarray, b: np.ndarray, sep_px: float, max_deg: float = 10.0,
