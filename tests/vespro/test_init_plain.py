@@ -309,3 +309,27 @@ def test_a_side_face_left_outside_the_outline_shows_beside_it(tilt_deg):
     assert true.outer_parallel == 0 and true.strips_apart == 1
     assert head.open_faces == 1 and head.inlier_frac > 0.6
     assert head.outer_parallel == 1
+
+
+@pytest.mark.parametrize("run_on_px,beside", [(0.0, 1), (40.0, 0)])
+def test_a_line_beside_an_outline_edge_counts_only_when_it_ends_with_it(run_on_px, beside):
+    """A box's top face seen head-on (the side faces edge on: its four edges are the
+    outline), with a bright line drawn 8 px outside one of them. Ending with the edge
+    (a side face's far edge would) it counts; running on 40 px past both ends (a belt's
+    border along the part) it does not. Either way the face's own edges are supported."""
+    from vespro.model import box_model
+
+    box = box_model([0.12, 0.08, 0.06], center=[0, 0, 0.03])
+    mf = model_features(box)
+    T = transform_from_rt(np.diag([1.0, -1.0, -1.0]), [0.0, 0.0, 0.5])
+    img = render(box, T, np.random.default_rng(0), clutter=0)
+    top = (box.vertices[box.vertices[:, 2] > 0.05]) @ T[:3, :3].T + T[:3, 3]
+    uv = top[:, :2] / top[:, 2:] * [K[0, 0], K[1, 1]] + K[:2, 2]
+    # The edge along +x on the side of the largest v (image down): both its corners.
+    a, b = sorted(uv[np.argsort(-uv[:, 1])[:2]], key=lambda p: p[0])
+    u = (b - a) / np.linalg.norm(b - a)
+    p0, p1 = a - run_on_px * u + [0.0, 8.0], b + run_on_px * u + [0.0, 8.0]
+    cv2.line(img, tuple(int(round(x)) for x in p0), tuple(int(round(x)) for x in p1), (230, 230, 230), 2)
+    chk = check_pose(T, [CameraView(extract_features("c", img, K, EdgeOptions()), np.eye(4))], mf)
+    assert chk.open_faces == 1 and chk.strips_apart == 0 and chk.supported_edges >= 4
+    assert chk.outer_parallel == beside
