@@ -488,7 +488,10 @@ def test_a_provisional_pose_is_confirmed_only_if_it_still_comes_first():
     0 leaves a provisional pose fitted over clutter, 71% of the diameter off.
     Given it as the pending pose on frame 5, the call still searches: the
     part's true pose explains twice the edge length and comes first, so the
-    fit to static clutter (found again on every frame) is not confirmed."""
+    fit to static clutter (found again on every frame) is not confirmed.
+    Since session 23 the outline rule (``max_outer_parallel_confirm``) refuses
+    that fit and frame 0 gives the true pose (3.6% off); the rule is off here to
+    keep the premise."""
     from vespro.init.initializer import initialize, make_setup
 
     rig = _rig("1", 404)
@@ -496,7 +499,8 @@ def test_a_provisional_pose_is_confirmed_only_if_it_still_comes_first():
     model = load_model(mesh)
     syms = model_symmetries(model.vertices)
     setup = make_setup(rig, model)
-    textured = make_setup(rig, model, replace(InitOptions(), plain_faces=False), tree=setup.tree)
+    textured = make_setup(rig, model, replace(InitOptions(), plain_faces=False, max_outer_parallel_confirm=-1),
+                          tree=setup.tree)
     with SimCell(config, motion) as cell:
         cell.settle_arm()
         fs0 = cell.next_frameset()
@@ -512,6 +516,9 @@ def test_a_provisional_pose_is_confirmed_only_if_it_still_comes_first():
     # Not confirmed: the true pose, provisional in its turn (or accepted outright).
     assert res5 is not None and rep5.mode != "confirm"
     assert _sym_add_frac(res5.T_world_object, T5, model, syms) < 0.1
+    # With the outline rule (the default) frame 0 does not take the clutter fit.
+    res_d, _ = initialize(make_setup(rig, model, replace(InitOptions(), plain_faces=False), tree=setup.tree), fs0)
+    assert res_d is None or _sym_add_frac(res_d.T_world_object, T0, model, syms) < 0.1
 
 
 def test_a_provisional_start_is_tracked_but_published_only_once_confirmed():
@@ -522,14 +529,15 @@ def test_a_provisional_start_is_tracked_but_published_only_once_confirmed():
     it (``Tracker.offer``), which the frame-10 call confirms. Tracked without waiting,
     a provisional start is published as soon as it is confirmed: a correct one-camera
     L-block start (rig seed 410) whose frame-5 call judged the view accidental was
-    published 41 frames in; now at 10."""
+    published 41 frames in; now at 10. (The outline rule off, as above: with it frame 0
+    gives the true pose.)"""
     from vespro.tracker import Tracker
 
     rig = _rig("1", 404)
     config, motion, mesh = trial_config("bracket", rig, 404)
     model = load_model(mesh)
     syms = model_symmetries(model.vertices)
-    ini = make_initializer(rig, model, plain_faces=False)
+    ini = make_initializer(rig, model, plain_faces=False, max_outer_parallel_confirm=-1)
     tr = Tracker(rig, model, initializer=lambda fs: None if fs.index % 5 else ini(fs))
     tr.initializer.await_confirmation = ini.await_confirmation
     starts, published = [], []
