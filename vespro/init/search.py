@@ -1322,8 +1322,9 @@ def _outer_parallel(k_sil, ue, ub, elen, uv, e, bins, n_bins, dt, inward_uv, min
         # samples of edge k lie on its line): the band's rectangle grown by 2.5 px.
         rel = uv - ue[k]
         along, across = rel @ d, rel @ nrm
-        near = (e != k) & (across >= lo_px - 2.5) & (across <= hi_px + 2.5)
-        other = np.flatnonzero(near & (along >= -2.5) & (along <= elen[k] + 2.5))
+        # (as far as the look past its ends below, which takes the same samples)
+        other = np.flatnonzero((e != k) & (across >= lo_px - 2.5) & (across <= hi_px + 2.5)
+                               & (along >= -run_px[-1] - 2.5) & (along <= elen[k] + run_px[-1] + 2.5))
         hit &= ~_own_samples(q, bins[m], uv[other], bins[other], n_bins)
         rows = np.any(hit, axis=1)
         if np.mean(rows) < min_frac:
@@ -1332,7 +1333,6 @@ def _outer_parallel(k_sil, ue, ub, elen, uv, e, bins, n_bins, dt, inward_uv, min
         # no edge of the pose lies, is the background's (a belt's border along the part).
         off = float(np.median(s_[np.argmax(hit[rows], axis=1)]))
         b_k = bins[m[len(m) // 2]]
-        other = np.flatnonzero(near & (along >= -run_px[-1] - 2.5) & (along <= elen[k] + run_px[-1] + 2.5))
         runs_on = False
         for end, sgn in ((ub[k], 1.0), (ue[k], -1.0)):
             pts = end + run_px[:, None] * sgn * d + off * nrm
@@ -1348,10 +1348,15 @@ def _own_samples(q, q_bins, uv_o, bins_o, n_bins, r_px: float = 2.5):
     orientation bin (``q_bins`` (n,) per row): where an edge of the pose lies."""
     if len(uv_o) == 0:
         return np.zeros(q.shape[:2], bool)
-    db = np.abs(q_bins[:, None] - bins_o[None]) % n_bins
-    near_bin = np.minimum(db, n_bins - db) <= 1  # (n, other)
+    near_bin = _bins_near(q_bins, bins_o, n_bins)  # (n, other)
     d2 = np.sum((q[:, :, None, :] - uv_o[None, None]) ** 2, axis=3)  # (n, j, other)
     return np.any((d2 <= r_px ** 2) & near_bin[:, None, :], axis=2)
+
+
+def _bins_near(b1: np.ndarray, b2: np.ndarray, n_bins: int) -> np.ndarray:
+    """(len(b1), len(b2)): orientation bins the same or neighbours (cyclic over ``n_bins``)."""
+    db = np.abs(b1[:, None] - b2[None]) % n_bins
+    return np.minimum(db, n_bins - db) <= 1
 
 
 def _distinct_segments(a: np.ndarray, b: np.ndarray, sep_px: float, max_deg: float = 10.0,
@@ -1572,14 +1577,15 @@ def check_pose(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFea
         # Silhouette edges (convex, one face toward the camera), each with a point of its
         # front face; looked at only where the initialiser asks (one face seen openly, no
         # strip apart: InitOptions.max_outer_parallel_confirm).
-        ff = front[mf.edge_faces]
-        k_sil = np.flatnonzero((ff[:, 0] != ff[:, 1]) & mf.edge_convex)
-        k_sil = k_sil[np.isin(k_sil, e)]
-        if len(k_sil) and np.sum(open_f) <= 1 and strips_v == 0:
-            fin = np.where(ff[k_sil, 0], mf.edge_faces[k_sil, 0], mf.edge_faces[k_sil, 1])
-            cin, _ = _project(v.feat.K, T_co, mf.face_centroids[fin])
-            n_outer += _outer_parallel(k_sil, ue, ub, elen, uv, e, bins, v.feat.dt.shape[0], v.feat.dt, cin,
-                                       outer_min_px, 4.0, outer_max_px, 0.6)
+        if np.sum(open_f) <= 1 and strips_v == 0:
+            ff = front[mf.edge_faces]
+            k_sil = np.flatnonzero((ff[:, 0] != ff[:, 1]) & mf.edge_convex)
+            k_sil = k_sil[np.isin(k_sil, e)]
+            if len(k_sil):
+                fin = np.where(ff[k_sil, 0], mf.edge_faces[k_sil, 0], mf.edge_faces[k_sil, 1])
+                cin, _ = _project(v.feat.K, T_co, mf.face_centroids[fin])
+                n_outer += _outer_parallel(k_sil, ue, ub, elen, uv, e, bins, v.feat.dt.shape[0], v.feat.dt, cin,
+                                           outer_min_px, 4.0, outer_max_px, 0.6)
         if ends_uv:
             s_ = np.linspace(3.0, 8.0, 5)
             q = np.asarray(ends_uv)[:, None, :] + s_[None, :, None] * np.asarray(dirs)[:, None, :]
@@ -1614,7 +1620,6 @@ def unshared_px(a: PoseCheck, b: PoseCheck, tol_px: float = 2.0) -> float:
             continue
         uv2, sp2, bins2 = other[name]
         d2 = np.sum((uv[:, None, :] - uv2[None]) ** 2, axis=2)
-        db = np.abs(bins[:, None] - bins2[None]) % n_bins
-        near = (np.minimum(db, n_bins - db) <= 1) & (d2 <= (2.0 * tol_px + 0.5 * sp2[None]) ** 2)
+        near = _bins_near(bins, bins2, n_bins) & (d2 <= (2.0 * tol_px + 0.5 * sp2[None]) ** 2)
         total += float(sp[~near.any(axis=1)].sum())
     return total
