@@ -489,6 +489,8 @@ class InitOptions:
     recall_rivals_s: float = 1.0
     recall_margin_factor: float = 2.0
     start_covariance: bool = True
+    confirm_upheld: bool = True
+    upheld_min_inlier_frac: float = 0.6
 
 
 @dataclass(frozen=True)
@@ -757,6 +759,53 @@ def _part_of(c2, chk, opt: InitOptions) -> bool:
             and unshared_px(chk, c2, opt.verify_tol_px) >= opt.subset_margin_frac * chk.inlier_px)
 
 
+def _rival(T_best: np.ndarray, chk, plain: bool, others, again, mf: ModelFeatures, opt: InitOptions):
+    """(T, check, by agreement) of the first of ``others`` that makes ``T_best`` ambiguous, or
+    (None, None, False): a distinct pose seen by the same cameras that agrees with the images
+    about as well and explains about as much edge length (a rival), or under the looser limits
+    (``plain``) any clear-faced pose explaining nearly as much (a plain rival); either way not
+    a pose explaining only part of what ``T_best`` explains. ``again``: poses recalled from an
+    earlier call's ambiguity, rivals within a wider margin (``recall_margin_factor``)."""
+    for T2, c2 in others:
+        if c2.unseen_fixed or c2.n_cameras < chk.n_cameras or \
+                _adds(mf, T_best, T2) <= opt.distinct_frac * mf.diameter:
+            continue
+        # A pose whose faces cover image edges is no rival for a plain
+        # part (one camera: with several, a part partly hidden in one
+        # view keeps counting as a rival).
+        if opt.plain_faces and chk.n_cameras == 1 and \
+                c2.interior_edge_frac > 2 * opt.plain_max_interior_edge_frac:
+            continue
+        # A rival need not pass every check (the true pose of an
+        # accidental view may fail one): seen by the same cameras, about
+        # as good an agreement, about as much edge length explained.
+        recalled = _same_as_any(mf, T2, again)
+        margin = _margin(chk, opt) * (opt.recall_margin_factor if recalled else 1.0)
+        rival = c2.inlier_frac >= chk.inlier_frac - margin and \
+            c2.inlier_px >= (1 - opt.ambiguity_px_frac) * chk.inlier_px
+        plain_rival = plain and c2.interior_edge_frac <= 2 * opt.plain_max_interior_edge_frac and \
+            c2.inlier_frac >= 0.5 and c2.inlier_px >= opt.plain_rival_px_frac * chk.inlier_px
+        if (rival or plain_rival) and not _part_of(c2, chk, opt):
+            return T2, c2, rival
+    return None, None, False
+
+
+def _upheld(held: tuple, refined: list, again, mf: ModelFeatures, opt: InitOptions) -> bool:
+    """The provisional pose ``held`` (refined on this frame set, found near where the filter
+    has it) is upheld though no candidate passes here: it explains at least as much image
+    edge length as any distinct candidate, no rival makes it ambiguous, its faces cover no
+    image edges and it agrees with at least ``upheld_min_inlier_frac`` of its edges
+    (``InitOptions.confirm_upheld``)."""
+    Th, ch = held
+    if ch.n_cameras != 1 or ch.inlier_frac < opt.upheld_min_inlier_frac or \
+            ch.interior_edge_frac > opt.plain_max_interior_edge_frac:
+        return False
+    others = [(T, c) for T, c in refined if _adds(mf, Th, T) > opt.distinct_frac * mf.diameter]
+    if any(c.inlier_px > ch.inlier_px for _, c in others):
+        return False
+    return _rival(Th, ch, False, others, again, mf, opt)[0] is None
+
+
 def _probe(T_world_object: np.ndarray, chk, views, setup: InitSetup) -> tuple[bool, str, np.ndarray | None]:
     """Refine again from turns of a single-camera pose: (no rival found, why not, the rival);
     see ``InitOptions.probe_single``."""
@@ -856,14 +905,16 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
     # the search's candidates and is confirmed only if it still comes first
     # (a pose fitted to static clutter is found again on every frame; the
     # search may find the part this time).
-    Tp, pending = None, None
+    Tp, pending, held = None, None, None
     if pending_T_world_object is not None:
         Tp = np.asarray(pending_T_world_object, float)
         near = (opt.confirm_frac * mf.diameter + opt.confirm_speed * max(pending_age_s, 0.0))
         Tr = _refined(Tp, views, setup)
         chk = _checked(Tr, views, setup)
-        if _verdict(chk, opt)[0] and _adds(mf, Tr, Tp) < near:
-            pending = (Tr, chk)
+        if _adds(mf, Tr, Tp) < near:
+            held = (Tr, chk)
+            if _verdict(chk, opt)[0]:
+                pending = held
 
     # Seeded: refine from the prediction and a few perturbations of it.
     if seed_T_world_object is not None:
@@ -984,40 +1035,21 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
     # rivals already.
     confirmed = ok and Tp is not None and _adds(mf, T_best, Tp) < near
     if ok and not confirmed:
-        for T2, c2 in refined[1:]:
-            if c2.unseen_fixed or c2.n_cameras < chk.n_cameras or \
-                    _adds(mf, T_best, T2) <= opt.distinct_frac * mf.diameter:
-                continue
-            # A pose whose faces cover image edges is no rival for a plain
-            # part (one camera: with several, a part partly hidden in one
-            # view keeps counting as a rival).
-            if opt.plain_faces and chk.n_cameras == 1 and \
-                    c2.interior_edge_frac > 2 * opt.plain_max_interior_edge_frac:
-                continue
-            # A rival need not pass every check (the true pose of an
-            # accidental view may fail one): seen by the same cameras, about
-            # as good an agreement, about as much edge length explained.
-            recalled = _same_as_any(mf, T2, again)
-            margin = _margin(chk, opt) * (opt.recall_margin_factor if recalled else 1.0)
-            rival = c2.inlier_frac >= chk.inlier_frac - margin and \
-                c2.inlier_px >= (1 - opt.ambiguity_px_frac) * chk.inlier_px
-            # Under the looser limits, any clear-faced rival explaining nearly
-            # as much edge length makes the view ambiguous.
-            plain_rival = plain and c2.interior_edge_frac <= 2 * opt.plain_max_interior_edge_frac and \
-                c2.inlier_frac >= 0.5 and c2.inlier_px >= opt.plain_rival_px_frac * chk.inlier_px
-            # Either way, not a pose explaining only part of what the best explains.
-            if (rival or plain_rival) and not _part_of(c2, chk, opt):
-                ok, why = False, (f"ambiguous: another pose scores {c2.inlier_frac:.2f} vs {chk.inlier_frac:.2f}"
-                                  if rival else f"ambiguous (plain faces): another pose explains "
-                                  f"{c2.inlier_px:.0f} px vs {chk.inlier_px:.0f}")
-                # Recalled by the next calls: a rival by agreement (a plain rival, a fit to
-                # static clutter, is found again on every frame, and the provisional start
-                # waits for a second call anyway).
-                rivals = (T_best, T2) if rival else ()
-                break
+        T2, c2, rival = _rival(T_best, chk, plain, refined[1:], again, mf, opt)
+        if T2 is not None:
+            ok, why = False, (f"ambiguous: another pose scores {c2.inlier_frac:.2f} vs {chk.inlier_frac:.2f}"
+                              if rival else f"ambiguous (plain faces): another pose explains "
+                              f"{c2.inlier_px:.0f} px vs {chk.inlier_px:.0f}")
+            # Recalled by the next calls: a rival by agreement (a plain rival, a fit to
+            # static clutter, is found again on every frame, and the provisional start
+            # waits for a second call anyway).
+            rivals = (T_best, T2) if rival else ()
     if ok and not confirmed and opt.probe_single and chk.n_cameras == 1:
         ok, why, T2 = _probe(T_best, chk, _judging(views, chk), setup)
         rivals = () if T2 is None else (T_best, T2)
+    if not ok and held is not None and opt.confirm_upheld and not why.startswith("ambiguous") and \
+            _upheld(held, refined, again, mf, opt):
+        return finish(*held, "upheld", nh)
     plain = plain and ok  # passed every check, under the looser limits
     provisional = plain and opt.confirm_plain and not confirmed
     if provisional and not opt.provisional_start:
