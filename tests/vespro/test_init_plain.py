@@ -14,7 +14,7 @@ from test_init_search import CAMS, T_WO, K, render
 
 from vespro.init import InitOptions
 from vespro.init.features import EdgeOptions, extract_features
-from vespro.init.initializer import _accept_plain, _verdict, make_setup
+from vespro.init.initializer import _accept_plain, _upheld, _verdict, make_setup
 from vespro.init.modelfeat import model_features
 from vespro.init.search import CameraView, PoseCheck, check_pose, interior_clutter
 from vespro.model import load_model
@@ -333,3 +333,26 @@ def test_a_line_beside_an_outline_edge_counts_only_when_it_ends_with_it(run_on_p
     chk = check_pose(T, [CameraView(extract_features("c", img, K, EdgeOptions()), np.eye(4))], mf)
     assert chk.open_faces == 1 and chk.strips_apart == 0 and chk.supported_edges >= 4
     assert chk.outer_parallel == beside
+
+
+def test_a_provisional_pose_is_upheld_only_when_first_unrivalled_and_clear(scene):
+    """A confirming call where no candidate passes upholds the provisional pose (refined on
+    its frame set) when it explains at least as much edge length as any distinct candidate,
+    none rivals it, its faces cover no image edges and it agrees with 0.6 of its edges."""
+    mf = scene[0]
+    opt = InitOptions()
+    held = (T_WO, _check(inlier_frac=0.62, per_camera={"c": 0.62}, inlier_px=400.0))
+    far = T_WO @ transform_from_rt(np.eye(3), [0.5 * mf.diameter, 0.0, 0.0])
+    assert not _verdict(held[1], opt)[0]  # it fails this frame's checks
+    assert _upheld(held, [held], (), mf, opt)
+    # Another pose explaining more edge length, or about as much about as well: not upheld.
+    assert not _upheld(held, [held, (far, _check(inlier_frac=0.5, inlier_px=420.0))], (), mf, opt)
+    assert not _upheld(held, [held, (far, _check(inlier_frac=0.6, inlier_px=380.0))], (), mf, opt)
+    # ... but a distinct pose agreeing far less, or the held pose itself, does not count.
+    assert _upheld(held, [held, (far, _check(inlier_frac=0.4, inlier_px=380.0))], (), mf, opt)
+    near = T_WO @ transform_from_rt(np.eye(3), [0.02 * mf.diameter, 0.0, 0.0])
+    assert _upheld(held, [(near, _check(inlier_px=450.0))], (), mf, opt)
+    # Too little agreement, face interiors covering image edges, several cameras, or off.
+    for kw in (dict(inlier_frac=0.55), dict(interior_edge_frac=0.02),
+               dict(n_cameras=2, per_camera={"a": 0.62, "b": 0.62})):
+        assert not _upheld((T_WO, replace(held[1], **kw)), [], (), mf, opt), kw

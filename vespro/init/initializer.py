@@ -421,6 +421,23 @@ class InitOptions:
         wrong image corners 9-12 px off; the first update moved the pose to
         8.6% and the track slid to 20%; with the fit's covariance 7 of 8 corners
         were found and the track published from the next frame at 0.2-3%.
+    confirm_upheld : bool
+        A call confirming a provisional pose where no candidate passes still
+        confirms it (mode ``"upheld"``) when the pose, refined on this frame
+        set from the filter's estimate, is found again near it, explains at
+        least as much image edge length as any distinct candidate, has no
+        rival (as a passing pose would, ``ambiguity_margin_single``), covers
+        no image edges with its faces and agrees with ``upheld_min_inlier_frac``
+        of its edges: one frame's weaker view (a face's edge lost against the
+        belt, the mean distance a little over its limit) does not undo what the
+        proposing call and the filter's frames since agree on. The tracker
+        still publishes only after its own strong frames. Seen on one-camera
+        bracket 1611: a start within 1% at frame 5 tracked at 1-3%, the call
+        at frame 10 found it first at 0.62 agreement (under 0.7), later calls
+        found the slot's clutter first, and nothing was published in 52 frames;
+        upheld, it is published from frame 10.
+    upheld_min_inlier_frac : float
+        Least agreement of an upheld pose.
     """
 
     edges: EdgeOptions = field(default_factory=EdgeOptions)
@@ -518,7 +535,9 @@ class InitReport:
         core; the wall time includes waiting for a busy machine).
     mode : str
         ``"seed"`` (accepted near the seed), ``"search"``, ``"confirm"`` (a plain-face
-        pose of the previous call found again) or ``"none"``.
+        pose of the previous call found again), ``"provisional"`` (to be confirmed),
+        ``"upheld"`` (a provisional pose found again first though nothing passed,
+        ``InitOptions.confirm_upheld``) or ``"none"``.
     n_hypotheses : int
         P3P poses generated.
     accepted : bool
