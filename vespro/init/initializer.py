@@ -819,10 +819,10 @@ def _upheld(held: tuple, refined: list, again, mf: ModelFeatures, opt: InitOptio
     if ch.n_cameras != 1 or ch.inlier_frac < opt.upheld_min_inlier_frac or \
             ch.interior_edge_frac > opt.plain_max_interior_edge_frac:
         return False
-    others = [(T, c) for T, c in refined if _adds(mf, Th, T) > opt.distinct_frac * mf.diameter]
-    if any(c.inlier_px > ch.inlier_px for _, c in others):
+    if any(c.inlier_px > ch.inlier_px and _adds(mf, Th, T) > opt.distinct_frac * mf.diameter
+           for T, c in refined):
         return False
-    return _rival(Th, ch, False, others, again, mf, opt)[0] is None
+    return _rival(Th, ch, False, refined, again, mf, opt)[0] is None  # (_rival skips its near copies)
 
 
 def _probe(T_world_object: np.ndarray, chk, views, setup: InitSetup) -> tuple[bool, str, np.ndarray | None]:
@@ -1068,7 +1068,8 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
         rivals = () if T2 is None else (T_best, T2)
     if not ok and held is not None and opt.confirm_upheld and not why.startswith("ambiguous") and \
             _upheld(held, refined, again, mf, opt):
-        return finish(*held, "upheld", nh)
+        res, rep = finish(*held, "upheld", nh)
+        return res, replace(rep, candidates=tuple(refined))
     plain = plain and ok  # passed every check, under the looser limits
     provisional = plain and opt.confirm_plain and not confirmed
     if provisional and not opt.provisional_start:
