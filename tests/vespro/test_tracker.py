@@ -6,6 +6,8 @@ tracker starts from the ground-truth pose of frame 0 (passed explicitly, as
 own tests. Bounds are set from measured values with margin; each says why.
 """
 
+import math
+
 import numpy as np
 import pytest
 
@@ -382,6 +384,46 @@ def test_a_start_not_confirmed_in_time_is_dropped_for_a_fresh_initialisation(rec
     strong = [ob("cam_left", 8), ob("cam_right", 8)]
     outs = [_judge(tr, rec.frameset(i), strong, 16, 16).status for i in range(30)]
     assert outs[-1] == "tracking" and tr.unconfirmed_drops == 0
+
+
+def test_a_frame_that_jumped_neither_confirms_nor_is_published(recs):
+    """The step gates (``confirm_max_step_frac``, ``max_step_frac``): on strong frames, a
+    filter is first confirmed only on a frame whose measurements moved the pose at most
+    5% of the diameter from its prediction (``Tracker._step``, set by ``_track``), and a
+    confirmed frame that moved it more than 10% counts as bad: published ``lost`` while the
+    track coasts, and after ``lost_after`` of them in a row the filter is dropped."""
+    from vespro.tracker import CameraObservation, InitResult, TrackerConfig
+
+    rec = Recording(recs["box_conveyor"])
+    _, _, T = read_groundtruth(recs["box_conveyor"])
+    ids = np.arange(8)
+    strong = [CameraObservation(n, True, 12, ids, np.zeros((8, 2)), np.full(8, 3.0), np.zeros((8, 2)),
+                                np.ones(8, bool)) for n in ("cam_left", "cam_right")]
+
+    def statuses(steps, config=TrackerConfig()):
+        tr = make_tracker(rec, config)
+        tr.start(InitResult(T[0], cov6=np.diag([1e-6] * 6)), rec.frameset(0).t_ns)
+        out = []
+        for i, step in enumerate(steps):
+            tr._step = step
+            out.append(_judge(tr, rec.frameset(i), strong, 16, 16).status)
+        return out, tr
+
+    out, _ = statuses([0.0, 0.0, 0.0])
+    assert out == ["initializing", "tracking", "tracking"]
+    out, _ = statuses([0.0, 0.06, 0.06, 0.04, 0.0])  # strong, but moved over 5%: not yet
+    assert out == ["initializing"] * 3 + ["tracking"] * 2
+    out, _ = statuses([0.0, 0.06, 0.06], TrackerConfig(confirm_max_step_frac=math.inf))
+    assert out == ["initializing", "tracking", "tracking"]
+    out, tr = statuses([0.0, 0.0, 0.12, 0.02, 0.02])  # one jump of a confirmed track: one frame lost
+    assert out == ["initializing", "tracking", "lost", "tracking", "tracking"]
+    out, tr = statuses([0.0, 0.0] + [0.12] * tr.config.lost_after)
+    assert out == ["initializing", "tracking"] + ["lost"] * tr.config.lost_after and tr.ekf is None
+    out, _ = statuses([0.0, 0.0, 0.12], TrackerConfig(max_step_frac=math.inf))
+    assert out == ["initializing", "tracking", "tracking"]
+    for bad in (0.0, -1.0, math.nan):
+        with pytest.raises(ValueError, match="step_frac"):
+            TrackerConfig(max_step_frac=bad)
 
 
 def test_an_agreeing_edge_fit_lets_fewer_corners_confirm(recs):
