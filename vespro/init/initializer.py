@@ -410,7 +410,14 @@ class InitOptions:
         rules the rival out clearly, not by the noise of one frame's agreement
         (box 3406: the wrong pose scored 0.04-0.07 above the true one on the
         ambiguous calls and 0.10 above it, over the one-camera margin of 0.08,
-        on the call that took it).
+        on the call that took it). The same for the edge length it must explain
+        (``ambiguity_px_frac``): a recalled pose explaining at least 1 - 0.2 x 2
+        = 0.6 of the best's is a rival. Box 7019 (one camera): a pose 1.6
+        diameters off, the box's outline read inside out, explains 378 px of
+        image edges where the true one explains 302 (0.799 of it, under the
+        0.8 of a first finding) while agreeing with fewer of its own edges;
+        calls at frames 15 and 20 found the two alike, the call at frame 25
+        took the wrong one and it was published.
     start_covariance : bool
         Hand the tracker the returned pose's covariance from its sub-pixel edge
         fit (:meth:`vespro.init.search.EdgeFit.covariance`, as the tracker's own
@@ -438,6 +445,20 @@ class InitOptions:
         upheld, it is published from frame 10.
     upheld_min_inlier_frac : float
         Least agreement of an upheld pose.
+    confirm_rival_test : bool
+        A call confirming a provisional pose (found again, first) looks for
+        rivals on its own frame set as any call does, instead of trusting the
+        proposing call's: a rival there makes the view ambiguous and the pose
+        is not confirmed. Rivals come and go with a frame's noise, and one
+        just short of the limit on the proposing frame let a wrong pose
+        through: one-camera box 7019, whose true pose agreed with 0.99 of its
+        edges, made no rival at frame 5 of a pose 1.6 diameters off (0.96,
+        the same outline turned inside out, explaining 379 px of image edges
+        to the true pose's 303, 0.7995 of it against the 0.8 asked), which was
+        confirmed at frame 10 where the true pose was a rival (301 px of 358)
+        and published; L-block 7018 the same way (20.6% off, the true pose at
+        0.78 of its edge length on the proposing frame, 0.99 on the confirming
+        one). The probe (``probe_single``) is not run again.
     """
 
     edges: EdgeOptions = field(default_factory=EdgeOptions)
@@ -508,6 +529,7 @@ class InitOptions:
     start_covariance: bool = True
     confirm_upheld: bool = True
     upheld_min_inlier_frac: float = 0.6
+    confirm_rival_test: bool = True
 
 
 @dataclass(frozen=True)
@@ -798,10 +820,9 @@ def _rival(T_best: np.ndarray, chk, plain: bool, others, again, mf: ModelFeature
         # A rival need not pass every check (the true pose of an
         # accidental view may fail one): seen by the same cameras, about
         # as good an agreement, about as much edge length explained.
-        recalled = _same_as_any(mf, T2, again)
-        margin = _margin(chk, opt) * (opt.recall_margin_factor if recalled else 1.0)
-        rival = c2.inlier_frac >= chk.inlier_frac - margin and \
-            c2.inlier_px >= (1 - opt.ambiguity_px_frac) * chk.inlier_px
+        widen = opt.recall_margin_factor if _same_as_any(mf, T2, again) else 1.0
+        rival = c2.inlier_frac >= chk.inlier_frac - widen * _margin(chk, opt) and \
+            c2.inlier_px >= (1 - widen * opt.ambiguity_px_frac) * chk.inlier_px
         plain_rival = plain and c2.interior_edge_frac <= 2 * opt.plain_max_interior_edge_frac and \
             c2.inlier_frac >= 0.5 and c2.inlier_px >= opt.plain_rival_px_frac * chk.inlier_px
         if (rival or plain_rival) and not _part_of(c2, chk, opt):
@@ -1050,10 +1071,10 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
     T_best, chk = refined[0]
     ok, plain, why = _verdict(chk, opt)
     rivals = ()
-    # The pending pose found again and still first: its own call looked for
-    # rivals already.
+    # The pending pose found again and still first: its own call probed it already
+    # (and, without confirm_rival_test, looked for rivals).
     confirmed = ok and Tp is not None and _adds(mf, T_best, Tp) < near
-    if ok and not confirmed:
+    if ok and (not confirmed or opt.confirm_rival_test):
         T2, c2, rival = _rival(T_best, chk, plain, refined[1:], again, mf, opt)
         if T2 is not None:
             ok, why = False, (f"ambiguous: another pose scores {c2.inlier_frac:.2f} vs {chk.inlier_frac:.2f}"
