@@ -14,7 +14,7 @@ from test_init_search import CAMS, T_WO, K, render
 
 from vespro.init import InitOptions
 from vespro.init.features import EdgeOptions, extract_features
-from vespro.init.initializer import _accept_plain, _upheld, _verdict, make_setup
+from vespro.init.initializer import _accept_plain, _rival, _upheld, _verdict, make_setup
 from vespro.init.modelfeat import model_features
 from vespro.init.search import CameraView, PoseCheck, check_pose, interior_clutter
 from vespro.model import load_model
@@ -356,3 +356,24 @@ def test_a_provisional_pose_is_upheld_only_when_first_unrivalled_and_clear(scene
     for kw in (dict(inlier_frac=0.55), dict(interior_edge_frac=0.02),
                dict(n_cameras=2, per_camera={"a": 0.62, "b": 0.62})):
         assert not _upheld((T_WO, replace(held[1], **kw)), [], (), mf, opt), kw
+
+
+def test_a_recalled_pose_rivals_within_twice_the_margins(scene):
+    """A distinct pose rivals the best when it agrees about as well (within the one-camera
+    margin, 0.08) and explains at least 0.8 of its edge length; a pose recalled from an
+    earlier call's ambiguity, within twice both margins (0.16, and 0.6 of the length). As
+    box 7019: the true pose agreeing with 0.99 of its edges explained 302 px where a pose
+    1.6 diameters off explained 378 (0.799)."""
+    mf = scene[0]
+    opt = InitOptions()
+    best = _check(inlier_frac=0.96, per_camera={"c": 0.96}, inlier_px=379.0)
+    far = T_WO @ transform_from_rt(np.eye(3), [0.5 * mf.diameter, 0.0, 0.0])
+    other = (far, _check(inlier_frac=0.99, per_camera={"c": 0.99}, inlier_px=302.0))
+    assert _rival(T_WO, best, False, [other], (), mf, opt)[0] is None
+    T2, _, by_agreement = _rival(T_WO, best, False, [other], [far], mf, opt)
+    assert T2 is far and by_agreement
+    assert _rival(T_WO, best, False, [other], [far], mf, replace(opt, recall_margin_factor=1.0))[0] is None
+    for kw in (dict(inlier_px=220.0), dict(inlier_frac=0.79)):  # under 0.6 of the length; 0.17 below
+        assert _rival(T_WO, best, False, [(far, replace(other[1], **kw))], [far], mf, opt)[0] is None, kw
+    assert _rival(T_WO, best, False, [(far, replace(other[1], inlier_px=230.0, inlier_frac=0.81))],
+                  [far], mf, opt)[0] is far
