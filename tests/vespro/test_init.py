@@ -853,20 +853,22 @@ def test_a_face_seen_head_on_whose_strips_show_no_width_is_not_confirmed():
     assert max(errs, default=0.0) < 0.1, errs
 
 
-@pytest.mark.parametrize("obj,seed,n_frames", [("bracket", 6005, 10), ("box", 6208, 12)])
-def test_a_start_is_first_confirmed_on_a_frame_that_did_not_jump(obj, seed, n_frames):
-    """One camera, fresh seeds of session 24, the initialiser every 5th frame: accurate
-    starts (bracket 6005 2.3% of the diameter off, box 6208 4%) whose next update took a
-    wrong set of corners and jumped: the bracket to 11.1% on frame 1, the box 6% to 10.7%
-    on frame 5. Those frames confirmed the filter and were published (the premise, the step
-    gates off). With the gates (a first confirmation only on a frame that moved the pose
-    under 5% of the diameter from its prediction; a confirmed frame moving over 10% counts
-    as bad) the jumped frames are not published and the tracks are, two frames later
-    (measured: from frames 3 and 7, at 2.8% and 7.1%, then 0.2-2.7%)."""
+@pytest.mark.parametrize("obj,seed,n_frames", [("bracket", 6005, 10), ("box", 6208, 12), ("lblock", 7214, 8)])
+def test_a_start_is_first_confirmed_after_frames_that_did_not_jump(obj, seed, n_frames):
+    """One camera, fresh seeds of sessions 24 and 25, the initialiser every 5th frame:
+    accurate starts (bracket 6005 2.3% of the diameter off, box 6208 4%, L-block 7214 1.9%)
+    whose next update took a wrong set of corners and jumped: the bracket to 11.1% on frame
+    1, the box 6% to 10.7% on frame 5, the L-block 6.7% to 8.2% on frame 1, its velocity
+    then carrying it to 14.2% on frame 2. Those frames confirmed the filter and were
+    published (the premise, the step gates off). With the gates (a frame that moved the pose
+    over 5% of the diameter from its prediction breaks the run of strong frames; a confirmed
+    frame moving over 10% counts as bad) nothing over 10% is published and the tracks are,
+    a few frames later (measured: from frames 4, 8 and 5, at 0.9%, 6.6% and 9.3%, then
+    0.1-6%)."""
     off = {"confirm_max_step_frac": math.inf, "max_step_frac": math.inf}
     assert max(_published_one_camera(obj, seed, n_frames, tracker=off), default=0.0) >= 0.1
     errs = _published_one_camera(obj, seed, n_frames)
-    assert len(errs) >= 4 and max(errs) < 0.1, errs
+    assert len(errs) >= 3 and max(errs) < 0.1, errs
 
 
 def test_a_pose_found_rivalled_stays_a_rival_within_wider_margins():
