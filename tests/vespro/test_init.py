@@ -878,8 +878,8 @@ def test_a_pose_found_rivalled_stays_a_rival_within_wider_margins():
     Calls at frames 15 and 20 found the two alike and returned nothing; the call at frame 25,
     the true pose at 0.799 of the wrong one's edge length (a rival needs 0.8), took the wrong
     one and it was published (the premise, ``recall_margin_factor`` 1: a recalled pose no
-    wider a rival than a new one). A recalled pose rivals within twice the margins, its
-    edge length within 0.6: nothing is published."""
+    wider a rival than a new one). A recalled pose rivals within twice either margin, here
+    the edge length's (0.6): nothing is published."""
     assert max(_published_one_camera("box", 7019, 30, recall_margin_factor=1.0), default=0.0) >= 0.1
     assert _published_one_camera("box", 7019, 30) == []
 

@@ -361,9 +361,9 @@ def test_a_provisional_pose_is_upheld_only_when_first_unrivalled_and_clear(scene
 def test_a_recalled_pose_rivals_within_twice_the_margins(scene):
     """A distinct pose rivals the best when it agrees about as well (within the one-camera
     margin, 0.08) and explains at least 0.8 of its edge length; a pose recalled from an
-    earlier call's ambiguity, within twice both margins (0.16, and 0.6 of the length). As
-    box 7019: the true pose agreeing with 0.99 of its edges explained 302 px where a pose
-    1.6 diameters off explained 378 (0.799)."""
+    earlier call's ambiguity, within twice either margin (0.16, or 0.6 of the length), not
+    both at once. As box 7019: the true pose agreeing with 0.99 of its edges explained 302
+    px where a pose 1.6 diameters off explained 378 (0.799)."""
     mf = scene[0]
     opt = InitOptions()
     best = _check(inlier_frac=0.96, per_camera={"c": 0.96}, inlier_px=379.0)
@@ -375,5 +375,9 @@ def test_a_recalled_pose_rivals_within_twice_the_margins(scene):
     assert _rival(T_WO, best, False, [other], [far], mf, replace(opt, recall_margin_factor=1.0))[0] is None
     for kw in (dict(inlier_px=220.0), dict(inlier_frac=0.79)):  # under 0.6 of the length; 0.17 below
         assert _rival(T_WO, best, False, [(far, replace(other[1], **kw))], [far], mf, opt)[0] is None, kw
-    assert _rival(T_WO, best, False, [(far, replace(other[1], inlier_px=230.0, inlier_frac=0.81))],
-                  [far], mf, opt)[0] is far
+    def recalled_rival(**kw):
+        return _rival(T_WO, best, False, [(far, replace(other[1], **kw))], [far], mf, opt)[0] is far
+
+    assert recalled_rival(inlier_px=310.0, inlier_frac=0.81)  # agreement widened
+    assert recalled_rival(inlier_px=230.0, inlier_frac=0.89)  # edge length widened
+    assert not recalled_rival(inlier_px=230.0, inlier_frac=0.81)  # not both

@@ -410,14 +410,18 @@ class InitOptions:
         rules the rival out clearly, not by the noise of one frame's agreement
         (box 3406: the wrong pose scored 0.04-0.07 above the true one on the
         ambiguous calls and 0.10 above it, over the one-camera margin of 0.08,
-        on the call that took it). The same for the edge length it must explain
-        (``ambiguity_px_frac``): a recalled pose explaining at least 1 - 0.2 x 2
-        = 0.6 of the best's is a rival. Box 7019 (one camera): a pose 1.6
+        on the call that took it). Or, agreeing within the ambiguity margin,
+        within this many times the edge length margin (``ambiguity_px_frac``:
+        explaining at least 1 - 0.2 x 2 = 0.6 of the best's edge length); not
+        both margins widened at once. Box 7019 (one camera): a pose 1.6
         diameters off, the box's outline read inside out, explains 378 px of
         image edges where the true one explains 302 (0.799 of it, under the
-        0.8 of a first finding) while agreeing with fewer of its own edges;
-        calls at frames 15 and 20 found the two alike, the call at frame 25
-        took the wrong one and it was published.
+        0.8 of a first finding) while agreeing with fewer of its own edges
+        (0.98 against 0.99); calls at frames 15 and 20 found the two alike, the
+        call at frame 25 took the wrong one and it was published. With both
+        margins widened at once, L-block 6400's true pose (0.74 agreement,
+        404 px) was refused for a recalled pose turned over (0.59, 291 px) and
+        published 12 frames later.
     start_covariance : bool
         Hand the tracker the returned pose's covariance from its sub-pixel edge
         fit (:meth:`vespro.init.search.EdgeFit.covariance`, as the tracker's own
@@ -820,9 +824,11 @@ def _rival(T_best: np.ndarray, chk, plain: bool, others, again, mf: ModelFeature
         # A rival need not pass every check (the true pose of an
         # accidental view may fail one): seen by the same cameras, about
         # as good an agreement, about as much edge length explained.
+        # (A recalled pose: either margin widened, not both at once.)
         widen = opt.recall_margin_factor if _same_as_any(mf, T2, again) else 1.0
-        rival = c2.inlier_frac >= chk.inlier_frac - widen * _margin(chk, opt) and \
-            c2.inlier_px >= (1 - widen * opt.ambiguity_px_frac) * chk.inlier_px
+        agrees = [c2.inlier_frac >= chk.inlier_frac - w * _margin(chk, opt) for w in (1.0, widen)]
+        explains = [c2.inlier_px >= (1 - w * opt.ambiguity_px_frac) * chk.inlier_px for w in (1.0, widen)]
+        rival = (agrees[1] and explains[0]) or (agrees[0] and explains[1])
         plain_rival = plain and c2.interior_edge_frac <= 2 * opt.plain_max_interior_edge_frac and \
             c2.inlier_frac >= 0.5 and c2.inlier_px >= opt.plain_rival_px_frac * chk.inlier_px
         if (rival or plain_rival) and not _part_of(c2, chk, opt):
