@@ -407,12 +407,10 @@ def test_a_box_seen_head_on_by_one_camera_is_not_published(seed):
     the side faces' strips under a few px, so their far edges lie on the image edges of
     the top face's own and the tilt rests on nothing (``min_distinct_edges_confirm``).
     Nothing is published in the second; not asking for distinct edges nor for a strip's
-    width (``min_strips_apart_confirm``, which refuses these views as well), nor for the
-    confirming call to look for rivals again (``confirm_rival_test``, which refuses box 17's
-    view too), these two tracks happen to stay within 10% of the diameter (1-7%), but see
-    the next test."""
+    width (``min_strips_apart_confirm``, which refuses these views as well), these two
+    tracks happen to stay within 10% of the diameter (3-7%), but see the next test."""
     assert _box_run(seed, 26) == []
-    errs = _box_run(seed, 26, min_distinct_edges_confirm=0, min_strips_apart_confirm=0, confirm_rival_test=False)
+    errs = _box_run(seed, 26, min_distinct_edges_confirm=0, min_strips_apart_confirm=0)
     assert len(errs) >= 18 and max(errs) < 0.1, errs
 
 
@@ -421,11 +419,9 @@ def test_a_box_seen_head_on_past_a_paddle_is_not_locked_wrong():
     face 9-12 deg from head-on, 110 px across. A pose 7.6% of the diameter off, its
     tilt wrong, explains 6 edges there, but only the top face's 4 stand apart: not asking
     for distinct edges (nor for a strip's width, ``min_strips_apart_confirm``, which alone
-    refuses it as well, nor for the confirming call to look for rivals again,
-    ``confirm_rival_test``, which alone refuses it too), it was confirmed and published 12-22%
-    off (a wrong lock); by default nothing wrong is published."""
-    errs = _box_run(4, 20, rig_kind=2, hide=True, min_distinct_edges_confirm=0, min_strips_apart_confirm=0,
-                    confirm_rival_test=False)
+    refuses it as well), it was confirmed and published 12-22% off (a wrong lock); by
+    default nothing wrong is published."""
+    errs = _box_run(4, 20, rig_kind=2, hide=True, min_distinct_edges_confirm=0, min_strips_apart_confirm=0)
     assert errs and max(errs) >= 0.1, errs  # the premise
     errs = _box_run(4, 20, rig_kind=2, hide=True)
     assert all(e < 0.1 for e in errs), errs

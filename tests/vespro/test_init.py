@@ -801,12 +801,10 @@ def test_what_only_the_deeper_confirming_search_finds_must_pass_strictly():
     call confirming it at frame 25 refines 40 distinct candidates; one of those past the
     first nine, 1.9 diameters off, explains more edge length than the pending pose but
     passes only provisionally. Counted as any candidate (``confirm_deeper_strict`` False,
-    the premise, with ``confirm_rival_test`` False as then: the confirming call's own look
-    for rivals refuses that pose too) it replaces the pending pose, the next call confirms
-    it, and it is published from frame 30; counted only on a strict pass, the pending pose
-    is confirmed (measured: published from frame 29 at 0.8-3.8%)."""
-    assert max(_published_one_camera("box", 5214, 32, confirm_deeper_strict=False, confirm_rival_test=False),
-               default=0.0) >= 0.1
+    the premise) it replaces the pending pose, the next call confirms it, and it is
+    published from frame 30; counted only on a strict pass, the pending pose is confirmed
+    (measured: published from frame 29 at 0.8-3.8%)."""
+    assert max(_published_one_camera("box", 5214, 32, confirm_deeper_strict=False), default=0.0) >= 0.1
     errs = _published_one_camera("box", 5214, 34)
     assert errs and max(errs) < 0.1, errs
 
@@ -876,27 +874,18 @@ def test_a_start_is_first_confirmed_after_frames_that_did_not_jump(obj, seed, n_
     assert len(errs) >= 3 and max(errs) < 0.1, errs
 
 
-def test_a_pose_found_rivalled_stays_a_rival_within_wider_margins():
-    """One camera, box 7019 (a fresh set of session 25), the initialiser every 5th frame: a
+@pytest.mark.parametrize("obj,seed", [("box", 7019), ("lblock", 7018)])
+def test_a_pose_found_rivalled_stays_a_rival_within_wider_margins(obj, seed):
+    """One camera, fresh seeds of session 25, the initialiser every 5th frame. Box 7019: a
     pose 1.6 diameters off, the box's outline read inside out, explains 378 px of image edges
     where the true pose explains 302 and agrees with fewer of its edges (0.98 against 0.99).
     Calls at frames 15 and 20 found the two alike and returned nothing; the call at frame 25,
     the true pose at 0.799 of the wrong one's edge length (a rival needs 0.8), took the wrong
-    one and it was published (the premise, ``recall_margin_factor`` 1: a recalled pose no
-    wider a rival than a new one). A recalled pose rivals within twice either margin, here
-    the edge length's (0.6): nothing is published."""
-    assert max(_published_one_camera("box", 7019, 30, recall_margin_factor=1.0), default=0.0) >= 0.1
-    assert _published_one_camera("box", 7019, 30) == []
-
-
-def test_a_confirming_call_looks_for_rivals_on_its_own_frame():
-    """One camera, L-block 7018 (a fresh set of session 25), the initialiser every 5th frame:
-    the call at frame 20 proposed a pose 20.6% of the diameter off (443 px of image edges
-    explained; the true pose 344, 0.78 of it, no rival). The call at frame 25 found it again
-    first and confirmed it without a look for rivals, though there the true pose explained
-    339 px of 343 (``confirm_rival_test`` False, the premise: published from frame 25, 21-26%
-    off; ``recall_margin_factor`` 1 in both runs, so that only the confirming call's own
-    look decides). Looking, that call finds the view ambiguous and nothing is published."""
-    kw = dict(recall_margin_factor=1.0)
-    assert max(_published_one_camera("lblock", 7018, 27, confirm_rival_test=False, **kw), default=0.0) >= 0.1
-    assert _published_one_camera("lblock", 7018, 27, **kw) == []
+    one and it was published. L-block 7018: calls at frames 0-15 found the true pose and
+    poses 23-27% off alike; the call at frame 20 proposed one 20.6% off (443 px; the true
+    pose 344, 0.78 of it) and the next confirmed it, published from frame 25. Both the
+    premise, ``recall_margin_factor`` 1: a recalled pose no wider a rival than a new one. A
+    recalled pose rivals within twice either margin, here the edge length's (0.6): nothing
+    is published in the first 30 frames."""
+    assert max(_published_one_camera(obj, seed, 30, recall_margin_factor=1.0), default=0.0) >= 0.1
+    assert _published_one_camera(obj, seed, 30) == []

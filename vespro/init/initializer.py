@@ -449,20 +449,6 @@ class InitOptions:
         upheld, it is published from frame 10.
     upheld_min_inlier_frac : float
         Least agreement of an upheld pose.
-    confirm_rival_test : bool
-        A call confirming a provisional pose (found again, first) looks for
-        rivals on its own frame set as any call does, instead of trusting the
-        proposing call's: a rival there makes the view ambiguous and the pose
-        is not confirmed. Rivals come and go with a frame's noise, and one
-        just short of the limit on the proposing frame let a wrong pose
-        through: one-camera box 7019, whose true pose agreed with 0.99 of its
-        edges, made no rival at frame 5 of a pose 1.6 diameters off (0.96,
-        the same outline turned inside out, explaining 379 px of image edges
-        to the true pose's 303, 0.7995 of it against the 0.8 asked), which was
-        confirmed at frame 10 where the true pose was a rival (301 px of 358)
-        and published; L-block 7018 the same way (20.6% off, the true pose at
-        0.78 of its edge length on the proposing frame, 0.99 on the confirming
-        one). The probe (``probe_single``) is not run again.
     """
 
     edges: EdgeOptions = field(default_factory=EdgeOptions)
@@ -533,7 +519,6 @@ class InitOptions:
     start_covariance: bool = True
     confirm_upheld: bool = True
     upheld_min_inlier_frac: float = 0.6
-    confirm_rival_test: bool = True
 
 
 @dataclass(frozen=True)
@@ -1077,10 +1062,10 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
     T_best, chk = refined[0]
     ok, plain, why = _verdict(chk, opt)
     rivals = ()
-    # The pending pose found again and still first: its own call probed it already
-    # (and, without confirm_rival_test, looked for rivals).
+    # The pending pose found again and still first: its own call looked for
+    # rivals already.
     confirmed = ok and Tp is not None and _adds(mf, T_best, Tp) < near
-    if ok and (not confirmed or opt.confirm_rival_test):
+    if ok and not confirmed:
         T2, c2, rival = _rival(T_best, chk, plain, refined[1:], again, mf, opt)
         if T2 is not None:
             ok, why = False, (f"ambiguous: another pose scores {c2.inlier_frac:.2f} vs {chk.inlier_frac:.2f}"
