@@ -870,7 +870,7 @@ class Tracker:
         if not (np.all(np.isfinite(ekf.pose)) and np.all(np.isfinite(ekf.pose_covariance))):
             self._lose()
             return TrackerOutput(fs.index, fs.t_ns, self.status)
-        T_prior = ekf.pose.copy()
+        T_prior = ekf.pose  # (a copy)
         saved = (ekf.snapshot(), self.sigma_px, self.feature_factor.copy(), self._noise_updates)
         obs, n_found, n_acc, mean_nis, max_half, ok = self._measure(fs, stage)
         if ok and max_half >= c.refine_window_px:

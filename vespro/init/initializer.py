@@ -811,9 +811,12 @@ def _rival(T_best: np.ndarray, chk, plain: bool, others, again, mf: ModelFeature
         # as good an agreement, about as much edge length explained.
         # (A recalled pose: either margin widened, not both at once.)
         widen = opt.recall_margin_factor if _same_as_any(mf, T2, again) else 1.0
-        agrees = [c2.inlier_frac >= chk.inlier_frac - w * _margin(chk, opt) for w in (1.0, widen)]
-        explains = [c2.inlier_px >= (1 - w * opt.ambiguity_px_frac) * chk.inlier_px for w in (1.0, widen)]
-        rival = (agrees[1] and explains[0]) or (agrees[0] and explains[1])
+
+        def within(w_frac: float, w_px: float) -> bool:
+            return (c2.inlier_frac >= chk.inlier_frac - w_frac * _margin(chk, opt)
+                    and c2.inlier_px >= (1 - w_px * opt.ambiguity_px_frac) * chk.inlier_px)
+
+        rival = within(widen, 1.0) or within(1.0, widen)
         plain_rival = plain and c2.interior_edge_frac <= 2 * opt.plain_max_interior_edge_frac and \
             c2.inlier_frac >= 0.5 and c2.inlier_px >= opt.plain_rival_px_frac * chk.inlier_px
         if (rival or plain_rival) and not _part_of(c2, chk, opt):
