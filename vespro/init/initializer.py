@@ -519,6 +519,8 @@ class InitOptions:
     start_covariance: bool = True
     confirm_upheld: bool = True
     upheld_min_inlier_frac: float = 0.6
+    keep_better_start: bool = True
+    held_rival: bool = True
 
 
 @dataclass(frozen=True)
@@ -703,13 +705,21 @@ def _verdict(chk, opt: InitOptions) -> tuple[bool, bool, str]:
     return False, False, why
 
 
-def _refined(T_world_object: np.ndarray, views, setup: InitSetup) -> np.ndarray:
-    """A candidate refined on the oriented edge distances, then (``InitOptions.subpixel``) to sub-pixel."""
+def _refined(T_world_object: np.ndarray, views, setup: InitSetup):
+    """A candidate refined on the oriented edge distances, then (``InitOptions.subpixel``) to
+    sub-pixel, and its check (:func:`_checked`): (T, check). The start itself where the
+    verification scores it higher than the refinement on both agreement and edge length
+    explained (``InitOptions.keep_better_start``)."""
     opt, mf = setup.options, setup.mf
     T = refine_pose(T_world_object, views, mf, setup.tree)
     if opt.subpixel:
         T = refine_subpixel(T, views, mf, setup.tree, shared_edge_px=opt.shared_edge_px)
-    return T
+    chk = _checked(T, views, setup)
+    if opt.keep_better_start:
+        c0 = _checked(T_world_object, views, setup)
+        if c0.inlier_frac > chk.inlier_frac and c0.inlier_px > chk.inlier_px:
+            return np.array(T_world_object, float), c0
+    return T, chk
 
 
 def _checked(T_world_object: np.ndarray, views, setup: InitSetup):
@@ -943,8 +953,7 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
     if pending_T_world_object is not None:
         Tp = np.asarray(pending_T_world_object, float)
         near = (opt.confirm_frac * mf.diameter + opt.confirm_speed * max(pending_age_s, 0.0))
-        Tr = _refined(Tp, views, setup)
-        chk = _checked(Tr, views, setup)
+        Tr, chk = _refined(Tp, views, setup)
         if _adds(mf, Tr, Tp) < near:
             held = (Tr, chk)
             if _verdict(chk, opt)[0]:
@@ -959,8 +968,7 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
             starts.append(transform_from_rt(starts[0][:3, :3] @ dR, starts[0][:3, 3] + dp))
         seeded = []
         for T in starts:
-            Tr = _refined(T, views, setup)
-            chk = _checked(Tr, views, setup)
+            Tr, chk = _refined(T, views, setup)
             seeded.append((Tr, chk))
             if _verdict(chk, opt)[0]:
                 return finish(Tr, chk, "seed", len(starts))
@@ -1023,9 +1031,8 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
             distinct.append(cand[k])
             if len(distinct) - 1 not in wanted:
                 continue
-            Tr = _refined(cand[k], views, setup)
+            Tr, chk_k = _refined(cand[k], views, setup)
             if not _same_as_any(mf, Tr, [T for T, _ in refined]):
-                chk_k = _checked(Tr, views, setup)
                 if opt.confirm_deeper_strict and len(distinct) - 1 in strict_only and \
                         _verdict(chk_k, opt)[:2] != (True, False):
                     continue
@@ -1048,14 +1055,17 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
             if _adds(mf, Tq, cand[k]) <= opt.quick_max_move * mf.diameter:
                 cand[k] = Tq
         refine_distinct(q[np.argsort(-_joint_scores(cand[q], views, setup), kind="stable")], set(range(opt.n_refine)))
-    if pending is not None and not _same_as_any(mf, pending[0], [T for T, _ in refined]):
-        refined.append(pending)
+    # The filter's own pose joins the candidates: first only if it passes, a rival either way.
+    if held is not None and (pending is not None or opt.held_rival) and \
+            not _same_as_any(mf, held[0], [T for T, _ in refined]):
+        refined.append(held)
     # An earlier call's ambiguity, measured again on this frame set: a rival this
     # call's search missed still counts.
     again = [_refined(np.asarray(T, float), views, setup) for T in recall]
-    for Tr in again:
+    for Tr, c in again:
         if not _same_as_any(mf, Tr, [T for T, _ in refined]):
-            refined.append((Tr, _checked(Tr, views, setup)))
+            refined.append((Tr, c))
+    again = [T for T, _ in again]
     if opt.hidden_camera and not any(_verdict(c, opt)[0] for _, c in refined):
         refined = _without_hidden(refined, views, setup)
     # Candidates that pass every check first, then by the image edge length
