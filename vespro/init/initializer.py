@@ -449,6 +449,29 @@ class InitOptions:
         upheld, it is published from frame 10.
     upheld_min_inlier_frac : float
         Least agreement of an upheld pose.
+    keep_better_start : bool
+        A refinement (:func:`_refined`: the oriented edge distances, then
+        sub-pixel) that the verification scores lower than its start on both
+        agreement and edge length explained is dropped for the start: the
+        refinement's objective can slide a pose seen nearly edge-on, with few
+        image edges and a long background line beside them, onto a worse fit
+        by the verification's own measure. Bracket 7809 (one camera), frame 25:
+        refined, the true pose moved 22.6% of the diameter off, agreeing with
+        0.62 of its edges over 506 px against 0.70 over 555 px unrefined; the
+        provisional filter's pose, within 1%, was refined away the same way.
+    held_rival : bool
+        The filter's own pose during a provisional start (the pending pose,
+        refined on this frame set and found near where the filter has it) joins
+        the candidates even when it does not pass every check: it can then make
+        the search's best ambiguous (a rival need not pass), though it is
+        returned only if it passes. Bracket 7809: a provisional start 32% off
+        slid on the filter's own updates to within 1% by frame 14; the calls at
+        frames 15-25 found poses 27-33% off first (0.77-0.80 agreement against
+        the filter's 0.70) and replaced the filter's pose with them, and the
+        call at frame 30 confirmed one: published at 13.9%, then 8.5-9%. With
+        the filter's pose a rival, those calls return nothing, the filter keeps
+        its pose and the call at frame 30 confirms it: published from frame 30
+        at 0.2-6%.
     """
 
     edges: EdgeOptions = field(default_factory=EdgeOptions)
