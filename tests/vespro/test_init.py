@@ -444,7 +444,7 @@ def test_one_camera_never_accepts_a_pose_whose_faces_cover_image_edges():
     returned, and the tracker published it. A part with plain faces shows no edges
     inside its faces at the true pose (at most 0.13% in 352 one-camera views), so with
     one judging camera every pose must keep them clear, not only the plain-face ones."""
-    from vespro.init.initializer import _checked, _refined, _verdict, _views, initialize
+    from vespro.init.initializer import _refined, _verdict, _views, initialize
 
     setup, model, syms, fs, T_true = _trial_frame("bracket", "1", 1617, 5)
     res, rep = initialize(setup, fs)
@@ -455,7 +455,7 @@ def test_one_camera_never_accepts_a_pose_whose_faces_cover_image_edges():
     assert _verdict(replace(chk, interior_edge_frac=0.0), setup.options)[0]  # the premise: it passes otherwise
     assert "inside the faces" in rep.reason
     views = _views(setup, fs)
-    chk_true = _checked(_refined(T_true, views, setup), views, setup)
+    chk_true = _refined(T_true, views, setup)[1]
     assert chk_true.interior_edge_frac <= setup.options.plain_max_interior_edge_frac
 
 def test_paths_with_one_edge_running_on_find_a_part_against_an_aligned_background():
@@ -903,7 +903,7 @@ def test_a_refinement_scored_below_its_start_keeps_the_start():
     syms = model_symmetries(model.vertices)
     fs, T_true = frames[25]
     setups = [make_initializer(rig, model, keep_better_start=k).setup for k in (False, True)]
-    (T_off, c_off), (T_on, c_on) = (_refined(T_true, _views(s, fs), s) for s in setups)
+    (T_off, c_off), (T_on, c_on) = (_refined(T_true, _views(s, fs), s, fitted=True) for s in setups)
     assert _sym_add_frac(T_off, T_true, model, syms) >= 0.1
     assert _sym_add_frac(T_on, T_true, model, syms) < 0.02
     assert c_on.inlier_frac > c_off.inlier_frac and c_on.inlier_px > c_off.inlier_px

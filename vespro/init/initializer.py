@@ -450,15 +450,20 @@ class InitOptions:
     upheld_min_inlier_frac : float
         Least agreement of an upheld pose.
     keep_better_start : bool
-        A refinement (:func:`_refined`: the oriented edge distances, then
-        sub-pixel) that the verification scores lower than its start on both
-        agreement and edge length explained is dropped for the start: the
+        The filter's pose during a provisional start, refined on a confirming
+        call's frame set (:func:`_refined`: the oriented edge distances, then
+        sub-pixel), is kept as it was where the verification scores it above
+        its refinement on both agreement and edge length explained: the
         refinement's objective can slide a pose seen nearly edge-on, with few
         image edges and a long background line beside them, onto a worse fit
         by the verification's own measure. Bracket 7809 (one camera), frame 25:
         refined, the true pose moved 22.6% of the diameter off, agreeing with
         0.62 of its edges over 506 px against 0.70 over 555 px unrefined; the
         provisional filter's pose, within 1%, was refined away the same way.
+        Only for the filter's pose, which the tracker has fitted to the images
+        already: for the search's candidates (P3P poses, ranked by agreement)
+        it kept unrefined poses that the refinement would have ruled out, and
+        boxes 3406 and 5214 locked on poses 55% and 1.9 diameters off.
     held_rival : bool
         The filter's own pose during a provisional start (the pending pose,
         refined on this frame set and found near where the filter has it) joins
@@ -728,17 +733,18 @@ def _verdict(chk, opt: InitOptions) -> tuple[bool, bool, str]:
     return False, False, why
 
 
-def _refined(T_world_object: np.ndarray, views, setup: InitSetup):
+def _refined(T_world_object: np.ndarray, views, setup: InitSetup, fitted: bool = False):
     """A candidate refined on the oriented edge distances, then (``InitOptions.subpixel``) to
-    sub-pixel, and its check (:func:`_checked`): (T, check). The start itself where the
-    verification scores it higher than the refinement on both agreement and edge length
-    explained (``InitOptions.keep_better_start``)."""
+    sub-pixel, and its check (:func:`_checked`): (T, check). A start already fitted to the
+    images (``fitted``: the filter's estimate) is kept where the verification scores it
+    higher than its refinement on both agreement and edge length explained
+    (``InitOptions.keep_better_start``)."""
     opt, mf = setup.options, setup.mf
     T = refine_pose(T_world_object, views, mf, setup.tree)
     if opt.subpixel:
         T = refine_subpixel(T, views, mf, setup.tree, shared_edge_px=opt.shared_edge_px)
     chk = _checked(T, views, setup)
-    if opt.keep_better_start:
+    if fitted and opt.keep_better_start:
         c0 = _checked(T_world_object, views, setup)
         if c0.inlier_frac > chk.inlier_frac and c0.inlier_px > chk.inlier_px:
             return np.array(T_world_object, float), c0
@@ -976,7 +982,7 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
     if pending_T_world_object is not None:
         Tp = np.asarray(pending_T_world_object, float)
         near = (opt.confirm_frac * mf.diameter + opt.confirm_speed * max(pending_age_s, 0.0))
-        Tr, chk = _refined(Tp, views, setup)
+        Tr, chk = _refined(Tp, views, setup, fitted=True)
         if _adds(mf, Tr, Tp) < near:
             held = (Tr, chk)
             if _verdict(chk, opt)[0]:
