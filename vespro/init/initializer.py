@@ -733,22 +733,25 @@ def _verdict(chk, opt: InitOptions) -> tuple[bool, bool, str]:
     return False, False, why
 
 
-def _refined(T_world_object: np.ndarray, views, setup: InitSetup, fitted: bool = False):
+def _refined(T_world_object: np.ndarray, views, setup: InitSetup):
     """A candidate refined on the oriented edge distances, then (``InitOptions.subpixel``) to
-    sub-pixel, and its check (:func:`_checked`): (T, check). A start already fitted to the
-    images (``fitted``: the filter's estimate) is kept where the verification scores it
-    higher than its refinement on both agreement and edge length explained
-    (``InitOptions.keep_better_start``)."""
+    sub-pixel, and its check (:func:`_checked`): (T, check)."""
     opt, mf = setup.options, setup.mf
     T = refine_pose(T_world_object, views, mf, setup.tree)
     if opt.subpixel:
         T = refine_subpixel(T, views, mf, setup.tree, shared_edge_px=opt.shared_edge_px)
-    chk = _checked(T, views, setup)
-    if fitted and opt.keep_better_start:
+    return T, _checked(T, views, setup)
+
+
+def _own_pose(T_world_object: np.ndarray, refined: tuple, views, setup: InitSetup) -> tuple:
+    """The filter's pose as a rival (``InitOptions.held_rival``): (T, check) of its refinement
+    ``refined``, or of the pose as it is where the verification scores that above its
+    refinement on both agreement and edge length explained (``InitOptions.keep_better_start``)."""
+    if setup.options.keep_better_start:
         c0 = _checked(T_world_object, views, setup)
-        if c0.inlier_frac > chk.inlier_frac and c0.inlier_px > chk.inlier_px:
+        if c0.inlier_frac > refined[1].inlier_frac and c0.inlier_px > refined[1].inlier_px:
             return np.array(T_world_object, float), c0
-    return T, chk
+    return refined
 
 
 def _checked(T_world_object: np.ndarray, views, setup: InitSetup):
@@ -978,15 +981,17 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
     # the search's candidates and is confirmed only if it still comes first
     # (a pose fitted to static clutter is found again on every frame; the
     # search may find the part this time).
-    Tp, pending, held = None, None, None
+    Tp, pending, held, own = None, None, None, None
     if pending_T_world_object is not None:
         Tp = np.asarray(pending_T_world_object, float)
         near = (opt.confirm_frac * mf.diameter + opt.confirm_speed * max(pending_age_s, 0.0))
-        Tr, chk = _refined(Tp, views, setup, fitted=True)
+        Tr, chk = _refined(Tp, views, setup)
         if _adds(mf, Tr, Tp) < near:
             held = (Tr, chk)
             if _verdict(chk, opt)[0]:
                 pending = held
+        if opt.held_rival:
+            own = _own_pose(Tp, (Tr, chk), views, setup)
 
     # Seeded: refine from the prediction and a few perturbations of it.
     if seed_T_world_object is not None:
@@ -1084,10 +1089,8 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
             if _adds(mf, Tq, cand[k]) <= opt.quick_max_move * mf.diameter:
                 cand[k] = Tq
         refine_distinct(q[np.argsort(-_joint_scores(cand[q], views, setup), kind="stable")], set(range(opt.n_refine)))
-    # The filter's own pose joins the candidates: first only if it passes, a rival either way.
-    if held is not None and (pending is not None or opt.held_rival) and \
-            not _same_as_any(mf, held[0], [T for T, _ in refined]):
-        refined.append(held)
+    if pending is not None and not _same_as_any(mf, pending[0], [T for T, _ in refined]):
+        refined.append(pending)
     # An earlier call's ambiguity, measured again on this frame set: a rival this
     # call's search missed still counts.
     again = [_refined(np.asarray(T, float), views, setup) for T in recall]
@@ -1108,7 +1111,9 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
     # rivals already.
     confirmed = ok and Tp is not None and _adds(mf, T_best, Tp) < near
     if ok and not confirmed:
-        T2, c2, rival = _rival(T_best, chk, plain, refined[1:], again, mf, opt)
+        # The filter's own pose, though it need not pass, is a rival (never returned as it is).
+        own_rival = [own] if own is not None and not _same_as_any(mf, own[0], [T for T, _ in refined]) else []
+        T2, c2, rival = _rival(T_best, chk, plain, refined[1:] + own_rival, again, mf, opt)
         if T2 is not None:
             ok, why = False, (f"ambiguous: another pose scores {c2.inlier_frac:.2f} vs {chk.inlier_frac:.2f}"
                               if rival else f"ambiguous (plain faces): another pose explains "
