@@ -449,34 +449,34 @@ class InitOptions:
         upheld, it is published from frame 10.
     upheld_min_inlier_frac : float
         Least agreement of an upheld pose.
+    held_rival : bool
+        The filter's own pose during a provisional start (the pose the next
+        call is asked to confirm) is a rival of the call's best even when it
+        does not pass every check (a rival need not pass), though it is never
+        returned as such: to be confirmed it must be found again by the call's
+        own refinement, as before. Bracket 7809 (one camera): a provisional
+        start 32% of the diameter off slid on the filter's own updates to
+        within 1% by frame 14; the calls at frames 15-25 found poses 27-33%
+        off first (0.77-0.80 agreement against the filter's 0.70) and put
+        them in its place, and the call at frame 30 confirmed one: published
+        at 13.9%, then 8.5-9%. With the filter's pose a rival those calls
+        return nothing and the filter keeps its pose: published from frame 30
+        at 0.2-6%.
     keep_better_start : bool
-        The filter's pose during a provisional start, refined on a confirming
-        call's frame set (:func:`_refined`: the oriented edge distances, then
-        sub-pixel), is kept as it was where the verification scores it above
-        its refinement on both agreement and edge length explained: the
+        That rival is the filter's pose as it is where the verification scores
+        it above its refinement on this frame set (oriented edge distances,
+        then sub-pixel) on both agreement and edge length explained: the
         refinement's objective can slide a pose seen nearly edge-on, with few
         image edges and a long background line beside them, onto a worse fit
-        by the verification's own measure. Bracket 7809 (one camera), frame 25:
-        refined, the true pose moved 22.6% of the diameter off, agreeing with
-        0.62 of its edges over 506 px against 0.70 over 555 px unrefined; the
-        provisional filter's pose, within 1%, was refined away the same way.
-        Only for the filter's pose, which the tracker has fitted to the images
-        already: for the search's candidates (P3P poses, ranked by agreement)
-        it kept unrefined poses that the refinement would have ruled out, and
-        boxes 3406 and 5214 locked on poses 55% and 1.9 diameters off.
-    held_rival : bool
-        The filter's own pose during a provisional start (the pending pose,
-        refined on this frame set and found near where the filter has it) joins
-        the candidates even when it does not pass every check: it can then make
-        the search's best ambiguous (a rival need not pass), though it is
-        returned only if it passes. Bracket 7809: a provisional start 32% off
-        slid on the filter's own updates to within 1% by frame 14; the calls at
-        frames 15-25 found poses 27-33% off first (0.77-0.80 agreement against
-        the filter's 0.70) and replaced the filter's pose with them, and the
-        call at frame 30 confirmed one: published at 13.9%, then 8.5-9%. With
-        the filter's pose a rival, those calls return nothing, the filter keeps
-        its pose and the call at frame 30 confirms it: published from frame 30
-        at 0.2-6%.
+        by the verification's own measure. Bracket 7809, frame 25: refined,
+        the true pose moves 22.6% of the diameter off, agreeing with 0.62 of
+        its edges over 506 px against 0.70 over 555 px as it is; the filter's
+        pose, within 1%, was refined away the same way and rivalled nothing.
+        Only as a rival: returned as it was, a pose the filter had jumped to
+        (box 6809, 11% in one frame to 15% off) was confirmed and published
+        at 18.7%. For the search's candidates (P3P poses, ranked by
+        agreement) it kept unrefined poses the refinement would have ruled
+        out: boxes 3406 and 5214 locked on poses 55% and 1.9 diameters off.
     """
 
     edges: EdgeOptions = field(default_factory=EdgeOptions)
