@@ -461,7 +461,7 @@ class InitOptions:
         them in its place, and the call at frame 30 confirmed one: published
         at 13.9%, then 8.5-9%. With the filter's pose a rival those calls
         return nothing and the filter keeps its pose: published from frame 30
-        at 0.2-6%.
+        at 1.9%, then at most 5.8% to frame 51.
     keep_better_start : bool
         That rival is the filter's pose as it is where the verification scores
         it above its refinement on this frame set (oriented edge distances,
