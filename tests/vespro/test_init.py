@@ -444,7 +444,7 @@ def test_one_camera_never_accepts_a_pose_whose_faces_cover_image_edges():
     returned, and the tracker published it. A part with plain faces shows no edges
     inside its faces at the true pose (at most 0.13% in 352 one-camera views), so with
     one judging camera every pose must keep them clear, not only the plain-face ones."""
-    from vespro.init.initializer import _refined, _verdict, _views, initialize
+    from vespro.init.initializer import _checked, _refined, _verdict, _views, initialize
 
     setup, model, syms, fs, T_true = _trial_frame("bracket", "1", 1617, 5)
     res, rep = initialize(setup, fs)
@@ -455,7 +455,7 @@ def test_one_camera_never_accepts_a_pose_whose_faces_cover_image_edges():
     assert _verdict(replace(chk, interior_edge_frac=0.0), setup.options)[0]  # the premise: it passes otherwise
     assert "inside the faces" in rep.reason
     views = _views(setup, fs)
-    chk_true = _refined(T_true, views, setup)[1]
+    chk_true = _checked(_refined(T_true, views, setup), views, setup)
     assert chk_true.interior_edge_frac <= setup.options.plain_max_interior_edge_frac
 
 def test_paths_with_one_edge_running_on_find_a_part_against_an_aligned_background():
@@ -897,14 +897,15 @@ def test_the_filters_pose_rivals_as_it_is_where_its_refinement_scores_lower():
     of the diameter off to a pose the verification scores lower on both counts (0.62 of its
     edges over 506 px against 0.70 over 555 px). As the filter's pose, a rival, it is kept
     as it is (``keep_better_start``; off, the refinement stands)."""
-    from vespro.init.initializer import _own_pose, _refined, _views
+    from vespro.init.initializer import _checked, _own_pose, _refined, _views
 
     rig, model, frames = trial_frames("bracket", 7809, 26)
     syms = model_symmetries(model.vertices)
     fs, T_true = frames[25]
     off, on = (make_initializer(rig, model, keep_better_start=k).setup for k in (False, True))
     views = _views(on, fs)
-    refined = _refined(T_true, views, on)
+    T_ref = _refined(T_true, views, on)
+    refined = (T_ref, _checked(T_ref, views, on))
     assert _sym_add_frac(refined[0], T_true, model, syms) >= 0.1
     assert _own_pose(T_true, refined, views, off) is refined
     T_own, c_own = _own_pose(T_true, refined, views, on)

@@ -733,14 +733,13 @@ def _verdict(chk, opt: InitOptions) -> tuple[bool, bool, str]:
     return False, False, why
 
 
-def _refined(T_world_object: np.ndarray, views, setup: InitSetup):
-    """A candidate refined on the oriented edge distances, then (``InitOptions.subpixel``) to
-    sub-pixel, and its check (:func:`_checked`): (T, check)."""
+def _refined(T_world_object: np.ndarray, views, setup: InitSetup) -> np.ndarray:
+    """A candidate refined on the oriented edge distances, then (``InitOptions.subpixel``) to sub-pixel."""
     opt, mf = setup.options, setup.mf
     T = refine_pose(T_world_object, views, mf, setup.tree)
     if opt.subpixel:
         T = refine_subpixel(T, views, mf, setup.tree, shared_edge_px=opt.shared_edge_px)
-    return T, _checked(T, views, setup)
+    return T
 
 
 def _own_pose(T_world_object: np.ndarray, refined: tuple, views, setup: InitSetup) -> tuple:
@@ -981,17 +980,17 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
     # the search's candidates and is confirmed only if it still comes first
     # (a pose fitted to static clutter is found again on every frame; the
     # search may find the part this time).
-    Tp, pending, held, own = None, None, None, None
+    Tp, Tp_refined, pending, held = None, None, None, None
     if pending_T_world_object is not None:
         Tp = np.asarray(pending_T_world_object, float)
         near = (opt.confirm_frac * mf.diameter + opt.confirm_speed * max(pending_age_s, 0.0))
-        Tr, chk = _refined(Tp, views, setup)
+        Tr = _refined(Tp, views, setup)
+        chk = _checked(Tr, views, setup)
+        Tp_refined = (Tr, chk)
         if _adds(mf, Tr, Tp) < near:
-            held = (Tr, chk)
+            held = Tp_refined
             if _verdict(chk, opt)[0]:
                 pending = held
-        if opt.held_rival:
-            own = _own_pose(Tp, (Tr, chk), views, setup)
 
     # Seeded: refine from the prediction and a few perturbations of it.
     if seed_T_world_object is not None:
@@ -1002,7 +1001,8 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
             starts.append(transform_from_rt(starts[0][:3, :3] @ dR, starts[0][:3, 3] + dp))
         seeded = []
         for T in starts:
-            Tr, chk = _refined(T, views, setup)
+            Tr = _refined(T, views, setup)
+            chk = _checked(Tr, views, setup)
             seeded.append((Tr, chk))
             if _verdict(chk, opt)[0]:
                 return finish(Tr, chk, "seed", len(starts))
@@ -1065,8 +1065,9 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
             distinct.append(cand[k])
             if len(distinct) - 1 not in wanted:
                 continue
-            Tr, chk_k = _refined(cand[k], views, setup)
+            Tr = _refined(cand[k], views, setup)
             if not _same_as_any(mf, Tr, [T for T, _ in refined]):
+                chk_k = _checked(Tr, views, setup)
                 if opt.confirm_deeper_strict and len(distinct) - 1 in strict_only and \
                         _verdict(chk_k, opt)[:2] != (True, False):
                     continue
@@ -1094,10 +1095,9 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
     # An earlier call's ambiguity, measured again on this frame set: a rival this
     # call's search missed still counts.
     again = [_refined(np.asarray(T, float), views, setup) for T in recall]
-    for Tr, c in again:
+    for Tr in again:
         if not _same_as_any(mf, Tr, [T for T, _ in refined]):
-            refined.append((Tr, c))
-    again = [T for T, _ in again]
+            refined.append((Tr, _checked(Tr, views, setup)))
     if opt.hidden_camera and not any(_verdict(c, opt)[0] for _, c in refined):
         refined = _without_hidden(refined, views, setup)
     # Candidates that pass every check first, then by the image edge length
@@ -1112,6 +1112,7 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
     confirmed = ok and Tp is not None and _adds(mf, T_best, Tp) < near
     if ok and not confirmed:
         # The filter's own pose, though it need not pass, is a rival (never returned as it is).
+        own = _own_pose(Tp, Tp_refined, views, setup) if Tp is not None and opt.held_rival else None
         own_rival = [own] if own is not None and not _same_as_any(mf, own[0], [T for T, _ in refined]) else []
         T2, c2, rival = _rival(T_best, chk, plain, refined[1:] + own_rival, again, mf, opt)
         if T2 is not None:
