@@ -926,6 +926,225 @@ def _same_as_any(mf: ModelFeatures, T: np.ndarray, poses) -> bool:
     return any(_adds(mf, T, T2) < 0.02 * mf.diameter for T2 in poses)
 
 
+@dataclass
+class _Call:
+    """One call's clock and frame set views: how its answers are made."""
+
+    setup: InitSetup
+    views: list
+    t0: float  # time.perf_counter() at the call's start
+    c0: float  # time.thread_time() at the call's start
+
+    def found(self, T: np.ndarray, chk, mode: str, nh: int) -> tuple[InitResult, InitReport]:
+        """The pose ``T`` (its check ``chk``), returned."""
+        return InitResult(T_world_object=T, cov6=_start_covariance(T, _judging(self.views, chk), self.setup),
+                          hidden=(chk.hidden,) if chk.hidden else ()), InitReport(
+            time.perf_counter() - self.t0, time.thread_time() - self.c0, mode, nh, True, chk.inlier_frac,
+            chk.per_camera, chk.supported_edges, chk.visible_edges)
+
+    def none(self, nh: int, why: str, chk=None, **kw) -> tuple[None, InitReport]:
+        """Nothing returned, for reason ``why`` (the best candidate's check ``chk`` where there is one)."""
+        stats = () if chk is None else (chk.inlier_frac, chk.per_camera, chk.supported_edges, chk.visible_edges)
+        return None, InitReport(time.perf_counter() - self.t0, time.thread_time() - self.c0, "none", nh, False,
+                                *stats, reason=why, **kw)
+
+
+@dataclass
+class _Pending:
+    """A provisional pose from the previous call (``pending_T_world_object``), refined again on
+    this frame set: ``refined`` (T, check); ``held`` that when it stayed ``near`` the pose
+    given; ``passing`` that when it also passes (it then joins the search's candidates)."""
+
+    T: np.ndarray
+    refined: tuple
+    near: float
+    held: tuple | None
+    passing: tuple | None
+
+
+def _pending(setup: InitSetup, views, T_world_object: np.ndarray, age_s: float) -> _Pending:
+    """The previous call's provisional pose, refined again here (see :class:`_Pending`)."""
+    opt, mf = setup.options, setup.mf
+    Tp = np.asarray(T_world_object, float)
+    near = opt.confirm_frac * mf.diameter + opt.confirm_speed * max(age_s, 0.0)
+    Tr = _refined(Tp, views, setup)
+    refined = (Tr, _checked(Tr, views, setup))
+    held = refined if _adds(mf, Tr, Tp) < near else None
+    passing = held if held is not None and _verdict(held[1], opt)[0] else None
+    return _Pending(Tp, refined, near, held, passing)
+
+
+def _seeded(call: _Call, seed_T_world_object: np.ndarray, rng: np.random.Generator):
+    """Refine from the prediction and a few perturbations of it: the call's answer when one
+    passes (or ``InitOptions.seed_only``), else None (the full search follows)."""
+    setup, views = call.setup, call.views
+    opt = setup.options
+    starts = [np.asarray(seed_T_world_object, float)]
+    for _ in range(4):
+        dR = exp_so3(rng.normal(size=3) * opt.seed_perturb_rad)
+        dp = rng.normal(size=3) * opt.seed_perturb_m
+        starts.append(transform_from_rt(starts[0][:3, :3] @ dR, starts[0][:3, 3] + dp))
+    seeded = []
+    for T in starts:
+        Tr = _refined(T, views, setup)
+        chk = _checked(Tr, views, setup)
+        seeded.append((Tr, chk))
+        if _verdict(chk, opt)[0]:
+            return call.found(Tr, chk, "seed", len(starts))
+    if opt.hidden_camera:
+        # A camera the part is hidden from (the arm that hid it when the track was
+        # lost): judged without it, as the search's candidates are.
+        for Tr, chk in sorted(_without_hidden(seeded, views, setup), key=lambda r: -r[1].inlier_frac):
+            if _verdict(chk, opt)[0]:
+                return call.found(Tr, chk, "seed", len(starts))
+    if opt.seed_only:
+        best = max(seeded, key=lambda r: r[1].inlier_frac)
+        return None, InitReport(time.perf_counter() - call.t0, time.thread_time() - call.c0, "none", len(starts),
+                                False, best[1].inlier_frac, best[1].per_camera,
+                                reason="seed: " + _accept(best[1], opt)[1])
+    return None
+
+
+def _hypotheses(setup: InitSetup, views, attempt: int) -> tuple[np.ndarray, int]:
+    """P3P hypotheses per camera, ranked in that camera: the best few of each camera
+    (``T_world_object``, shape (N, 4, 4)) and how many were generated."""
+    opt, mf = setup.options, setup.mf
+    cand, nh = [], 0
+    for v in views:
+        ip = image_paths(v.feat, max_paths=opt.max_image_paths,
+                         one_end=opt.one_end_paths and attempt % 2 == 1 and len(views) == 1)
+        R, t = p3p_hypotheses(v.feat, mf, setup.model.vertices, ip)
+        nh += len(R)
+        if len(R) == 0:
+            continue
+        # Two passes: a few samples on the long edges for all, the coarse set for the best.
+        sc, _ = rank_in_camera(R, t, v.feat, mf, opt.rank_tol_px, samples=mf.sparse)
+        sc = np.where(np.isfinite(sc), sc, -1.0)
+        top = np.argsort(-sc)[:opt.keep_after_sparse]
+        top = top[sc[top] > 0]
+        sc2, _ = rank_in_camera(R[top], t[top], v.feat, mf, opt.rank_tol_px)
+        sc2 = np.where(np.isfinite(sc2), sc2, -1.0)
+        if setup.tree is not None and not mf.convex and opt.keep_occlusion_rank > 0:
+            # A third pass for a non-convex part: the best few hundred again,
+            # without the samples the part hides from itself.
+            o2 = np.argsort(-sc2)[:opt.keep_occlusion_rank]
+            top = top[o2[sc2[o2] > 0]]
+            sc2, _ = rank_in_camera(R[top], t[top], v.feat, mf, opt.rank_tol_px, tree=setup.tree)
+            sc2 = np.where(np.isfinite(sc2), sc2, -1.0)
+        o2 = np.argsort(-sc2)[:opt.keep_per_camera]
+        top = top[o2[sc2[o2] > 0]]
+        for k in top:
+            cand.append(v.T_world_camera @ transform_from_rt(R[k], t[k]))
+    return np.asarray(cand).reshape(-1, 4, 4), nh
+
+
+def _verified(setup: InitSetup, views, cand: np.ndarray, attempt: int, pend: _Pending | None,
+              recall: tuple) -> tuple[list, list]:
+    """The candidates re-ranked in every camera, the best few distinct ones refined and
+    checked, with the pending pose and the recalled rivals joining them: (refined, again),
+    ``refined`` as (T, check) best first, ``again`` the recalled poses refined here."""
+    opt, mf = setup.options, setup.mf
+    passing = pend.passing if pend is not None else None
+    # Re-rank in every camera: mean agreement over the cameras that can judge.
+    order = np.argsort(-_joint_scores(cand, views, setup))
+    refined = []
+
+    def refine_distinct(order, wanted, strict_only=frozenset()):
+        # (candidates of the ranks in strict_only count only when they pass every strict check)
+        distinct = []
+        for k in order:
+            if len(distinct) > max(wanted):
+                break
+            if _same_as_any(mf, cand[k], distinct):
+                continue
+            distinct.append(cand[k])
+            if len(distinct) - 1 not in wanted:
+                continue
+            Tr = _refined(cand[k], views, setup)
+            if not _same_as_any(mf, Tr, [T for T, _ in refined]):
+                chk_k = _checked(Tr, views, setup)
+                if opt.confirm_deeper_strict and len(distinct) - 1 in strict_only and \
+                        _verdict(chk_k, opt)[:2] != (True, False):
+                    continue
+                refined.append((Tr, chk_k))
+
+    wanted = set(range(opt.n_refine))
+    if attempt > 0:  # a first call that succeeds needs no more
+        w0 = opt.n_refine + opt.n_refine_extra * ((attempt - 1) % max(opt.refine_windows, 1))
+        wanted |= set(range(w0, w0 + opt.n_refine_extra))
+    # A confirming call looks deeper, but what only that finds must pass every strict check.
+    deeper = set(range(opt.n_refine_confirm)) - wanted if passing is not None else set()
+    refine_distinct(order, wanted | deeper, deeper)
+    if opt.n_quick > 0 and (passing is None or opt.quick_when_pending) and \
+            not any(_verdict(c, opt)[0] for _, c in refined):
+        # None passes: the best n_quick again after a brief refinement, and the
+        # best few of those (the ones not refined already) refined and verified.
+        q = order[:opt.n_quick]
+        for k in q:
+            Tq = refine_pose(cand[k], views, mf, setup.tree, rounds=1, max_nfev=opt.quick_nfev)
+            if _adds(mf, Tq, cand[k]) <= opt.quick_max_move * mf.diameter:
+                cand[k] = Tq
+        refine_distinct(q[np.argsort(-_joint_scores(cand[q], views, setup), kind="stable")], set(range(opt.n_refine)))
+    if passing is not None and not _same_as_any(mf, passing[0], [T for T, _ in refined]):
+        refined.append(passing)
+    # An earlier call's ambiguity, measured again on this frame set: a rival this
+    # call's search missed still counts.
+    again = [_refined(np.asarray(T, float), views, setup) for T in recall]
+    for Tr in again:
+        if not _same_as_any(mf, Tr, [T for T, _ in refined]):
+            refined.append((Tr, _checked(Tr, views, setup)))
+    if opt.hidden_camera and not any(_verdict(c, opt)[0] for _, c in refined):
+        refined = _without_hidden(refined, views, setup)
+    # Candidates that pass every check first, then by the image edge length
+    # they explain (a smaller, farther copy fitted to part of the part
+    # explains less), then by agreement.
+    refined.sort(key=lambda r: (not _verdict(r[1], opt)[0], -r[1].inlier_px, -r[1].inlier_frac))
+    return refined, again
+
+
+def _decided(call: _Call, refined: list, again: list, pend: _Pending | None, nh: int):
+    """The call's answer from its verified candidates (best first): the best, unless a rival
+    makes it ambiguous or it fails; a provisional pose confirmed, upheld or replaced."""
+    setup, views = call.setup, call.views
+    opt, mf = setup.options, setup.mf
+    T_best, chk = refined[0]
+    ok, plain, why = _verdict(chk, opt)
+    rivals = ()
+    # The pending pose found again and still first: its own call looked for
+    # rivals already.
+    confirmed = ok and pend is not None and _adds(mf, T_best, pend.T) < pend.near
+    if ok and not confirmed:
+        # The filter's own pose, though it need not pass, is a rival (never returned as it is).
+        own = _own_pose(pend.T, pend.refined, views, setup) if pend is not None and opt.held_rival else None
+        own_rival = [own] if own is not None and not _same_as_any(mf, own[0], [T for T, _ in refined]) else []
+        T2, c2, rival = _rival(T_best, chk, plain, refined[1:] + own_rival, again, mf, opt)
+        if T2 is not None:
+            ok, why = False, (f"ambiguous: another pose scores {c2.inlier_frac:.2f} vs {chk.inlier_frac:.2f}"
+                              if rival else f"ambiguous (plain faces): another pose explains "
+                              f"{c2.inlier_px:.0f} px vs {chk.inlier_px:.0f}")
+            # Recalled by the next calls: a rival by agreement (a plain rival, a fit to
+            # static clutter, is found again on every frame, and the provisional start
+            # waits for a second call anyway).
+            rivals = (T_best, T2) if rival else ()
+    if ok and not confirmed and opt.probe_single and chk.n_cameras == 1:
+        ok, why, T2 = _probe(T_best, chk, _judging(views, chk), setup)
+        rivals = () if T2 is None else (T_best, T2)
+    held = pend.held if pend is not None else None
+    if not ok and held is not None and opt.confirm_upheld and not why.startswith("ambiguous") and \
+            _upheld(held, refined, again, mf, opt):
+        res, rep = call.found(*held, "upheld", nh)
+        return res, replace(rep, candidates=tuple(refined))
+    plain = plain and ok  # passed every check, under the looser limits
+    provisional = plain and opt.confirm_plain and not confirmed
+    if provisional and not opt.provisional_start:
+        ok, why = False, "plain faces: to be confirmed on the next call"
+    if not ok:
+        return call.none(nh, why, chk, candidates=tuple(refined), plain=plain, rivals=rivals)
+    mode = "provisional" if provisional else "confirm" if plain and opt.confirm_plain else "search"
+    res, rep = call.found(T_best, chk, mode, nh)
+    return replace(res, provisional=provisional), replace(rep, candidates=tuple(refined), plain=plain)
+
+
 def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.ndarray | None = None,
                rng: np.random.Generator | None = None, pending_T_world_object: np.ndarray | None = None,
                attempt: int = 0, pending_age_s: float = 0.0,
@@ -934,6 +1153,9 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
 
     A pure function of its inputs (the set-up is read-only; ``rng`` only
     perturbs the seeded starting points and defaults to a fixed seed).
+    In stages: the pending pose refined again (:func:`_pending`), the seeded
+    refinement (:func:`_seeded`), the search's hypotheses (:func:`_hypotheses`),
+    their verification (:func:`_verified`) and the decision (:func:`_decided`).
 
     Parameters
     ----------
@@ -961,185 +1183,27 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
     result : InitResult or None
     report : InitReport
     """
-    t0 = time.perf_counter()
-    c0 = time.thread_time()
-    opt = setup.options
-    mf = setup.mf
+    t0, c0 = time.perf_counter(), time.thread_time()
     rng = rng if rng is not None else np.random.default_rng(0)
     views = _views(setup, frameset)
+    call = _Call(setup, views, t0, c0)
     if not views:
-        return None, InitReport(time.perf_counter() - t0, time.thread_time() - c0, "none", 0, False, reason="no images")
-
-    def finish(T, chk, mode, nh):
-        return InitResult(T_world_object=T, cov6=_start_covariance(T, _judging(views, chk), setup),
-                          hidden=(chk.hidden,) if chk.hidden else ()), InitReport(
-            time.perf_counter() - t0, time.thread_time() - c0, mode, nh, True, chk.inlier_frac, chk.per_camera, chk.supported_edges,
-            chk.visible_edges)
-
+        return call.none(0, "no images")
     # A provisional pose from the previous call, refined again here: it joins
     # the search's candidates and is confirmed only if it still comes first
     # (a pose fitted to static clutter is found again on every frame; the
     # search may find the part this time).
-    Tp, Tp_refined, pending, held = None, None, None, None
-    if pending_T_world_object is not None:
-        Tp = np.asarray(pending_T_world_object, float)
-        near = (opt.confirm_frac * mf.diameter + opt.confirm_speed * max(pending_age_s, 0.0))
-        Tr = _refined(Tp, views, setup)
-        chk = _checked(Tr, views, setup)
-        Tp_refined = (Tr, chk)
-        if _adds(mf, Tr, Tp) < near:
-            held = Tp_refined
-            if _verdict(chk, opt)[0]:
-                pending = held
-
-    # Seeded: refine from the prediction and a few perturbations of it.
+    pend = _pending(setup, views, pending_T_world_object, pending_age_s) \
+        if pending_T_world_object is not None else None
     if seed_T_world_object is not None:
-        starts = [np.asarray(seed_T_world_object, float)]
-        for _ in range(4):
-            dR = exp_so3(rng.normal(size=3) * opt.seed_perturb_rad)
-            dp = rng.normal(size=3) * opt.seed_perturb_m
-            starts.append(transform_from_rt(starts[0][:3, :3] @ dR, starts[0][:3, 3] + dp))
-        seeded = []
-        for T in starts:
-            Tr = _refined(T, views, setup)
-            chk = _checked(Tr, views, setup)
-            seeded.append((Tr, chk))
-            if _verdict(chk, opt)[0]:
-                return finish(Tr, chk, "seed", len(starts))
-        if opt.hidden_camera:
-            # A camera the part is hidden from (the arm that hid it when the track was
-            # lost): judged without it, as the search's candidates are.
-            for Tr, chk in sorted(_without_hidden(seeded, views, setup), key=lambda r: -r[1].inlier_frac):
-                if _verdict(chk, opt)[0]:
-                    return finish(Tr, chk, "seed", len(starts))
-        if opt.seed_only:
-            best = max(seeded, key=lambda r: r[1].inlier_frac)
-            return None, InitReport(time.perf_counter() - t0, time.thread_time() - c0, "none", len(starts), False, best[1].inlier_frac,
-                                    best[1].per_camera, reason="seed: " + _accept(best[1], opt)[1])
-
-    # Full search: P3P hypotheses per camera, ranked in that camera.
-    cand, nh = [], 0
-    for v in views:
-        ip = image_paths(v.feat, max_paths=opt.max_image_paths,
-                         one_end=opt.one_end_paths and attempt % 2 == 1 and len(views) == 1)
-        R, t = p3p_hypotheses(v.feat, mf, setup.model.vertices, ip)
-        nh += len(R)
-        if len(R) == 0:
-            continue
-        # Two passes: a few samples on the long edges for all, the coarse set for the best.
-        sc, _ = rank_in_camera(R, t, v.feat, mf, opt.rank_tol_px, samples=mf.sparse)
-        sc = np.where(np.isfinite(sc), sc, -1.0)
-        top = np.argsort(-sc)[:opt.keep_after_sparse]
-        top = top[sc[top] > 0]
-        sc2, _ = rank_in_camera(R[top], t[top], v.feat, mf, opt.rank_tol_px)
-        sc2 = np.where(np.isfinite(sc2), sc2, -1.0)
-        if setup.tree is not None and not mf.convex and opt.keep_occlusion_rank > 0:
-            # A third pass for a non-convex part: the best few hundred again,
-            # without the samples the part hides from itself.
-            o2 = np.argsort(-sc2)[:opt.keep_occlusion_rank]
-            top = top[o2[sc2[o2] > 0]]
-            sc2, _ = rank_in_camera(R[top], t[top], v.feat, mf, opt.rank_tol_px, tree=setup.tree)
-            sc2 = np.where(np.isfinite(sc2), sc2, -1.0)
-        o2 = np.argsort(-sc2)[:opt.keep_per_camera]
-        top = top[o2[sc2[o2] > 0]]
-        for k in top:
-            cand.append(v.T_world_camera @ transform_from_rt(R[k], t[k]))
-    if not cand and pending is None:
-        return None, InitReport(time.perf_counter() - t0, time.thread_time() - c0, "none", nh, False, reason="no hypotheses")
-    cand = np.asarray(cand).reshape(-1, 4, 4)
-
-    # Re-rank in every camera: mean agreement over the cameras that can judge.
-    order = np.argsort(-_joint_scores(cand, views, setup))
-
-    # Refine the best few distinct candidates and verify.
-    refined = []
-
-    def refine_distinct(order, wanted, strict_only=frozenset()):
-        # (candidates of the ranks in strict_only count only when they pass every strict check)
-        distinct = []
-        for k in order:
-            if len(distinct) > max(wanted):
-                break
-            if _same_as_any(mf, cand[k], distinct):
-                continue
-            distinct.append(cand[k])
-            if len(distinct) - 1 not in wanted:
-                continue
-            Tr = _refined(cand[k], views, setup)
-            if not _same_as_any(mf, Tr, [T for T, _ in refined]):
-                chk_k = _checked(Tr, views, setup)
-                if opt.confirm_deeper_strict and len(distinct) - 1 in strict_only and \
-                        _verdict(chk_k, opt)[:2] != (True, False):
-                    continue
-                refined.append((Tr, chk_k))
-
-    wanted = set(range(opt.n_refine))
-    if attempt > 0:  # a first call that succeeds needs no more
-        w0 = opt.n_refine + opt.n_refine_extra * ((attempt - 1) % max(opt.refine_windows, 1))
-        wanted |= set(range(w0, w0 + opt.n_refine_extra))
-    # A confirming call looks deeper, but what only that finds must pass every strict check.
-    deeper = set(range(opt.n_refine_confirm)) - wanted if pending is not None else set()
-    refine_distinct(order, wanted | deeper, deeper)
-    if opt.n_quick > 0 and (pending is None or opt.quick_when_pending) and \
-            not any(_verdict(c, opt)[0] for _, c in refined):
-        # None passes: the best n_quick again after a brief refinement, and the
-        # best few of those (the ones not refined already) refined and verified.
-        q = order[:opt.n_quick]
-        for k in q:
-            Tq = refine_pose(cand[k], views, mf, setup.tree, rounds=1, max_nfev=opt.quick_nfev)
-            if _adds(mf, Tq, cand[k]) <= opt.quick_max_move * mf.diameter:
-                cand[k] = Tq
-        refine_distinct(q[np.argsort(-_joint_scores(cand[q], views, setup), kind="stable")], set(range(opt.n_refine)))
-    if pending is not None and not _same_as_any(mf, pending[0], [T for T, _ in refined]):
-        refined.append(pending)
-    # An earlier call's ambiguity, measured again on this frame set: a rival this
-    # call's search missed still counts.
-    again = [_refined(np.asarray(T, float), views, setup) for T in recall]
-    for Tr in again:
-        if not _same_as_any(mf, Tr, [T for T, _ in refined]):
-            refined.append((Tr, _checked(Tr, views, setup)))
-    if opt.hidden_camera and not any(_verdict(c, opt)[0] for _, c in refined):
-        refined = _without_hidden(refined, views, setup)
-    # Candidates that pass every check first, then by the image edge length
-    # they explain (a smaller, farther copy fitted to part of the part
-    # explains less), then by agreement.
-    refined.sort(key=lambda r: (not _verdict(r[1], opt)[0], -r[1].inlier_px, -r[1].inlier_frac))
-    T_best, chk = refined[0]
-    ok, plain, why = _verdict(chk, opt)
-    rivals = ()
-    # The pending pose found again and still first: its own call looked for
-    # rivals already.
-    confirmed = ok and Tp is not None and _adds(mf, T_best, Tp) < near
-    if ok and not confirmed:
-        # The filter's own pose, though it need not pass, is a rival (never returned as it is).
-        own = _own_pose(Tp, Tp_refined, views, setup) if Tp is not None and opt.held_rival else None
-        own_rival = [own] if own is not None and not _same_as_any(mf, own[0], [T for T, _ in refined]) else []
-        T2, c2, rival = _rival(T_best, chk, plain, refined[1:] + own_rival, again, mf, opt)
-        if T2 is not None:
-            ok, why = False, (f"ambiguous: another pose scores {c2.inlier_frac:.2f} vs {chk.inlier_frac:.2f}"
-                              if rival else f"ambiguous (plain faces): another pose explains "
-                              f"{c2.inlier_px:.0f} px vs {chk.inlier_px:.0f}")
-            # Recalled by the next calls: a rival by agreement (a plain rival, a fit to
-            # static clutter, is found again on every frame, and the provisional start
-            # waits for a second call anyway).
-            rivals = (T_best, T2) if rival else ()
-    if ok and not confirmed and opt.probe_single and chk.n_cameras == 1:
-        ok, why, T2 = _probe(T_best, chk, _judging(views, chk), setup)
-        rivals = () if T2 is None else (T_best, T2)
-    if not ok and held is not None and opt.confirm_upheld and not why.startswith("ambiguous") and \
-            _upheld(held, refined, again, mf, opt):
-        res, rep = finish(*held, "upheld", nh)
-        return res, replace(rep, candidates=tuple(refined))
-    plain = plain and ok  # passed every check, under the looser limits
-    provisional = plain and opt.confirm_plain and not confirmed
-    if provisional and not opt.provisional_start:
-        ok, why = False, "plain faces: to be confirmed on the next call"
-    if not ok:
-        return None, InitReport(time.perf_counter() - t0, time.thread_time() - c0, "none", nh, False, chk.inlier_frac, chk.per_camera,
-                                chk.supported_edges, chk.visible_edges, why, tuple(refined), plain, rivals)
-    mode = "provisional" if provisional else "confirm" if plain and opt.confirm_plain else "search"
-    res, rep = finish(T_best, chk, mode, nh)
-    return replace(res, provisional=provisional), replace(rep, candidates=tuple(refined), plain=plain)
+        answer = _seeded(call, seed_T_world_object, rng)
+        if answer is not None:
+            return answer
+    cand, nh = _hypotheses(setup, views, attempt)
+    if not len(cand) and (pend is None or pend.passing is None):
+        return call.none(nh, "no hypotheses")
+    refined, again = _verified(setup, views, cand, attempt, pend, recall)
+    return _decided(call, refined, again, pend, nh)
 
 
 class Initializer:
