@@ -28,11 +28,6 @@ class InitResult:
         looser limits of a part with plain faces): the tracker tracks it but
         publishes it only once the initialiser confirms it
         (``vespro.tracker.Tracker.offer``).
-    found_again : bool
-        The initialiser was asked to confirm a provisional pose and found it
-        again (within its own allowance for the part's motion since): the
-        same pose, though its refinement may lie further from the filter's
-        estimate than the tracker's ``provisional_same_frac``.
     """
 
     T_world_object: np.ndarray
@@ -40,4 +35,3 @@ class InitResult:
     velocity: np.ndarray | None = None
     hidden: tuple = ()
     provisional: bool = False
-    found_again: bool = False

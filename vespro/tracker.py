@@ -165,15 +165,6 @@ class TrackerConfig:
         pose (within this fraction of the diameter, ADD over the part's
         symmetries) as confirmed; another pose from it restarts the filter
         there (:meth:`Tracker.offer`).
-    keep_found_again : bool
-        A pose the initialiser gives as its provisional pose found again
-        (``InitResult.found_again``: within its allowance for the motion since,
-        5% of the diameter plus 0.3 m/s) confirms the filter as it is, even
-        where it lies ``provisional_same_frac`` or more from the filter's
-        estimate: that call tested the pose against no rival, the filter's own
-        included. L-block 6601 (one camera): the filter 0.8% off was restarted
-        from the confirming call's best, 9.7% off and 10.1% from the filter,
-        and tracked at 5-10% from there.
     confirm_min_accepted : int
         Accepted features a frame needs to count towards confirmation...
     confirm_min_inlier_fraction : float
@@ -426,7 +417,6 @@ class TrackerConfig:
     confirm_frames: int = 2
     confirm_hold_neutral: bool = True
     provisional_same_frac: float = 0.1
-    keep_found_again: bool = True
     confirm_min_accepted: int = 6
     confirm_min_inlier_fraction: float = 0.75
     confirm_min_selected_fraction: float = 0.6
@@ -785,9 +775,8 @@ class Tracker:
         again from it (the caller then tracks on from ``t_ns``).
 
         Another pose than the filter's then (more than ``provisional_same_frac`` of the
-        diameter away, over the part's symmetries) and not the provisional pose found
-        again (``InitResult.found_again``, see ``keep_found_again``): the initialiser's
-        best is elsewhere, and the filter starts again from it. The same pose, given as confirmed: the start
+        diameter away, over the part's symmetries): the initialiser's best is elsewhere,
+        and the filter starts again from it. The same pose, given as confirmed: the start
         is confirmed, and from here on counts as a start made now (its strong frames so
         far still count) with the outline found from now on as the edge veto's reference
         and its deadline from now: a box start that filled one face's outline whole on
@@ -799,8 +788,7 @@ class Tracker:
             return False
         T_then = min(self._recent, key=lambda r: abs(r[0] - t_ns))[1] if self._recent else self.ekf.pose
         if add_sym(init.T_world_object, T_then, self.model.vertices, self.symmetries) >= \
-                self.config.provisional_same_frac * self.model.diameter and \
-                not (init.found_again and self.config.keep_found_again):
+                self.config.provisional_same_frac * self.model.diameter:
             self.start(init, t_ns)
             self.starts_replaced += 1
             return True

@@ -934,16 +934,3 @@ def test_the_filters_own_pose_is_never_returned_as_it_is():
     the call at frame 20 and published at 18.7%. As a rival only, nothing over 10% is
     published (measured: from frame 40, at 5.1%)."""
     assert max(_published_one_camera("box", 6809, 52), default=0.0) < 0.1
-
-
-def test_a_pose_found_again_confirms_the_filter_as_it_is():
-    """One camera, L-block (rig seed 6601), the initialiser every 5th frame: the filter of a
-    provisional start tracked to 0.8% by frame 9. The call at frame 10 found its pose again
-    (within the initialiser's allowance for motion) but refined it to a pose 9.7% off, 10.1%
-    from the filter: the tracker took that for another pose and started again from it, and
-    the track was published at 5-10%, one frame at 10.2% (the premise, ``keep_found_again``
-    off). A pose found again confirms the filter as it is (measured: published from frame 11
-    at 2.3%, at most 4.7% to frame 51)."""
-    assert max(_published_one_camera("lblock", 6601, 30, tracker={"keep_found_again": False}), default=0.0) >= 0.1
-    errs = _published_one_camera("lblock", 6601, 30)
-    assert len(errs) >= 10 and max(errs) < 0.06, errs

@@ -1133,7 +1133,7 @@ def _decided(call: _Call, refined: list, again: list, pend: _Pending | None, nh:
     if not ok and held is not None and opt.confirm_upheld and not why.startswith("ambiguous") and \
             _upheld(held, refined, again, mf, opt):
         res, rep = call.found(*held, "upheld", nh)
-        return replace(res, found_again=True), replace(rep, candidates=tuple(refined))
+        return res, replace(rep, candidates=tuple(refined))
     plain = plain and ok  # passed every check, under the looser limits
     provisional = plain and opt.confirm_plain and not confirmed
     if provisional and not opt.provisional_start:
@@ -1142,8 +1142,7 @@ def _decided(call: _Call, refined: list, again: list, pend: _Pending | None, nh:
         return call.none(nh, why, chk, candidates=tuple(refined), plain=plain, rivals=rivals)
     mode = "provisional" if provisional else "confirm" if plain and opt.confirm_plain else "search"
     res, rep = call.found(T_best, chk, mode, nh)
-    return replace(res, provisional=provisional, found_again=confirmed), \
-        replace(rep, candidates=tuple(refined), plain=plain)
+    return replace(res, provisional=provisional), replace(rep, candidates=tuple(refined), plain=plain)
 
 
 def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.ndarray | None = None,
