@@ -1188,7 +1188,9 @@ def initialize(setup: InitSetup, frameset: FrameSet, seed_T_world_object: np.nda
         A pose the previous call accepted only provisionally (its report's
         ``plain`` and first candidate): found again, refined from here or by
         the search, and still first among this call's candidates, the pose
-        is returned (mode ``"confirm"``).
+        is returned (mode ``"confirm"``): its own refinement on this frame set
+        where that passes (``InitOptions.confirm_own_refinement``), else the
+        candidate found first.
     attempt : int
         Calls so far without a pose: selects the extra refinement window.
     pending_age_s : float
