@@ -1013,10 +1013,8 @@ def _seeded(call: _Call, seed_T_world_object: np.ndarray, rng: np.random.Generat
             if _verdict(chk, opt)[0]:
                 return call.found(Tr, chk, "seed", len(starts))
     if opt.seed_only:
-        best = max(seeded, key=lambda r: r[1].inlier_frac)
-        return None, InitReport(time.perf_counter() - call.t0, time.thread_time() - call.c0, "none", len(starts),
-                                False, best[1].inlier_frac, best[1].per_camera,
-                                reason="seed: " + _accept(best[1], opt)[1])
+        best = max(seeded, key=lambda r: r[1].inlier_frac)[1]
+        return call.none(len(starts), "seed: " + _accept(best, opt)[1], best)
     return None
 
 
