@@ -122,6 +122,9 @@ class CameraFeatures:
         Whether the edge of each link ends at its first / second corner (it
         does not run on past the corner): an object corner ends the edges
         that meet there, a crossing of two background lines does not.
+    grey : ndarray, shape (H, W), uint8, or None
+        The undistorted image in grey levels (for the shading of the faces a
+        pose paints: :func:`vespro.init.search.face_interiors`).
     """
 
     name: str
@@ -134,6 +137,7 @@ class CameraFeatures:
     links: np.ndarray
     link_ends: np.ndarray
     grad: np.ndarray
+    grey: np.ndarray | None = None
 
 
 class Undistorter:
@@ -282,9 +286,10 @@ def extract_features(name: str, img: np.ndarray, K: np.ndarray, opt: EdgeOptions
     links = link_corners(corners, dt, opt, np.hypot(W, H))
     ends = link_ends(corners, links, dt, opt)
     grad = np.stack([dx, dy]).astype(np.float32)
-    for a in (dt, edges, corners, links, ends, grad):
+    grey = np.array(grey, np.uint8)  # (a copy: the caller's image may be reused)
+    for a in (dt, edges, corners, links, ends, grad, grey):
         a.setflags(write=False)
-    return CameraFeatures(name, np.asarray(K, float), W, H, dt, edges, corners, links, ends, grad)
+    return CameraFeatures(name, np.asarray(K, float), W, H, dt, edges, corners, links, ends, grad, grey)
 
 
 def detect_corners(grey: np.ndarray, opt: EdgeOptions) -> np.ndarray | None:

@@ -354,6 +354,19 @@ class InitOptions:
     plain_rival_px_frac : float
         A pose accepted under the looser limits must explain more edge length
         than this fraction of any distinct rival whose faces are also clear.
+    shade_rival_ratio, shade_rival_grey : float
+        With one judging camera, a plain part's rival (or a probe's restart)
+        whose face interiors are far less uniform in shade than the best
+        pose's (:attr:`vespro.init.search.PoseCheck.shade_rms`: at least
+        ``shade_rival_ratio`` times the best's RMS and ``shade_rival_grey``
+        grey levels above it) is no rival: its faces straddle a boundary
+        between the image's shades, too faint to be an edge, where the best
+        pose's faces each hold one shade. The image noise adds to both (the
+        ratio then asks for a stronger boundary on a noisier image). A box
+        seen by one camera with one face openly: the true pose 0.0-0.15 grey
+        levels, its rivals (a face turned over, pulled over a side face; 35-160%
+        of the diameter off, agreeing with as many edges) 1.9-7.7. 0 (either):
+        off.
     probe_single : bool
         With one judging camera, an accepted pose is refined again from
         turns of itself (``probe_deg`` both ways and half turns about the two
@@ -550,6 +563,8 @@ class InitOptions:
     plain_min_supported_edges: int = 6
     plain_min_crease_frac: float = 0.5
     plain_rival_px_frac: float = 0.8
+    shade_rival_ratio: float = 2.0
+    shade_rival_grey: float = 1.0
     probe_single: bool = True
     probe_deg: float = 25.0
     confirm_plain: bool = True
@@ -845,6 +860,15 @@ def _part_of(c2, chk, opt: InitOptions) -> bool:
             and unshared_px(chk, c2, opt.verify_tol_px) >= opt.subset_margin_frac * chk.inlier_px)
 
 
+def _shaded_apart(c2, chk, opt: InitOptions) -> bool:
+    """With one judging camera, pose check ``c2``'s faces are far less uniform in shade than
+    ``chk``'s (a plain part; ``InitOptions.shade_rival_*``): ``c2`` is no rival of ``chk``."""
+    if not (opt.plain_faces and chk.n_cameras == 1 and opt.shade_rival_ratio > 0 and opt.shade_rival_grey > 0):
+        return False
+    a, b = c2.shade_rms, chk.shade_rms
+    return bool(np.isfinite(a) and np.isfinite(b) and a >= opt.shade_rival_ratio * b and a >= b + opt.shade_rival_grey)
+
+
 def _rival(T_best: np.ndarray, chk, plain: bool, others, again, mf: ModelFeatures, opt: InitOptions):
     """(T, check, by agreement) of the first of ``others`` that makes ``T_best`` ambiguous, or
     (None, None, False): a distinct pose seen by the same cameras that agrees with the images
@@ -861,6 +885,8 @@ def _rival(T_best: np.ndarray, chk, plain: bool, others, again, mf: ModelFeature
         # view keeps counting as a rival).
         if opt.plain_faces and chk.n_cameras == 1 and \
                 c2.interior_edge_frac > 2 * opt.plain_max_interior_edge_frac:
+            continue
+        if _shaded_apart(c2, chk, opt):
             continue
         # A rival need not pass every check (the true pose of an
         # accidental view may fail one): seen by the same cameras, about
@@ -924,7 +950,7 @@ def _probe(T_world_object: np.ndarray, chk, views, setup: InitSetup) -> tuple[bo
                 c2.inlier_frac >= chk.inlier_frac - _margin(chk, opt) and \
                 c2.inlier_px >= (1 - opt.ambiguity_px_frac) * chk.inlier_px and \
                 not (opt.plain_faces and c2.interior_edge_frac > 2 * opt.plain_max_interior_edge_frac) and \
-                not _part_of(c2, chk, opt):
+                not _shaded_apart(c2, chk, opt) and not _part_of(c2, chk, opt):
             return False, (f"ambiguous: a restart settles on a pose scoring {c2.inlier_frac:.2f} vs "
                            f"{chk.inlier_frac:.2f}"), Tr
     return True, "", None

@@ -32,7 +32,7 @@ from .modelfeat import ModelFeatures
 from .p3p import p3p_grunert
 
 __all__ = ["image_paths", "p3p_hypotheses", "rank_in_camera", "CameraView", "visible_samples",
-           "refine_pose", "refine_subpixel", "edge_residuals", "interior_clutter", "PoseCheck", "check_pose",
+           "refine_pose", "refine_subpixel", "edge_residuals", "interior_clutter", "face_interiors", "PoseCheck", "check_pose",
            "unshared_px"]
 
 
@@ -1113,12 +1113,39 @@ def interior_clutter(T_camera_object: np.ndarray, feat: CameraFeatures, mf: Mode
                      margin_px: float = 3.0) -> tuple[float, int]:
     """Edge pixels inside the projected faces of a pose (an untextured part has none).
 
+    At the true pose of a part with plain faces the face interiors
+    (:func:`face_interiors`) hold only image noise; a pose fitted to clutter,
+    or a shifted or flipped copy of the part, covers image edges (the real
+    part's own edges among them).
+
+    Returns
+    -------
+    frac : float
+        Fraction of the interior pixels on Canny edges (NaN when the part is
+        behind the camera, off the image or has no interior).
+    n_interior : int
+        Interior pixels.
+    """
+    frac, n, _ = face_interiors(T_camera_object, feat, mf, margin_px)
+    return frac, n
+
+
+def face_interiors(T_camera_object: np.ndarray, feat: CameraFeatures, mf: ModelFeatures,
+                   margin_px: float = 3.0) -> tuple[float, int, float]:
+    """What lies inside the projected faces of a pose: image edges, and the shading.
+
     The front-facing mesh triangles are painted far to near into a face-label
     image (painter's order by triangle depth: enough for these parts); pixels
     more than ``margin_px`` from any face or silhouette boundary are the face
-    interiors. At the true pose of a part with plain faces they hold only
-    image noise; a pose fitted to clutter, or a shifted or flipped copy of the
-    part, covers image edges (the real part's own edges among them).
+    interiors.
+
+    The shading: a plane face of one material under distant light shows one
+    shade (plus the image noise). A pose whose faces straddle a boundary of
+    the image's shades (a face of the part turned over onto two faces of the
+    real part, a box's top face pulled over its side) is less uniform, even
+    where that boundary is too faint for an edge (2-4 grey levels between two
+    faces of a grey part): the RMS of the interior grey levels about each
+    face's own mean measures it.
 
     Parameters
     ----------
@@ -1134,13 +1161,17 @@ def interior_clutter(T_camera_object: np.ndarray, feat: CameraFeatures, mf: Mode
         behind the camera, off the image or has no interior).
     n_interior : int
         Interior pixels.
+    shade_rms : float
+        RMS of the interior pixels' grey levels about their face's mean (NaN
+        when there is no interior or ``feat`` has no grey image).
     """
+    nan = float("nan")
     R, t = T_camera_object[:3, :3], T_camera_object[:3, 3]
     front = _front(R[None], t[None], mf)[0]
     keep = front[mf.tri_face]
     X = mf.tri_p[keep] @ R.T + t  # (T, 3, 3)
     if len(X) == 0 or np.any(X[..., 2] <= 1e-6):
-        return float("nan"), 0
+        return nan, 0, nan
     K = feat.K
     uv = X[..., :2] / X[..., 2:3] * K[[0, 1], [0, 1]] + K[:2, 2]
     lo = np.floor(uv.reshape(-1, 2).min(0)).astype(int) - 2
@@ -1148,7 +1179,7 @@ def interior_clutter(T_camera_object: np.ndarray, feat: CameraFeatures, mf: Mode
     lo = np.maximum(lo, 0)
     hi = np.minimum(hi, [feat.width, feat.height])
     if np.any(hi - lo < 3):
-        return float("nan"), 0
+        return nan, 0, nan
     w, h = hi - lo
     label = np.zeros((h, w), np.int32)
     order = np.argsort(-X[..., 2].mean(1))
@@ -1167,9 +1198,16 @@ def interior_clutter(T_camera_object: np.ndarray, feat: CameraFeatures, mf: Mode
     interior = (label > 0) & (dist > margin_px)
     n = int(interior.sum())
     if n == 0:
-        return float("nan"), 0
+        return nan, 0, nan
     e = feat.edges[lo[1]:hi[1], lo[0]:hi[0]] > 0
-    return float(np.count_nonzero(e & interior)) / n, n
+    frac = float(np.count_nonzero(e & interior)) / n
+    if feat.grey is None:
+        return frac, n, nan
+    g = feat.grey[lo[1]:hi[1], lo[0]:hi[0]][interior].astype(np.float64)
+    f = label[interior]
+    cnt = np.bincount(f)
+    mean = np.bincount(f, g) / np.maximum(cnt, 1)
+    return frac, n, float(np.sqrt(np.mean((g - mean[f]) ** 2)))
 
 
 @dataclass(frozen=True)
@@ -1215,6 +1253,10 @@ class PoseCheck:
     interior_edge_frac : float
         Largest fraction, over the judging cameras, of the projected face
         interiors lying on image edges (:func:`interior_clutter`).
+    shade_rms : float
+        Largest, over the judging cameras, RMS of the face interiors' grey
+        levels about their face's mean (:func:`face_interiors`), grey levels
+        (NaN where no camera could say).
     crease_edges, crease_supported : int
         Visible edges between two faces that both face the camera (inside
         the silhouette), summed over cameras, and how many are supported.
@@ -1273,6 +1315,7 @@ class PoseCheck:
     strips_apart: int = 0
     open_edges_apart: int = 0
     outer_parallel: int = 0
+    shade_rms: float = float("nan")
 
 
 def _outer_parallel(k_sil, ue, ub, elen, uv, e, bins, n_bins, dt, inward_uv, min_px: float, lo_px: float,
@@ -1502,6 +1545,7 @@ def check_pose(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFea
     big = mf.face_areas >= 0.05 * mf.face_areas.sum()
     n_over, n_ends = 0, 0
     clutter = 0.0
+    shade = float("nan")
     cr_e, cr_sup = 0, 0
     n_distinct, n_strips, n_open_apart = 0, 0, 0
     n_outer = 0
@@ -1534,8 +1578,9 @@ def check_pose(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFea
         cosv = -np.sum(nc * Xf, 1) / np.linalg.norm(Xf, axis=1)
         open_f = big & (cosv >= cos_open)
         open_min = min(open_min, int(np.sum(open_f)))
-        cf, _ = interior_clutter(T_co, v.feat, mf)
+        cf, _, rms = face_interiors(T_co, v.feat, mf)
         clutter = max(clutter, cf if np.isfinite(cf) else 1.0)
+        shade = float(np.fmax(shade, rms))  # (NaN only where neither says)
         e = mf.sample_edge[idx]
         ue, _ = _project(v.feat.K, T_co, mf.edge_a)
         ub, _ = _project(v.feat.K, T_co, mf.edge_b)
@@ -1600,7 +1645,7 @@ def check_pose(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFea
                      dsum / n_all if n_all else float("inf"), unseen, size if np.isfinite(size) else 0.0,
                      inl_px, open_min if ncam else 0, n_over / n_ends if n_ends else 0.0, clutter, cr_e, cr_sup,
                      explained=tuple(explained), distinct_supported=n_distinct, strips_apart=n_strips,
-                     open_edges_apart=n_open_apart, outer_parallel=n_outer)
+                     open_edges_apart=n_open_apart, outer_parallel=n_outer, shade_rms=shade)
 
 
 def unshared_px(a: PoseCheck, b: PoseCheck, tol_px: float = 2.0) -> float:
