@@ -14,12 +14,12 @@ from test_init_search import CAMS, T_WO, K, render
 
 from vespro.init import InitOptions
 from vespro.init.features import EdgeOptions, extract_features
-from vespro.init.initializer import _accept_plain, _rival, _upheld, _verdict, make_setup
+from vespro.init.initializer import _accept_plain, _probe, _rival, _shaded_apart, _upheld, _verdict, make_setup
 from vespro.init.modelfeat import model_features
-from vespro.init.search import CameraView, PoseCheck, check_pose, interior_clutter
-from vespro.model import load_model
+from vespro.init.search import CameraView, PoseCheck, check_pose, face_interiors, interior_clutter
+from vespro.model import box_model, load_model
 from vespro.rig import Rig
-from vespro.se3 import invert_transform, transform_from_rt
+from vespro.se3 import exp_so3, invert_transform, transform_from_rt
 from vespro.sim.scene import MODELS_DIR
 
 
@@ -381,3 +381,78 @@ def test_a_recalled_pose_rivals_within_twice_the_margins(scene):
     assert recalled_rival(inlier_px=310.0, inlier_frac=0.81)  # agreement widened
     assert recalled_rival(inlier_px=230.0, inlier_frac=0.89)  # edge length widened
     assert not recalled_rival(inlier_px=230.0, inlier_frac=0.81)  # not both
+
+
+def _faint(model, T_co, step, noise, rng):
+    """Grey image of the model at a pose on a dark ground, the shades of its face normals
+    ``step`` grey levels apart (3: too faint for an edge), plus Gaussian noise of std ``noise``."""
+    img = np.full((480, 640), 30.0)
+    V = model.vertices @ T_co[:3, :3].T + T_co[:3, 3]
+    uv = V[:, :2] / V[:, 2:] * [K[0, 0], K[1, 1]] + K[:2, 2]
+    tri = model.triangles
+    normals = [tuple(n) for n in np.unique(np.round(model.face_normals, 6), axis=0)]
+    for k in np.argsort(-V[tri].mean(1)[:, 2]):
+        n = T_co[:3, :3] @ model.face_normals[model.triangle_face[k]]
+        if n @ V[tri[k, 0]] >= 0:
+            continue
+        m = np.zeros(img.shape, np.uint8)
+        cv2.fillPoly(m, [np.round(uv[tri[k]] * 16).astype(np.int32)], 1, shift=4)
+        img[m > 0] = 120.0 + step * normals.index(tuple(np.round(model.face_normals[model.triangle_face[k]], 6)))
+    return np.clip(img + rng.normal(0.0, noise, img.shape), 0, 255).astype(np.uint8)
+
+
+@pytest.mark.parametrize("cam", [0, 1])
+@pytest.mark.parametrize("step, noise, apart", [(3.0, 0.0, True), (3.0, 2.0, False), (10.0, 2.0, True)])
+def test_face_shading_is_uniform_at_the_true_pose_only(cam, step, noise, apart):
+    """The faces of a box's true pose each hold one shade (their RMS about their own means is
+    the image noise). The box turned half a turn about the line of sight through its centre
+    has (nearly) the same outline and no image edge inside its faces, but its faces straddle
+    the box's: more RMS. With the shades 3 grey levels apart that tells the turned pose apart
+    (``InitOptions.shade_rival_*``) on a noise-free image, not under noise of 2 grey levels
+    (the ratio holds back); 10 levels apart (creases seen as edges), under that noise too."""
+    box = box_model([0.12, 0.08, 0.06], center=[0, 0, 0.03])
+    mf = model_features(box)
+    T_co = invert_transform(CAMS[cam]) @ T_WO
+    img = _faint(box, T_co, step, noise, np.random.default_rng(5))
+    feat = extract_features("c0", img, K, EdgeOptions())
+    assert feat.grey is not None and feat.grey.shape == img.shape
+    frac, n, rms = face_interiors(T_co, feat, mf)
+    assert n > 1000 and frac < 0.002
+    assert abs(rms - noise) < 0.2, rms  # the noise alone
+    c = T_co[:3, :3] @ (0.5 * (mf.vertices.min(0) + mf.vertices.max(0))) + T_co[:3, 3]
+    dR = exp_so3(c / np.linalg.norm(c) * np.pi)
+    T_t = transform_from_rt(dR @ T_co[:3, :3], c + dR @ (T_co[:3, 3] - c))
+    frac_t, n_t, rms_t = face_interiors(T_t, feat, mf)
+    assert n_t > 1000
+    if step <= 3.0:  # (10 levels apart the creases are image edges: interior_edge_frac sees it too)
+        assert frac_t < InitOptions().plain_max_interior_edge_frac
+    assert rms_t > rms + 0.5
+    assert _shaded_apart(PoseCheck(0.8, {"c0": 0.8}, 300, 8, 10, 1, 1.0, shade_rms=rms_t),
+                         PoseCheck(0.8, {"c0": 0.8}, 300, 8, 10, 1, 1.0, shade_rms=rms), InitOptions()) == apart
+    # No grey image (features made elsewhere): the shading is not known.
+    assert np.isnan(face_interiors(T_co, replace(feat, grey=None), mf)[2])
+
+
+def test_a_rival_far_less_uniform_in_shade_is_no_rival(scene):
+    """One camera, a plain part: a distinct pose scoring as well is a rival, unless its faces'
+    shade RMS is at least twice the best's and 1 grey level above it (box 1204, one camera:
+    the true pose 0.13, a rival 35% off agreeing with more edges, 4.3). Several cameras,
+    a textured part, NaN or the option off: a rival as before."""
+    mf = scene[0]
+    opt = InitOptions()
+    best = _check(inlier_frac=0.83, inlier_px=377.0, shade_rms=0.13)
+    far = T_WO @ transform_from_rt(np.eye(3), [0.5 * mf.diameter, 0.0, 0.0])
+
+    def rival(c2, chk=best, o=opt):
+        return _rival(T_WO, chk, False, [(far, c2)], (), mf, o)[0] is far
+
+    other = _check(inlier_frac=0.85, inlier_px=449.0, shade_rms=4.32)
+    assert not rival(other) and _shaded_apart(other, best, opt)
+    for kw in (dict(shade_rms=0.9), dict(shade_rms=float("nan"))):  # under 1 level above; not known
+        assert rival(replace(other, **kw)), kw
+    assert rival(other, replace(best, shade_rms=2.5))  # under twice the best's (a noisy image)
+    assert rival(other, replace(best, shade_rms=float("nan")))
+    for o in (replace(opt, shade_rival_ratio=0.0), replace(opt, shade_rival_grey=0.0), replace(opt, plain_faces=False)):
+        assert rival(other, o=o)
+    two = dict(n_cameras=2, per_camera={"a": 0.85, "b": 0.85})
+    assert rival(replace(other, **two), replace(best, **two))
