@@ -427,17 +427,21 @@ def test_face_shading_is_uniform_at_the_true_pose_only(cam, step, noise, apart):
     if step <= 3.0:  # (10 levels apart the creases are image edges: interior_edge_frac sees it too)
         assert frac_t < InitOptions().plain_max_interior_edge_frac
     assert rms_t > rms + 0.5
+    assert abs(feat.grey_noise - noise) < 0.2  # the image's noise, as estimated
     assert _shaded_apart(PoseCheck(0.8, {"c0": 0.8}, 300, 8, 10, 1, 1.0, shade_rms=rms_t),
-                         PoseCheck(0.8, {"c0": 0.8}, 300, 8, 10, 1, 1.0, shade_rms=rms), InitOptions()) == apart
+                         PoseCheck(0.8, {"c0": 0.8}, 300, 8, 10, 1, 1.0, shade_rms=rms, shade_noise=feat.grey_noise),
+                         InitOptions()) == apart
     # No grey image (features made elsewhere): the shading is not known.
     assert np.isnan(face_interiors(T_co, replace(feat, grey=None), mf)[2])
 
 
 def test_a_rival_far_less_uniform_in_shade_is_no_rival(scene):
-    """One camera, a plain part: a distinct pose scoring as well is a rival, unless its faces'
-    shade RMS is at least twice the best's and 1 grey level above it (box 1204, one camera:
-    the true pose 0.13, a rival 35% off agreeing with more edges, 4.3). Several cameras,
-    a textured part, NaN or the option off: a rival as before."""
+    """One camera, a plain part: a distinct pose scoring as well is a rival, unless the best's
+    faces hold one shade each (RMS within 1 grey level of the image noise) and the rival's
+    RMS is at least twice the best's and 1 grey level above it (box 1204, one camera: the
+    true pose 0.13, a rival 35% off agreeing with more edges, 4.3). A best not of one shade
+    (box 5214: 1.9 diameters off at 6.0, its rival 22), several cameras, a textured part, NaN
+    or the option off: a rival as before."""
     mf = scene[0]
     opt = InitOptions()
     best = _check(inlier_frac=0.83, inlier_px=377.0, shade_rms=0.13)
@@ -450,7 +454,9 @@ def test_a_rival_far_less_uniform_in_shade_is_no_rival(scene):
     assert not rival(other) and _shaded_apart(other, best, opt)
     for kw in (dict(shade_rms=0.9), dict(shade_rms=float("nan"))):  # under 1 level above; not known
         assert rival(replace(other, **kw)), kw
-    assert rival(other, replace(best, shade_rms=2.5))  # under twice the best's (a noisy image)
+    assert rival(other, replace(best, shade_rms=2.5, shade_noise=2.0))  # under twice the best's (a noisy image)
+    assert not rival(replace(other, shade_rms=6.0), replace(best, shade_rms=2.5, shade_noise=2.0))
+    assert rival(replace(other, shade_rms=22.0), replace(best, shade_rms=6.0))  # the best not of one shade
     assert rival(other, replace(best, shade_rms=float("nan")))
     for o in (replace(opt, shade_rival_ratio=0.0), replace(opt, shade_rival_grey=0.0), replace(opt, plain_faces=False)):
         assert rival(other, o=o)

@@ -125,6 +125,8 @@ class CameraFeatures:
     grey : ndarray, shape (H, W), uint8, or None
         The undistorted image in grey levels (for the shading of the faces a
         pose paints: :func:`vespro.init.search.face_interiors`).
+    grey_noise : float
+        Std of ``grey``'s intensity noise (:func:`image_noise`), grey levels.
     """
 
     name: str
@@ -138,6 +140,7 @@ class CameraFeatures:
     link_ends: np.ndarray
     grad: np.ndarray
     grey: np.ndarray | None = None
+    grey_noise: float = 0.0
 
 
 class Undistorter:
@@ -240,9 +243,10 @@ def _sobel_noise_gain(blur_sigma: float) -> float:
     return float(np.sqrt(np.sum(cv2.Sobel(d, cv2.CV_32F, 1, 0, ksize=3) ** 2)))
 
 
-def canny_thresholds(img: np.ndarray, opt: EdgeOptions) -> tuple[float, float]:
-    """(low, high) Canny thresholds for an image: the floors, raised with its noise."""
-    sg = image_noise(img) * _sobel_noise_gain(opt.blur_sigma)
+def canny_thresholds(img: np.ndarray, opt: EdgeOptions, noise: float | None = None) -> tuple[float, float]:
+    """(low, high) Canny thresholds for an image: the floors, raised with its noise
+    (``noise``: :func:`image_noise` of ``img`` where already known)."""
+    sg = (image_noise(img) if noise is None else noise) * _sobel_noise_gain(opt.blur_sigma)
     return max(opt.canny_low, opt.canny_noise_low * sg), max(opt.canny_high, opt.canny_noise_high * sg)
 
 
@@ -263,7 +267,8 @@ def extract_features(name: str, img: np.ndarray, K: np.ndarray, opt: EdgeOptions
     """
     H, W = img.shape[:2]
     dx, dy = _gradient(img, opt.blur_sigma)
-    lo, hi = canny_thresholds(img, opt)
+    noise = image_noise(img)
+    lo, hi = canny_thresholds(img, opt, noise)
     edges = cv2.Canny(dx, dy, lo, hi, L2gradient=True)
     vv, uu = np.nonzero(edges)
     b = normal_bins(np.arctan2(dy[vv, uu].astype(float), dx[vv, uu].astype(float)), opt.n_bins)
@@ -287,9 +292,10 @@ def extract_features(name: str, img: np.ndarray, K: np.ndarray, opt: EdgeOptions
     ends = link_ends(corners, links, dt, opt)
     grad = np.stack([dx, dy]).astype(np.float32)
     grey = np.array(grey, np.uint8)  # (a copy: the caller's image may be reused)
+    grey_noise = noise if img.ndim == 2 else image_noise(grey)
     for a in (dt, edges, corners, links, ends, grad, grey):
         a.setflags(write=False)
-    return CameraFeatures(name, np.asarray(K, float), W, H, dt, edges, corners, links, ends, grad, grey)
+    return CameraFeatures(name, np.asarray(K, float), W, H, dt, edges, corners, links, ends, grad, grey, grey_noise)
 
 
 def detect_corners(grey: np.ndarray, opt: EdgeOptions) -> np.ndarray | None:

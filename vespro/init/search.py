@@ -1257,6 +1257,10 @@ class PoseCheck:
         Largest, over the judging cameras, RMS of the face interiors' grey
         levels about their face's mean (:func:`face_interiors`), grey levels
         (NaN where no camera could say).
+    shade_noise : float
+        The intensity noise of that camera's image
+        (:attr:`vespro.init.features.CameraFeatures.grey_noise`), grey levels:
+        what ``shade_rms`` is at most on faces of one shade each.
     crease_edges, crease_supported : int
         Visible edges between two faces that both face the camera (inside
         the silhouette), summed over cameras, and how many are supported.
@@ -1316,6 +1320,7 @@ class PoseCheck:
     open_edges_apart: int = 0
     outer_parallel: int = 0
     shade_rms: float = float("nan")
+    shade_noise: float = 0.0
 
 
 def _outer_parallel(k_sil, ue, ub, elen, uv, e, bins, n_bins, dt, inward_uv, min_px: float, lo_px: float,
@@ -1545,7 +1550,7 @@ def check_pose(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFea
     big = mf.face_areas >= 0.05 * mf.face_areas.sum()
     n_over, n_ends = 0, 0
     clutter = 0.0
-    shade = float("nan")
+    shade, shade_noise = float("nan"), 0.0
     cr_e, cr_sup = 0, 0
     n_distinct, n_strips, n_open_apart = 0, 0, 0
     n_outer = 0
@@ -1580,7 +1585,8 @@ def check_pose(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFea
         open_min = min(open_min, int(np.sum(open_f)))
         cf, _, rms = face_interiors(T_co, v.feat, mf)
         clutter = max(clutter, cf if np.isfinite(cf) else 1.0)
-        shade = float(np.fmax(shade, rms))  # (NaN only where neither says)
+        if np.isfinite(rms) and not rms <= shade:  # (NaN only where no camera says)
+            shade, shade_noise = rms, v.feat.grey_noise
         e = mf.sample_edge[idx]
         ue, _ = _project(v.feat.K, T_co, mf.edge_a)
         ub, _ = _project(v.feat.K, T_co, mf.edge_b)
@@ -1645,7 +1651,8 @@ def check_pose(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFea
                      dsum / n_all if n_all else float("inf"), unseen, size if np.isfinite(size) else 0.0,
                      inl_px, open_min if ncam else 0, n_over / n_ends if n_ends else 0.0, clutter, cr_e, cr_sup,
                      explained=tuple(explained), distinct_supported=n_distinct, strips_apart=n_strips,
-                     open_edges_apart=n_open_apart, outer_parallel=n_outer, shade_rms=shade)
+                     open_edges_apart=n_open_apart, outer_parallel=n_outer, shade_rms=shade,
+                     shade_noise=shade_noise)
 
 
 def unshared_px(a: PoseCheck, b: PoseCheck, tol_px: float = 2.0) -> float:
