@@ -1113,18 +1113,10 @@ def interior_clutter(T_camera_object: np.ndarray, feat: CameraFeatures, mf: Mode
                      margin_px: float = 3.0) -> tuple[float, int]:
     """Edge pixels inside the projected faces of a pose (an untextured part has none).
 
-    At the true pose of a part with plain faces the face interiors
-    (:func:`face_interiors`) hold only image noise; a pose fitted to clutter,
-    or a shifted or flipped copy of the part, covers image edges (the real
-    part's own edges among them).
-
-    Returns
-    -------
-    frac : float
-        Fraction of the interior pixels on Canny edges (NaN when the part is
-        behind the camera, off the image or has no interior).
-    n_interior : int
-        Interior pixels.
+    At the true pose of a part with plain faces the face interiors hold only
+    image noise; a pose fitted to clutter, or a shifted or flipped copy of the
+    part, covers image edges (the real part's own edges among them). Returns
+    ``(frac, n_interior)`` of :func:`face_interiors`.
     """
     frac, n, _ = face_interiors(T_camera_object, feat, mf, margin_px)
     return frac, n
