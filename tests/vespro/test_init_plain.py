@@ -416,13 +416,13 @@ def test_face_shading_is_uniform_at_the_true_pose_only(cam, step, noise, apart):
     img = _faint(box, T_co, step, noise, np.random.default_rng(5))
     feat = extract_features("c0", img, K, EdgeOptions())
     assert feat.grey is not None and feat.grey.shape == img.shape
-    frac, n, rms = face_interiors(T_co, feat, mf)
+    frac, n, rms, stp = face_interiors(T_co, feat, mf)
     assert n > 1000 and frac < 0.002
     assert abs(rms - noise) < 0.2, rms  # the noise alone
     c = T_co[:3, :3] @ (0.5 * (mf.vertices.min(0) + mf.vertices.max(0))) + T_co[:3, 3]
     dR = exp_so3(c / np.linalg.norm(c) * np.pi)
     T_t = transform_from_rt(dR @ T_co[:3, :3], c + dR @ (T_co[:3, 3] - c))
-    frac_t, n_t, rms_t = face_interiors(T_t, feat, mf)
+    frac_t, n_t, rms_t, stp_t = face_interiors(T_t, feat, mf)
     assert n_t > 1000
     if step <= 3.0:  # (10 levels apart the creases are image edges: interior_edge_frac sees it too)
         assert frac_t < InitOptions().plain_max_interior_edge_frac

@@ -340,6 +340,19 @@ class InitOptions:
     plain_max_interior_edge_frac : float
         Most fraction of the face interiors on image edges (image noise at the
         true pose stays below 0.002 in the simulator).
+    plain_max_shade_step : float
+        ... and with one judging camera no face may lie over two shades: its
+        grey levels split in two groups (each at least 15% of the face) whose
+        spread is at most this fraction of the step between them
+        (:attr:`vespro.init.search.PoseCheck.shade_step`), a boundary inside
+        the face too faint to be an edge. L-block 6014 (one camera, the part
+        turned over about its long axis explains the outline as well and more
+        of the image edges) was taken 67% off: its back face lay over two of
+        the part's faces 2.9 grey levels apart (ratio 0.06). Near-true
+        candidates in 60 one-camera views: none under 0.15; a gradient across a
+        face spreads its levels evenly (about 0.29). Image noise adds to the
+        spread, so on a noisy image only a step of 10 times the noise counts.
+        0: off.
     plain_min_inlier_frac, plain_max_mean_dist, plain_max_overrun_frac : float
     plain_min_supported_edges : int
         The looser single-camera limits.
@@ -562,6 +575,7 @@ class InitOptions:
     shared_edge_px: float = 1.5
     plain_faces: bool = True
     plain_max_interior_edge_frac: float = 0.005
+    plain_max_shade_step: float = 0.1
     plain_min_inlier_frac: float = 0.65
     plain_max_mean_dist: float = 5.0
     plain_max_overrun_frac: float = 0.3
@@ -685,6 +699,8 @@ def _accept(chk, opt: InitOptions) -> tuple[bool, str]:
         return False, "outside the view of a fixed camera"
     if opt.plain_faces and chk.n_cameras == 1 and chk.interior_edge_frac > opt.plain_max_interior_edge_frac:
         return False, f"one camera, image edges inside the faces ({chk.interior_edge_frac:.3f})"
+    if opt.plain_faces and chk.n_cameras == 1 and chk.shade_step <= opt.plain_max_shade_step > 0:
+        return False, f"one camera, a face over two shades ({chk.shade_step:.2f})"
     need_frac = opt.min_inlier_frac if chk.n_cameras > 1 else opt.min_inlier_frac_single
     if chk.inlier_frac < need_frac:
         return False, f"inlier fraction {chk.inlier_frac:.2f} < {need_frac}"
@@ -715,6 +731,8 @@ def _accept_plain(chk, opt: InitOptions) -> tuple[bool, str]:
         return False, "not a single-camera view"
     if chk.interior_edge_frac > opt.plain_max_interior_edge_frac:
         return False, f"image edges inside the faces ({chk.interior_edge_frac:.3f})"
+    if chk.shade_step <= opt.plain_max_shade_step > 0:
+        return False, f"a face over two shades ({chk.shade_step:.2f})"
     if chk.inlier_frac < opt.plain_min_inlier_frac:
         return False, f"inlier fraction {chk.inlier_frac:.2f} < {opt.plain_min_inlier_frac}"
     if chk.crease_edges and chk.crease_supported < opt.plain_min_crease_frac * chk.crease_edges:
@@ -920,7 +938,7 @@ def _upheld(held: tuple, refined: list, again, mf: ModelFeatures, opt: InitOptio
     (``InitOptions.confirm_upheld``)."""
     Th, ch = held
     if ch.n_cameras != 1 or ch.inlier_frac < opt.upheld_min_inlier_frac or \
-            ch.interior_edge_frac > opt.plain_max_interior_edge_frac:
+            ch.interior_edge_frac > opt.plain_max_interior_edge_frac or ch.shade_step <= opt.plain_max_shade_step > 0:
         return False
     if any(c.inlier_px > ch.inlier_px and _adds(mf, Th, T) > opt.distinct_frac * mf.diameter
            for T, c in refined):

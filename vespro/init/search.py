@@ -1118,12 +1118,13 @@ def interior_clutter(T_camera_object: np.ndarray, feat: CameraFeatures, mf: Mode
     part, covers image edges (the real part's own edges among them). Returns
     ``(frac, n_interior)`` of :func:`face_interiors`.
     """
-    frac, n, _ = face_interiors(T_camera_object, feat, mf, margin_px)
+    frac, n, _, _ = face_interiors(T_camera_object, feat, mf, margin_px)
     return frac, n
 
 
 def face_interiors(T_camera_object: np.ndarray, feat: CameraFeatures, mf: ModelFeatures,
-                   margin_px: float = 3.0) -> tuple[float, int, float]:
+                   margin_px: float = 3.0, min_face_px: int = 50, min_side: float = 0.15,
+                   min_step_grey: float = 2.0) -> tuple[float, int, float, float]:
     """What lies inside the projected faces of a pose: image edges, and the shading.
 
     The front-facing mesh triangles are painted far to near into a face-label
@@ -1137,7 +1138,10 @@ def face_interiors(T_camera_object: np.ndarray, feat: CameraFeatures, mf: ModelF
     real part, a box's top face pulled over its side) is less uniform, even
     where that boundary is too faint for an edge (2-4 grey levels between two
     faces of a grey part): the RMS of the interior grey levels about each
-    face's own mean measures it.
+    face's own mean measures it. A face lying over two shades with a sharp
+    boundary between them splits its grey levels in two groups far apart
+    for their spread (:func:`_shade_step`); a shading gradient across a face
+    spreads them evenly (a ratio of about 0.29 for an even spread).
 
     Parameters
     ----------
@@ -1156,6 +1160,14 @@ def face_interiors(T_camera_object: np.ndarray, feat: CameraFeatures, mf: ModelF
     shade_rms : float
         RMS of the interior pixels' grey levels about their face's mean (NaN
         when there is no interior or ``feat`` has no grey image).
+    shade_step : float
+        Least, over the faces with at least ``min_face_px`` interior pixels,
+        ratio of the RMS within the two groups of a face's grey levels
+        (Otsu's split) to the step between their means, where the smaller
+        group holds at least ``min_side`` of the face and the step is at least
+        ``min_step_grey``; inf where no face splits so (NaN without a grey
+        image). Image noise adds to the spread: on a noisy image only a step
+        of many times the noise gives a small ratio.
     """
     nan = float("nan")
     R, t = T_camera_object[:3, :3], T_camera_object[:3, 3]
@@ -1163,7 +1175,7 @@ def face_interiors(T_camera_object: np.ndarray, feat: CameraFeatures, mf: ModelF
     keep = front[mf.tri_face]
     X = mf.tri_p[keep] @ R.T + t  # (T, 3, 3)
     if len(X) == 0 or np.any(X[..., 2] <= 1e-6):
-        return nan, 0, nan
+        return nan, 0, nan, nan
     K = feat.K
     uv = X[..., :2] / X[..., 2:3] * K[[0, 1], [0, 1]] + K[:2, 2]
     lo = np.floor(uv.reshape(-1, 2).min(0)).astype(int) - 2
@@ -1171,7 +1183,7 @@ def face_interiors(T_camera_object: np.ndarray, feat: CameraFeatures, mf: ModelF
     lo = np.maximum(lo, 0)
     hi = np.minimum(hi, [feat.width, feat.height])
     if np.any(hi - lo < 3):
-        return nan, 0, nan
+        return nan, 0, nan, nan
     w, h = hi - lo
     label = np.zeros((h, w), np.int32)
     order = np.argsort(-X[..., 2].mean(1))
@@ -1190,16 +1202,43 @@ def face_interiors(T_camera_object: np.ndarray, feat: CameraFeatures, mf: ModelF
     interior = (label > 0) & (dist > margin_px)
     n = int(interior.sum())
     if n == 0:
-        return nan, 0, nan
+        return nan, 0, nan, nan
     e = feat.edges[lo[1]:hi[1], lo[0]:hi[0]] > 0
     frac = float(np.count_nonzero(e & interior)) / n
     if feat.grey is None:
-        return frac, n, nan
-    g = feat.grey[lo[1]:hi[1], lo[0]:hi[0]][interior].astype(np.float64)
+        return frac, n, nan, nan
+    gi = feat.grey[lo[1]:hi[1], lo[0]:hi[0]][interior]
+    g = gi.astype(np.float64)
     f = label[interior]
     cnt = np.bincount(f)
     mean = np.bincount(f, g) / np.maximum(cnt, 1)
-    return frac, n, float(np.sqrt(np.mean((g - mean[f]) ** 2)))
+    step = min((_shade_step(gi[f == k], min_side, min_step_grey) for k in np.flatnonzero(cnt >= min_face_px)),
+               default=float("inf"))
+    return frac, n, float(np.sqrt(np.mean((g - mean[f]) ** 2))), step
+
+
+def _shade_step(grey: np.ndarray, min_side: float, min_step: float) -> float:
+    """RMS within the two groups of grey levels ``grey`` (uint8) split by Otsu's threshold, over
+    the step between the groups' means; inf when the smaller group holds under ``min_side`` of
+    the values or the step is under ``min_step`` grey levels."""
+    h = np.bincount(grey, minlength=256).astype(np.float64)
+    p = h / h.sum()
+    lv = np.arange(256.0)
+    w0 = np.cumsum(p)[:-1]  # the lower group: levels <= t
+    m0 = np.cumsum(p * lv)[:-1]
+    mt = float(p @ lv)
+    w1 = 1.0 - w0
+    ok = (w0 >= min_side) & (w1 >= min_side)
+    if not ok.any():
+        return float("inf")
+    between = np.where(ok, (mt * w0 - m0) ** 2 / np.maximum(w0 * w1, 1e-12), -1.0)
+    t = int(np.argmax(between))
+    mu0, mu1 = m0[t] / w0[t], (mt - m0[t]) / w1[t]
+    d = mu1 - mu0
+    if d < min_step:
+        return float("inf")
+    within = max(float(p @ (lv - mt) ** 2) - between[t], 0.0)
+    return float(np.sqrt(within) / d)
 
 
 @dataclass(frozen=True)
@@ -1249,6 +1288,9 @@ class PoseCheck:
         Largest, over the judging cameras, RMS of the face interiors' grey
         levels about their face's mean (:func:`face_interiors`), grey levels
         (NaN where no camera could say).
+    shade_step : float
+        Least, over the judging cameras, :func:`face_interiors`'s
+        ``shade_step``: a face lying over two shades (inf where none does).
     shade_noise : float
         The intensity noise of that camera's image
         (:attr:`vespro.init.features.CameraFeatures.grey_noise`), grey levels:
@@ -1313,6 +1355,7 @@ class PoseCheck:
     outer_parallel: int = 0
     shade_rms: float = float("nan")
     shade_noise: float = 0.0
+    shade_step: float = float("inf")
 
 
 def _outer_parallel(k_sil, ue, ub, elen, uv, e, bins, n_bins, dt, inward_uv, min_px: float, lo_px: float,
@@ -1542,7 +1585,7 @@ def check_pose(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFea
     big = mf.face_areas >= 0.05 * mf.face_areas.sum()
     n_over, n_ends = 0, 0
     clutter = 0.0
-    shade, shade_noise = float("nan"), 0.0
+    shade, shade_noise, shade_step = float("nan"), 0.0, float("inf")
     cr_e, cr_sup = 0, 0
     n_distinct, n_strips, n_open_apart = 0, 0, 0
     n_outer = 0
@@ -1575,8 +1618,9 @@ def check_pose(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFea
         cosv = -np.sum(nc * Xf, 1) / np.linalg.norm(Xf, axis=1)
         open_f = big & (cosv >= cos_open)
         open_min = min(open_min, int(np.sum(open_f)))
-        cf, _, rms = face_interiors(T_co, v.feat, mf)
+        cf, _, rms, stp = face_interiors(T_co, v.feat, mf)
         clutter = max(clutter, cf if np.isfinite(cf) else 1.0)
+        shade_step = min(shade_step, stp) if not np.isnan(stp) else shade_step
         if np.isfinite(rms) and not rms <= shade:  # (NaN only where no camera says)
             shade, shade_noise = rms, v.feat.grey_noise
         e = mf.sample_edge[idx]
@@ -1644,7 +1688,7 @@ def check_pose(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFea
                      inl_px, open_min if ncam else 0, n_over / n_ends if n_ends else 0.0, clutter, cr_e, cr_sup,
                      explained=tuple(explained), distinct_supported=n_distinct, strips_apart=n_strips,
                      open_edges_apart=n_open_apart, outer_parallel=n_outer, shade_rms=shade,
-                     shade_noise=shade_noise)
+                     shade_noise=shade_noise, shade_step=shade_step)
 
 
 def unshared_px(a: PoseCheck, b: PoseCheck, tol_px: float = 2.0) -> float:
