@@ -963,3 +963,14 @@ def test_a_rival_whose_faces_straddle_the_image_shades_leaves_a_box_unambiguous(
     assert _published_one_camera("box", 417, 30, shade_rival_ratio=0.0) == []
     errs = _published_one_camera("box", 417, 30)
     assert len(errs) >= 20 and max(errs) < 0.06, errs
+
+
+def test_a_pose_with_a_face_over_two_shades_is_not_published():
+    """One camera, L-block (rig seed 6014), the initialiser every 5th frame: the part turned
+    over about its long axis (67% of the diameter off) explains the outline as well as the
+    true pose and more of the image edges (0.84 against 0.69); it was taken at frame 30 and
+    published from frame 32 (the premise, ``plain_max_shade_step`` 0). Its back face lies
+    over two of the part's faces 2.9 grey levels apart, too faint for an edge (ratio 0.06):
+    refused, nothing wrong is published (measured: nothing in 52 frames)."""
+    assert max(_published_one_camera("lblock", 6014, 36, plain_max_shade_step=0.0), default=0.0) >= 0.1
+    assert max(_published_one_camera("lblock", 6014, 36), default=0.0) < 0.1

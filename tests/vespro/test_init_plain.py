@@ -16,7 +16,7 @@ from vespro.init import InitOptions
 from vespro.init.features import EdgeOptions, extract_features
 from vespro.init.initializer import _accept_plain, _probe, _rival, _shaded_apart, _upheld, _verdict, make_setup
 from vespro.init.modelfeat import model_features
-from vespro.init.search import CameraView, PoseCheck, check_pose, face_interiors, interior_clutter
+from vespro.init.search import CameraView, PoseCheck, _shade_step, check_pose, face_interiors, interior_clutter
 from vespro.model import box_model, load_model
 from vespro.rig import Rig
 from vespro.se3 import exp_so3, invert_transform, transform_from_rt
@@ -427,6 +427,13 @@ def test_face_shading_is_uniform_at_the_true_pose_only(cam, step, noise, apart):
     if step <= 3.0:  # (10 levels apart the creases are image edges: interior_edge_frac sees it too)
         assert frac_t < InitOptions().plain_max_interior_edge_frac
     assert rms_t > rms + 0.5
+    # The true pose's faces never lie over two shades (noise alone: spread / step 0.33-0.36);
+    # seen from the second camera, a face of the turned pose lies over two of the box's,
+    # two tight groups of grey levels (0.05: refused, InitOptions.plain_max_shade_step) on a
+    # noise-free image; the noise spreads them (0.11-0.30).
+    assert stp > 2 * InitOptions().plain_max_shade_step
+    if cam == 1:
+        assert (stp_t <= InitOptions().plain_max_shade_step) == (noise == 0.0), stp_t
     assert abs(feat.grey_noise - noise) < 0.2  # the image's noise, as estimated
     assert _shaded_apart(PoseCheck(0.8, {"c0": 0.8}, 300, 8, 10, 1, 1.0, shade_rms=rms_t),
                          PoseCheck(0.8, {"c0": 0.8}, 300, 8, 10, 1, 1.0, shade_rms=rms, shade_noise=feat.grey_noise),
@@ -462,3 +469,38 @@ def test_a_rival_far_less_uniform_in_shade_is_no_rival(scene):
         assert rival(other, o=o)
     two = dict(n_cameras=2, per_camera={"a": 0.85, "b": 0.85})
     assert rival(replace(other, **two), replace(best, **two))
+
+
+def test_shade_step_tells_two_shades_from_a_gradient():
+    """Two tight groups of grey levels (a face over two faces): spread / step near 0; an even
+    spread (a gradient across the face) about 0.29; noise spreads the groups; a small group or
+    a small step is not counted."""
+    rng = np.random.default_rng(0)
+    two = np.r_[np.full(300, 108), np.full(200, 111)].astype(np.uint8)
+    assert _shade_step(two, 0.15, 2.0) < 0.01
+    ramp = np.repeat(np.arange(150, 170), 25).astype(np.uint8)
+    assert 0.25 < _shade_step(ramp, 0.15, 2.0) < 0.33
+    noisy = np.clip(two + rng.normal(0, 2.0, two.size), 0, 255).astype(np.uint8)
+    assert _shade_step(noisy, 0.15, 2.0) > 0.3
+    assert _shade_step(np.r_[np.full(450, 108), np.full(50, 140)].astype(np.uint8), 0.15, 2.0) == np.inf  # 10%
+    assert _shade_step(np.r_[np.full(300, 108), np.full(200, 109)].astype(np.uint8), 0.15, 2.0) == np.inf  # 1 level
+    assert _shade_step(np.full(500, 90, np.uint8), 0.15, 2.0) == np.inf
+
+
+def test_one_camera_refuses_a_face_over_two_shades():
+    """One camera, a plain part: a pose passing every other check is refused when one of its
+    faces lies over two shades (``PoseCheck.shade_step`` at most 0.1), strict or loose limits
+    alike; several cameras, a textured part or the option off: accepted."""
+    opt = InitOptions()
+    good = _check(inlier_frac=0.9, per_camera={"c": 0.9}, mean_dist=1.0, supported_edges=9, visible_edges=10)
+    assert _verdict(good, opt)[:2] == (True, False)
+    over = replace(good, shade_step=0.06)
+    ok, _, why = _verdict(over, opt)
+    assert not ok and "two shades" in why
+    assert _verdict(replace(good, shade_step=0.15), opt)[0]
+    two = dict(n_cameras=2, per_camera={"a": 0.9, "b": 0.9})
+    assert _verdict(replace(over, **two), opt)[0]
+    for o in (replace(opt, plain_max_shade_step=0.0), replace(opt, plain_faces=False)):
+        assert _verdict(over, o)[0]
+    loose = _check(inlier_frac=0.75, mean_dist=3.5)  # the looser limits only
+    assert _accept_plain(loose, opt)[0] and not _accept_plain(replace(loose, shade_step=0.0), opt)[0]
