@@ -699,7 +699,7 @@ def _accept(chk, opt: InitOptions) -> tuple[bool, str]:
         return False, "outside the view of a fixed camera"
     if opt.plain_faces and chk.n_cameras == 1 and chk.interior_edge_frac > opt.plain_max_interior_edge_frac:
         return False, f"one camera, image edges inside the faces ({chk.interior_edge_frac:.3f})"
-    if opt.plain_faces and chk.n_cameras == 1 and chk.shade_step <= opt.plain_max_shade_step > 0:
+    if opt.plain_faces and chk.n_cameras == 1 and _two_shades(chk, opt):
         return False, f"one camera, a face over two shades ({chk.shade_step:.2f})"
     need_frac = opt.min_inlier_frac if chk.n_cameras > 1 else opt.min_inlier_frac_single
     if chk.inlier_frac < need_frac:
@@ -725,13 +725,18 @@ def _accept(chk, opt: InitOptions) -> tuple[bool, str]:
     return True, ""
 
 
+def _two_shades(chk, opt: InitOptions) -> bool:
+    """A face of the pose lies over two shades (``InitOptions.plain_max_shade_step``; 0: off)."""
+    return opt.plain_max_shade_step > 0 and chk.shade_step <= opt.plain_max_shade_step
+
+
 def _accept_plain(chk, opt: InitOptions) -> tuple[bool, str]:
     """The looser single-camera limits for a part with plain faces (see ``InitOptions.plain_faces``)."""
     if not opt.plain_faces or chk.n_cameras != 1 or chk.unseen_fixed:
         return False, "not a single-camera view"
     if chk.interior_edge_frac > opt.plain_max_interior_edge_frac:
         return False, f"image edges inside the faces ({chk.interior_edge_frac:.3f})"
-    if chk.shade_step <= opt.plain_max_shade_step > 0:
+    if _two_shades(chk, opt):
         return False, f"a face over two shades ({chk.shade_step:.2f})"
     if chk.inlier_frac < opt.plain_min_inlier_frac:
         return False, f"inlier fraction {chk.inlier_frac:.2f} < {opt.plain_min_inlier_frac}"
@@ -938,7 +943,7 @@ def _upheld(held: tuple, refined: list, again, mf: ModelFeatures, opt: InitOptio
     (``InitOptions.confirm_upheld``)."""
     Th, ch = held
     if ch.n_cameras != 1 or ch.inlier_frac < opt.upheld_min_inlier_frac or \
-            ch.interior_edge_frac > opt.plain_max_interior_edge_frac or ch.shade_step <= opt.plain_max_shade_step > 0:
+            ch.interior_edge_frac > opt.plain_max_interior_edge_frac or _two_shades(ch, opt):
         return False
     if any(c.inlier_px > ch.inlier_px and _adds(mf, Th, T) > opt.distinct_frac * mf.diameter
            for T, c in refined):

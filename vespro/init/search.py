@@ -32,8 +32,8 @@ from .modelfeat import ModelFeatures
 from .p3p import p3p_grunert
 
 __all__ = ["image_paths", "p3p_hypotheses", "rank_in_camera", "CameraView", "visible_samples",
-           "refine_pose", "refine_subpixel", "edge_residuals", "interior_clutter", "face_interiors", "PoseCheck", "check_pose",
-           "unshared_px"]
+           "refine_pose", "refine_subpixel", "edge_residuals", "interior_clutter", "face_interiors", "PoseCheck",
+           "check_pose", "unshared_px"]
 
 
 # -- hypothesis generation ---------------------------------------------------
