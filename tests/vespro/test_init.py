@@ -759,9 +759,11 @@ def test_a_start_whose_edge_fits_allow_an_offset_waits_for_its_depth():
     until the track is confirmed (the default), the start is never
     confirmed: its fits no longer hold it, it wanders 1-25% off on 3-6 corners, the fits'
     vetoes drop it at frame 33, and nothing is published (measured: nothing in 52 frames,
-    a miss instead of a wrong lock)."""
-    assert max(_published_one_camera("box", 1618, 40, tracker={"start_edge_offset_px": 0.0}, recall_margin_factor=1.0),
-               default=0.0) >= 0.1
+    a miss instead of a wrong lock). Since session 28 the shading rules the wrong pose out
+    as a rival (``shade_rival_ratio``, off for the premise) and the true pose is published
+    from frame 6, at most 6.1% off."""
+    assert max(_published_one_camera("box", 1618, 40, tracker={"start_edge_offset_px": 0.0}, recall_margin_factor=1.0,
+                                     shade_rival_ratio=0.0), default=0.0) >= 0.1
     errs = _published_one_camera("box", 1618, 40)
     assert max(errs, default=0.0) < 0.1, errs
 
