@@ -697,10 +697,8 @@ def _accept(chk, opt: InitOptions) -> tuple[bool, str]:
         return False, "part not in any image"
     if chk.unseen_fixed:
         return False, "outside the view of a fixed camera"
-    if opt.plain_faces and chk.n_cameras == 1 and chk.interior_edge_frac > opt.plain_max_interior_edge_frac:
-        return False, f"one camera, image edges inside the faces ({chk.interior_edge_frac:.3f})"
-    if opt.plain_faces and chk.n_cameras == 1 and _two_shades(chk, opt):
-        return False, f"one camera, a face over two shades ({chk.shade_step:.2f})"
+    if opt.plain_faces and chk.n_cameras == 1 and (unclear := _faces_unclear(chk, opt)):
+        return False, "one camera, " + unclear
     need_frac = opt.min_inlier_frac if chk.n_cameras > 1 else opt.min_inlier_frac_single
     if chk.inlier_frac < need_frac:
         return False, f"inlier fraction {chk.inlier_frac:.2f} < {need_frac}"
@@ -725,19 +723,23 @@ def _accept(chk, opt: InitOptions) -> tuple[bool, str]:
     return True, ""
 
 
-def _two_shades(chk, opt: InitOptions) -> bool:
-    """A face of the pose lies over two shades (``InitOptions.plain_max_shade_step``; 0: off)."""
-    return opt.plain_max_shade_step > 0 and chk.shade_step <= opt.plain_max_shade_step
+def _faces_unclear(chk, opt: InitOptions) -> str:
+    """Why a pose's faces are not those of a plain part ("" when they are): image edges inside
+    them (``InitOptions.plain_max_interior_edge_frac``), or a face over two shades
+    (``plain_max_shade_step``; 0: off)."""
+    if chk.interior_edge_frac > opt.plain_max_interior_edge_frac:
+        return f"image edges inside the faces ({chk.interior_edge_frac:.3f})"
+    if 0 < opt.plain_max_shade_step and chk.shade_step <= opt.plain_max_shade_step:
+        return f"a face over two shades ({chk.shade_step:.2f})"
+    return ""
 
 
 def _accept_plain(chk, opt: InitOptions) -> tuple[bool, str]:
     """The looser single-camera limits for a part with plain faces (see ``InitOptions.plain_faces``)."""
     if not opt.plain_faces or chk.n_cameras != 1 or chk.unseen_fixed:
         return False, "not a single-camera view"
-    if chk.interior_edge_frac > opt.plain_max_interior_edge_frac:
-        return False, f"image edges inside the faces ({chk.interior_edge_frac:.3f})"
-    if _two_shades(chk, opt):
-        return False, f"a face over two shades ({chk.shade_step:.2f})"
+    if unclear := _faces_unclear(chk, opt):
+        return False, unclear
     if chk.inlier_frac < opt.plain_min_inlier_frac:
         return False, f"inlier fraction {chk.inlier_frac:.2f} < {opt.plain_min_inlier_frac}"
     if chk.crease_edges and chk.crease_supported < opt.plain_min_crease_frac * chk.crease_edges:
@@ -938,12 +940,12 @@ def _rival(T_best: np.ndarray, chk, plain: bool, others, again, mf: ModelFeature
 def _upheld(held: tuple, refined: list, again, mf: ModelFeatures, opt: InitOptions) -> bool:
     """The provisional pose ``held`` (refined on this frame set, found near where the filter
     has it) is upheld though no candidate passes here: it explains at least as much image
-    edge length as any distinct candidate, no rival makes it ambiguous, its faces cover no
-    image edges and it agrees with at least ``upheld_min_inlier_frac`` of its edges
-    (``InitOptions.confirm_upheld``)."""
+    edge length as any distinct candidate, no rival makes it ambiguous, its faces are clear
+    (:func:`_faces_unclear`) and it agrees with at least ``upheld_min_inlier_frac`` of its
+    edges (``InitOptions.confirm_upheld``)."""
     Th, ch = held
     if ch.n_cameras != 1 or ch.inlier_frac < opt.upheld_min_inlier_frac or \
-            ch.interior_edge_frac > opt.plain_max_interior_edge_frac or _two_shades(ch, opt):
+            _faces_unclear(ch, opt):
         return False
     if any(c.inlier_px > ch.inlier_px and _adds(mf, Th, T) > opt.distinct_frac * mf.diameter
            for T, c in refined):

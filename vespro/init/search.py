@@ -1620,7 +1620,7 @@ def check_pose(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFea
         open_min = min(open_min, int(np.sum(open_f)))
         cf, _, rms, stp = face_interiors(T_co, v.feat, mf)
         clutter = max(clutter, cf if np.isfinite(cf) else 1.0)
-        shade_step = min(shade_step, stp) if not np.isnan(stp) else shade_step
+        shade_step = float(np.fmin(shade_step, stp))  # (NaN: no grey image, not counted)
         if np.isfinite(rms) and not rms <= shade:  # (NaN only where no camera says)
             shade, shade_noise = rms, v.feat.grey_noise
         e = mf.sample_edge[idx]
