@@ -335,16 +335,17 @@ class TrackerConfig:
         A frame of a start not yet confirmed whose edge fit, in some camera,
         landed further than this from the pose the filter had from the corners
         (the ADD between the two, a fraction of the diameter) is not sound: it
-        does not count towards confirmation, however many corners agree, and
-        breaks the run of strong frames that confirms a start. The fit searches
-        a few px about the filter's pose, so it is pulled towards it; when it
-        still lands this far off, the corners and the outline tell two poses.
-        An accurate start's fits stay within a few per cent of the filter. Seen on one camera (box, rig seed 5006): corners on the box's dark
-        faces, found 2-3 px towards their lit neighbours frame after frame,
-        pulled the filter 10.8% off (5 deg in rotation, the covariance
-        claiming 0.6 deg) while its edge fits stayed 1-4% from the true pose,
-        6-9% from the filter; it was confirmed and published. With 0.06 it is
-        not. Where edges are fitted (``edge_aid``); ``inf``: off.
+        does not count towards confirmation, however many corners agree (nor does
+        it break a run of strong frames, as for ``confirm_hold_neutral``). The fit
+        searches a few px about the filter's pose, so it is pulled towards it;
+        when it still lands this far off, the corners and the outline tell two
+        poses. An accurate start's fits stay within a few per cent of the filter.
+        Seen on one camera (box, rig seed 5006): corners on the box's dark faces,
+        found 2-3 px towards their lit neighbours frame after frame, pulled the
+        filter 10.8% off (5 deg in rotation, the covariance claiming 0.6 deg)
+        while its edge fits stayed 1-4% from the true pose; the confirming frame's
+        fit lay 13.8% from the filter. It was confirmed and published; with 0.06
+        it is not. Where edges are fitted (``edge_aid``); ``inf``: off.
     dim_corner_frac : float
         A corner is passed over by the selection when fewer than two of its edges'
         samples next to it were seen by this camera's edge fits (what they learnt,
@@ -1158,7 +1159,7 @@ class Tracker:
                 self._good += 1
             elif not c.confirm_hold_neutral:
                 self._good = 0  # a weak frame breaks a strong run that must be unbroken
-        elif (self.confirmed or not c.confirm_hold_neutral or self._edge_veto or jumped or torn
+        elif (self.confirmed or not c.confirm_hold_neutral or self._edge_veto or jumped
               or n_acc < c.confirm_min_inlier_fraction * n_found
               or (np.isfinite(mean_nis) and mean_nis > c.max_mean_nis)):
             # Not a frame with too little support but nothing against the pose (the corners
