@@ -427,6 +427,42 @@ def test_a_frame_that_jumped_neither_confirms_nor_is_published(recs):
             TrackerConfig(max_step_frac=bad)
 
 
+def test_a_frame_whose_edge_fit_lies_far_from_the_corners_pose_does_not_confirm(recs):
+    """``confirm_max_fit_gap``: a frame of an unconfirmed start whose edge fit landed over
+    6% of the diameter from the pose the corners gave the filter (``Tracker._fit_gap``, set
+    by the edge update) does not count towards confirmation, however many corners agree,
+    nor does it break a run of strong frames. A one-camera box's corners, biased on its
+    dark faces, took a start 10.8% off while its edges stayed 1-4% from the truth, and it
+    was confirmed. A confirmed track is not judged by it (its fits keep their own gate,
+    ``edge_aid_max_move``)."""
+    from vespro.tracker import CameraObservation, InitResult
+
+    rec = Recording(recs["box_conveyor"])
+    _, _, T = read_groundtruth(recs["box_conveyor"])
+    ids = np.arange(8)
+    strong = [CameraObservation("cam_left", True, 12, ids, np.zeros((8, 2)), np.full(8, 3.0), np.zeros((8, 2)),
+                                np.ones(8, bool))]
+
+    def statuses(gaps, **cfg):
+        tr = make_tracker(rec, TrackerConfig(**cfg))
+        tr.initializer = lambda fs: None
+        tr.start(InitResult(T[0], cov6=np.diag([1e-6] * 6)), rec.frameset(0).t_ns)
+        out = []
+        for i, gap in enumerate(gaps):
+            tr._fit_gap = gap
+            out.append(_judge(tr, rec.frameset(i), strong, 8, 8).status)
+        return out
+
+    assert statuses([0.0, 0.05, 0.0]) == ["initializing", "tracking", "tracking"]
+    assert statuses([0.0, 0.08, 0.0]) == ["initializing", "initializing", "tracking"]  # neutral: the run holds
+    assert statuses([0.08] * 6) == ["initializing"] * 6
+    assert statuses([0.08] * 3, confirm_max_fit_gap=math.inf)[1] == "tracking"
+    assert statuses([0.0, 0.0, 0.2, 0.2]) == ["initializing"] + ["tracking"] * 3  # confirmed: not judged
+    for bad in (0.0, -1.0, math.nan):
+        with pytest.raises(ValueError, match="confirm_max_fit_gap"):
+            TrackerConfig(confirm_max_fit_gap=bad)
+
+
 def test_an_agreeing_edge_fit_lets_fewer_corners_confirm(recs):
     """Five of six corners accepted (fewer than confirm_min_accepted = 6) confirm a start only
     on frames whose edge fit agreed with the filter (``Tracker._edge_ok``, set by the edge
