@@ -701,6 +701,12 @@ def test_a_pose_explaining_part_of_what_the_best_explains_is_no_rival():
     assert res is None and "ambiguous" in rep.reason
 
 
+# The tracker without its fit gap gate (``TrackerConfig.confirm_max_fit_gap``, session 29), for the
+# premises of the one-camera trials below that were measured before it: it holds back several of
+# those wrong starts on its own (the corners' pose and the edges' lie apart).
+NO_GAP = {"confirm_max_fit_gap": math.inf}
+
+
 def _published_one_camera(obj, seed, n_frames, tracker=None, **opts):
     """A one-camera bench trial (rig seed ``seed``) run through the tracker (options
     ``tracker``, a dict) with the initialiser (options ``opts``) called on every 5th frame,
@@ -858,19 +864,21 @@ def test_a_face_seen_head_on_whose_strips_show_no_width_is_not_confirmed():
     assert max(errs, default=0.0) < 0.1, errs
 
 
-@pytest.mark.parametrize("obj,seed,n_frames", [("bracket", 6005, 10), ("box", 6208, 12), ("lblock", 7214, 8)])
+@pytest.mark.parametrize("obj,seed,n_frames", [("bracket", 6005, 10), ("box", 6208, 14), ("lblock", 7214, 16)])
 def test_a_start_is_first_confirmed_after_frames_that_did_not_jump(obj, seed, n_frames):
     """One camera, fresh seeds of sessions 24 and 25, the initialiser every 5th frame:
     accurate starts (bracket 6005 2.3% of the diameter off, box 6208 4%, L-block 7214 1.9%)
     whose next update took a wrong set of corners and jumped: the bracket to 11.1% on frame
     1, the box 6% to 10.7% on frame 5, the L-block 6.7% to 8.2% on frame 1, its velocity
     then carrying it to 14.2% on frame 2. Those frames confirmed the filter and were
-    published (the premise, the step gates off). With the gates (a frame that moved the pose
-    over 5% of the diameter from its prediction breaks the run of strong frames; a confirmed
-    frame moving over 10% counts as bad) nothing over 10% is published and the tracks are,
-    a few frames later (measured: from frames 4, 8 and 5, at 0.9%, 6.6% and 9.3%, then
-    0.1-6%)."""
-    off = {"confirm_max_step_frac": math.inf, "max_step_frac": math.inf}
+    published (the premise, the step gates off, and the fit gap gate that came later,
+    ``confirm_max_fit_gap``, which holds back the box and the L-block on its own). With the
+    gates (a frame that moved the pose over 5% of the diameter from its prediction breaks
+    the run of strong frames; a confirmed frame moving over 10% counts as bad) nothing over
+    10% is published and the tracks are, a few frames later (measured in session 25: from
+    frames 4, 8 and 5, at 0.9%, 6.6% and 9.3%, then 0.1-6%; with the gap gate too, session
+    29: from frames 4, 11 and 12, at 0.9%, 3.4% and 1.3%, then 0.1-6.8%)."""
+    off = {"confirm_max_step_frac": math.inf, "max_step_frac": math.inf, "confirm_max_fit_gap": math.inf}
     assert max(_published_one_camera(obj, seed, n_frames, tracker=off), default=0.0) >= 0.1
     errs = _published_one_camera(obj, seed, n_frames)
     assert len(errs) >= 3 and max(errs) < 0.1, errs
@@ -924,7 +932,7 @@ def test_the_filters_own_pose_rivals_the_searchs_best():
     those calls ambiguous; the filter keeps its pose and is published from frame 30 (measured:
     at 1.9%, then at most 5.8% to frame 51)."""
     for off in ({"keep_better_start": False}, {"held_rival": False}):
-        assert max(_published_one_camera("bracket", 7809, 32, **off), default=0.0) >= 0.1, off
+        assert max(_published_one_camera("bracket", 7809, 32, tracker=NO_GAP, **off), default=0.0) >= 0.1, off
     errs = _published_one_camera("bracket", 7809, 36)
     assert len(errs) >= 3 and max(errs) < 0.1, errs
 
@@ -948,7 +956,8 @@ def test_a_call_finding_the_pending_pose_again_returns_its_own_refinement():
     published from frame 11 at 2.3%, at most 4.7% to frame 51). Box 8200, whose filter was
     14.8% off and whose refinement (3.1%) was the best, is still started again from it
     (published from frame 10, at most 3.2%)."""
-    assert max(_published_one_camera("lblock", 6601, 30, confirm_own_refinement=False), default=0.0) >= 0.1
+    assert max(_published_one_camera("lblock", 6601, 30, tracker=NO_GAP, confirm_own_refinement=False),
+               default=0.0) >= 0.1
     errs = _published_one_camera("lblock", 6601, 30)
     assert len(errs) >= 10 and max(errs) < 0.06, errs
     errs = _published_one_camera("box", 8200, 16)
@@ -974,7 +983,8 @@ def test_a_pose_with_a_face_over_two_shades_is_not_published():
     published from frame 32 (the premise, ``plain_max_shade_step`` 0). Its back face lies
     over two of the part's faces 2.9 grey levels apart, too faint for an edge (ratio 0.06):
     refused, nothing wrong is published (measured: nothing in 52 frames)."""
-    assert max(_published_one_camera("lblock", 6014, 36, plain_max_shade_step=0.0), default=0.0) >= 0.1
+    assert max(_published_one_camera("lblock", 6014, 36, tracker=NO_GAP, plain_max_shade_step=0.0),
+               default=0.0) >= 0.1
     assert max(_published_one_camera("lblock", 6014, 36), default=0.0) < 0.1
 
 
@@ -986,6 +996,5 @@ def test_a_start_whose_corners_and_edges_tell_two_poses_is_not_published():
     ``confirm_max_fit_gap`` off). With the gap gate the frames whose fit lies over 6%
     of the diameter from the filter do not confirm it: nothing wrong is published
     (measured: nothing in 52 frames)."""
-    assert max(_published_one_camera("box", 5006, 38, tracker={"confirm_max_fit_gap": math.inf}),
-               default=0.0) >= 0.1
+    assert max(_published_one_camera("box", 5006, 38, tracker=NO_GAP), default=0.0) >= 0.1
     assert max(_published_one_camera("box", 5006, 38), default=0.0) < 0.1
