@@ -34,6 +34,33 @@ def _judge(tr, fs, obs, n_found, n_acc):
     return tr._status(fs, obs, n_found, n_acc, 2.0, {"visibility": 0.0}, tr._seeing(obs))
 
 
+def _started(rec, T0, hidden=(), **cfg):
+    """A tracker started confidently at ``T0`` (the initialiser having found the part hidden
+    from the cameras ``hidden``), with an initialiser that finds nothing."""
+    from vespro.tracker import InitResult
+
+    tr = make_tracker(rec, TrackerConfig(**cfg))
+    tr.initializer = lambda fs: None
+    tr.start(InitResult(T0, cov6=np.diag([1e-6] * 6), hidden=hidden), rec.frameset(0).t_ns)
+    return tr
+
+
+def _judged_with(rec, T0, obs, n, per_frame, **cfg):
+    """A tracker started at ``T0`` whose status step is fed the same observations ``obs``
+    (``n`` corners found and accepted) on each frame, after the tracker attributes of that
+    frame's dict in ``per_frame`` are set; stops where the filter is dropped. Returns
+    (tracker, published statuses)."""
+    tr = _started(rec, T0, **cfg)
+    out = []
+    for i, attrs in enumerate(per_frame):
+        for k, v in attrs.items():
+            setattr(tr, k, v)
+        out.append(_judge(tr, rec.frameset(i), obs, n, n).status)
+        if tr.ekf is None:
+            break
+    return tr, out
+
+
 def _rec(path, obj, rig, motion, n, **kw):
     cfg = CellConfig(MODELS_DIR / "objects" / f"{obj}.stl", load_rig(CAMERAS_DIR / f"{rig}.yaml"), effects=NOISE, **kw)
     return record(path, cfg, motion, n, obj)
@@ -435,7 +462,7 @@ def test_a_frame_whose_edge_fit_lies_far_from_the_corners_pose_does_not_confirm(
     dark faces, took a start 10.8% off while its edges stayed 1-4% from the truth, and it
     was confirmed. A confirmed track is not judged by it (its fits keep their own gate,
     ``edge_aid_max_move``)."""
-    from vespro.tracker import CameraObservation, InitResult
+    from vespro.tracker import CameraObservation
 
     rec = Recording(recs["box_conveyor"])
     _, _, T = read_groundtruth(recs["box_conveyor"])
@@ -444,14 +471,7 @@ def test_a_frame_whose_edge_fit_lies_far_from_the_corners_pose_does_not_confirm(
                                 np.ones(8, bool))]
 
     def statuses(gaps, **cfg):
-        tr = make_tracker(rec, TrackerConfig(**cfg))
-        tr.initializer = lambda fs: None
-        tr.start(InitResult(T[0], cov6=np.diag([1e-6] * 6)), rec.frameset(0).t_ns)
-        out = []
-        for i, gap in enumerate(gaps):
-            tr._fit_gap = gap
-            out.append(_judge(tr, rec.frameset(i), strong, 8, 8).status)
-        return out
+        return _judged_with(rec, T[0], strong, 8, [{"_fit_gap": g} for g in gaps], **cfg)[1]
 
     assert statuses([0.0, 0.05, 0.0]) == ["initializing", "tracking", "tracking"]
     assert statuses([0.0, 0.08, 0.0]) == ["initializing", "initializing", "tracking"]  # neutral: the run holds
@@ -588,7 +608,7 @@ def test_an_edge_fit_that_disagrees_vetoes_confirmation_and_drops_a_slid_start(r
     ``veto_drop_frames`` vetoed frames since the start drop it for a fresh
     initialisation; a frame without a veto between them does not reset the count (a
     slid bracket escaped between vetoes when they were counted in a row)."""
-    from vespro.tracker import CameraObservation, InitResult
+    from vespro.tracker import CameraObservation
 
     rec = Recording(recs["box_conveyor"])
     _, _, T = read_groundtruth(recs["box_conveyor"])
@@ -597,16 +617,7 @@ def test_an_edge_fit_that_disagrees_vetoes_confirmation_and_drops_a_slid_start(r
                            np.ones(6, bool))
 
     def run(vetoes, **cfg):
-        tr = make_tracker(rec, TrackerConfig(**cfg))
-        tr.initializer = lambda fs: None
-        tr.start(InitResult(T[0], cov6=np.diag([1e-6] * 6)), rec.frameset(0).t_ns)
-        out = []
-        for i, v in enumerate(vetoes):
-            tr._edge_veto = v
-            out.append(_judge(tr, rec.frameset(i), [ob], 6, 6).status)
-            if tr.ekf is None:
-                break
-        return tr, out
+        return _judged_with(rec, T[0], [ob], 6, [{"_edge_veto": v} for v in vetoes], **cfg)
 
     tr, out = run([False, False])
     assert out[-1] == "tracking"
@@ -626,11 +637,7 @@ def _statuses(rec, T0, frames, hidden=(), **cfg):
     hidden from the cameras ``hidden``) whose status logic is fed the given per-frame
     observation lists (no edge fits; found = finite measurements); stops where the
     filter is dropped. Returns (tracker, published statuses)."""
-    from vespro.tracker import InitResult
-
-    tr = make_tracker(rec, TrackerConfig(**cfg))
-    tr.initializer = lambda fs: None
-    tr.start(InitResult(T0, cov6=np.diag([1e-6] * 6), hidden=hidden), rec.frameset(0).t_ns)
+    tr = _started(rec, T0, hidden, **cfg)
     out = []
     for i, obs in enumerate(frames):
         tr._edge_ok = tr._edge_veto = False
