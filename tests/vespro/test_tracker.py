@@ -420,7 +420,7 @@ def test_a_frame_that_jumped_neither_confirms_nor_is_published(recs):
     that confirms a filter, however many corners agree, and a
     confirmed frame that moved it more than 10% counts as bad: published ``lost`` while the
     track coasts, and after ``lost_after`` of them in a row the filter is dropped."""
-    from vespro.tracker import CameraObservation, InitResult, TrackerConfig
+    from vespro.tracker import CameraObservation
 
     rec = Recording(recs["box_conveyor"])
     _, _, T = read_groundtruth(recs["box_conveyor"])
@@ -428,26 +428,21 @@ def test_a_frame_that_jumped_neither_confirms_nor_is_published(recs):
     strong = [CameraObservation(n, True, 12, ids, np.zeros((8, 2)), np.full(8, 3.0), np.zeros((8, 2)),
                                 np.ones(8, bool)) for n in ("cam_left", "cam_right")]
 
-    def statuses(steps, config=TrackerConfig()):
-        tr = make_tracker(rec, config)
-        tr.start(InitResult(T[0], cov6=np.diag([1e-6] * 6)), rec.frameset(0).t_ns)
-        out = []
-        for i, step in enumerate(steps):
-            tr._step = step
-            out.append(_judge(tr, rec.frameset(i), strong, 16, 16).status)
+    def statuses(steps, **cfg):
+        tr, out = _judged_with(rec, T[0], strong, 16, [{"_step": s} for s in steps], **cfg)
         return out, tr
 
     out, _ = statuses([0.0, 0.0, 0.0])
     assert out == ["initializing", "tracking", "tracking"]
     out, _ = statuses([0.0, 0.06, 0.04, 0.0])  # a frame moved over 5%: it breaks the run
     assert out == ["initializing"] * 3 + ["tracking"]
-    out, _ = statuses([0.0, 0.06, 0.06], TrackerConfig(confirm_max_step_frac=math.inf))
+    out, _ = statuses([0.0, 0.06, 0.06], confirm_max_step_frac=math.inf)
     assert out == ["initializing", "tracking", "tracking"]
     out, tr = statuses([0.0, 0.0, 0.12, 0.02, 0.02])  # one jump of a confirmed track: one frame lost
     assert out == ["initializing", "tracking", "lost", "tracking", "tracking"]
     out, tr = statuses([0.0, 0.0] + [0.12] * tr.config.lost_after)
     assert out == ["initializing", "tracking"] + ["lost"] * tr.config.lost_after and tr.ekf is None
-    out, _ = statuses([0.0, 0.0, 0.12], TrackerConfig(max_step_frac=math.inf))
+    out, _ = statuses([0.0, 0.0, 0.12], max_step_frac=math.inf)
     assert out == ["initializing", "tracking", "tracking"]
     for bad in (0.0, -1.0, math.nan):
         with pytest.raises(ValueError, match="step_frac"):
