@@ -40,8 +40,14 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
+    from .errors import InputError
+
     try:
         return int(args.func(args) or 0)
+    except InputError as e:
+        # Bad input is the user's to fix: one line, no traceback.
+        print(f"vespro {args.command}: {e}", file=sys.stderr)
+        return 2
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130

@@ -21,6 +21,8 @@ are read-only (shared/STYLE.md: set-up is built once, never mutated).
 
 from __future__ import annotations
 
+from .errors import InputError
+
 import hashlib
 from dataclasses import dataclass
 from pathlib import Path
@@ -56,7 +58,7 @@ DEGENERATE_REL_AREA = 1e-14
 _SUPPORTED = (".stl", ".obj", ".ply")
 
 
-class ModelError(ValueError):
+class ModelError(InputError):
     """A CAD file that cannot be read or is not a valid closed solid."""
 
 

@@ -21,6 +21,8 @@ counts it, and the tracker does without that camera for that instant.
 
 from __future__ import annotations
 
+from .errors import InputError
+
 import csv
 import shutil
 from pathlib import Path
@@ -42,7 +44,7 @@ MODEL_EXTS = (".stl", ".obj", ".ply")
 POSE_FIELDS = ("x", "y", "z", "qw", "qx", "qy", "qz")
 
 
-class RecordingError(ValueError):
+class RecordingError(InputError):
     """A recording is missing a file or has a malformed one; the message names file and field."""
 
 

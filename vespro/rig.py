@@ -7,6 +7,8 @@ pose at each instant comes from the measured arm kinematics (``frames.csv``).
 
 from __future__ import annotations
 
+from .errors import InputError
+
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -22,7 +24,7 @@ __all__ = ["RigCamera", "Rig", "RigError", "load_rig", "save_rig", "rig_from_dic
 MOUNTS = ("fixed", "eye_in_hand")
 
 
-class RigError(ValueError):
+class RigError(InputError):
     """A rig file is missing, malformed or inconsistent; the message names file and field."""
 
 
