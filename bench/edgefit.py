@@ -12,7 +12,7 @@ is unbiased and consistent lands within its own covariance (NEES median near
 
 The baseline runs in the same process on the same frames: the edge fit with
 every sample weighing alike and no edge dropped (``spacing_px`` and
-``edge_outlier_px`` 0, as before session 14).
+``edge_outlier_px`` 0).
 
 Usage: ``python3 bench/edgefit.py [--seeds 40-59] [--objects box,lblock,bracket]
 [--noise 0.5] [--jobs 2]``

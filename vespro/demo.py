@@ -142,7 +142,7 @@ class SerialBridge:
 
 
 def _spawn(cmd: list[str], log: Path, **env_extra) -> subprocess.Popen:
-    """Start a cell process in its own session, output to ``log``."""
+    """Start a cell process in a process group of its own, output to ``log``."""
     f = open(log, "w")
     env = dict(os.environ, PYTHONUNBUFFERED="1", MUJOCO_GL=os.environ.get("MUJOCO_GL", "egl"), **env_extra)
     return subprocess.Popen(cmd, stdout=f, stderr=subprocess.STDOUT, env=env, start_new_session=True)

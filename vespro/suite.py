@@ -464,7 +464,7 @@ def run_scenario(sc: dict, cache_dir: str | Path, out_dir: str | Path, log=print
         try:
             from .init import make_initializer
         except ImportError:
-            raise RuntimeError("init: auto needs vespro.init (automatic initialisation), not on this branch") from None
+            raise RuntimeError("init: auto needs vespro.init (automatic initialisation), which is not available") from None
     rec_path = ensure_recording(sc, cache_dir, log=log)
     rec = Recording(rec_path)
     _, _, T_true = read_groundtruth(rec_path)

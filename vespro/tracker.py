@@ -258,7 +258,7 @@ class TrackerConfig:
         ``edge_offset_px`` (its accuracy is unchanged). Over 1320 one-camera
         trials (``bench/init.py``) 0.6 published 1248 against 1246 with 0, none
         wrong against one (1618), with more starts 6-8% off (54 trials with a
-        frame 6% or more off, 40 with 0). Session 20 left it off (0) because on
+        frame 6% or more off, 40 with 0). It was once left off (0) because on
         a fresh set (4600-4619) a box start 1.7 diameters off (one face seen,
         matched to another face at another depth; the initialiser found it
         again and confirmed it) was published with 0.6: the filter, leaning
@@ -303,8 +303,8 @@ class TrackerConfig:
         of the diameter off) of two brackets were dropped unconfirmed or
         published after a second; a box showing one face's 4 corners, its fits
         finding 78-88% of the outline (under ``confirm_outline_min_found``),
-        never. Over the 1500 one-camera trials of ``bench/init.py`` (session
-        22): 1411 published within 1 s against 1406 with 0 (those three, box
+        never. Over the 1500 one-camera trials of ``bench/init.py``:
+        1411 published within 1 s against 1406 with 0 (those three, box
         610 and box 1617, whose start now holds at 3.7%), none wrong either
         way; 18 other trials published 1-14 frames sooner, none later. 0: off.
     confirm_edge_veto, veto_found_ratio : bool, float

