@@ -36,6 +36,8 @@ __all__ = [
     "Model",
     "UNIT_SCALE",
     "load_model",
+    "model_file_in_metres",
+    "default_model_cache_dir",
     "model_from_arrays",
     "box_model",
 ]
@@ -248,7 +250,13 @@ def load_model(path, unit: str = "m", name: str | None = None) -> Model:
         solid; a size that suggests another unit than ``unit``. The message
         names the file and says what to do.
     """
-    path = Path(path)
+    model, notes = _load(Path(path), unit, name)
+    for note in notes:
+        print(f"note: {note}", file=sys.stderr)
+    return model
+
+
+def _load(path: Path, unit: str, name: str | None):
     if unit not in UNIT_SCALE:
         raise ValueError(f"unknown unit {unit!r}; use one of {sorted(UNIT_SCALE)}")
     if path.suffix.lower() not in _SUPPORTED:
@@ -266,9 +274,57 @@ def load_model(path, unit: str = "m", name: str | None = None) -> Model:
     notes: list = []
     model = model_from_arrays(vertices, faces, unit=unit, name=name or path.stem, source=str(path),
                               fix_inside_out=notes)
+    return model, notes
+
+
+def default_model_cache_dir() -> Path:
+    """``$VESPRO_MODEL_CACHE`` if set, else ``~/.cache/vespro/models``."""
+    import os
+
+    env = os.environ.get("VESPRO_MODEL_CACHE")
+    return Path(env) if env else Path.home() / ".cache" / "vespro" / "models"
+
+
+def model_file_in_metres(path, unit: str = "m", cache_dir=None) -> Path:
+    """A validated mesh file in metres for consumers that read files (simulator, recordings).
+
+    The file itself when it is an STL, OBJ or PLY drawn in metres that loads
+    as is; otherwise (another unit, a ``.cao``, an inside-out mesh turned
+    right way out) the validated model written as a binary STL in metres, in
+    ``cache_dir/<content hash>/<file stem>.stl`` (the stem names the object).
+
+    Parameters
+    ----------
+    path : str or Path
+    unit : str
+        Key of ``UNIT_SCALE``: the unit the file is drawn in.
+    cache_dir : str or Path, optional
+        Defaults to ``default_model_cache_dir()``.
+
+    Raises
+    ------
+    ModelError
+        As ``load_model``.
+    """
+    path = Path(path)
+    model, notes = _load(path, unit, None)
     for note in notes:
         print(f"note: {note}", file=sys.stderr)
-    return model
+    if unit == "m" and not notes and path.suffix.lower() in (".stl", ".obj", ".ply"):
+        return path
+    out = Path(cache_dir or default_model_cache_dir()) / model.content_hash[:16] / f"{path.stem}.stl"
+    if not out.is_file():
+        import os
+        import tempfile
+
+        import trimesh
+
+        out.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(suffix=".stl", dir=out.parent)
+        os.close(fd)
+        trimesh.Trimesh(model.vertices, model.triangles, process=False).export(tmp, file_type="stl")
+        os.replace(tmp, out)  # atomic: concurrent processes see a whole file or none
+    return out
 
 
 def _read_mesh(path: Path):
