@@ -34,6 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from .model import ModelError
+from .se3 import exp_so3, transform_from_rt
 
 __all__ = ["CaoError", "read_cao", "triangulate_polygon"]
 
@@ -106,12 +107,6 @@ def _count(lines: _Lines, what: str) -> int:
     if n < 0:
         raise CaoError(f"{lines.path}:{k}: negative number of {what}: {n}")
     return n
-
-
-def _theta_u_matrix(tu) -> np.ndarray:
-    from scipy.spatial.transform import Rotation
-
-    return Rotation.from_rotvec(np.asarray(tu, float)).as_matrix()
 
 
 _LOAD = re.compile(r"^load\s*\(\s*\"([^\"]*)\"(.*)\)", re.IGNORECASE)
@@ -189,9 +184,7 @@ def _read(path: Path, T_top_file: np.ndarray, stack: tuple):
         where = f"{path}:{k}"
         t = _vector(m.group(2), "t", where) or [0.0, 0.0, 0.0]
         tu = _vector(m.group(2), "tu", where) or [0.0, 0.0, 0.0]
-        T = np.eye(4)
-        T[:3, :3] = _theta_u_matrix(tu)
-        T[:3, 3] = t
+        T = transform_from_rt(exp_so3(tu), t)
         sub = Path(m.group(1))
         if not sub.is_absolute():
             sub = path.parent / sub
