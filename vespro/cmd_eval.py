@@ -80,7 +80,6 @@ def run(args) -> int:
         print(f"vespro eval: groundtruth.csv has {len(T_true)} rows for {len(rec)} frames", file=sys.stderr)
         return 2
     out = args.out or (args.recording / "eval")
-    out.mkdir(parents=True, exist_ok=True)
     init_pose = parse_pose(args.init_pose) if args.init_pose else (T_true[0] if args.gt_init else None)
     tracker = make_tracker(rec, tracker_config(args), unit=args.model_unit)
     if init_pose is None:
@@ -88,6 +87,7 @@ def run(args) -> int:
         if tracker.initializer is None:
             print("vespro eval: an initial pose is needed (--init-pose, or --gt-init)", file=sys.stderr)
             return 2
+    out.mkdir(parents=True, exist_ok=True)  # after the inputs are checked: bad input leaves nothing behind
     outs = track_recording(rec, tracker, init_pose, progress=not args.no_progress)
     write_track(out / "poses.csv", rec, outs)
     model = tracker.model

@@ -411,7 +411,7 @@ def model_from_arrays(vertices, triangles, unit: str = "m", name: str = "model",
     extents = V.max(0) - V.min(0)
     size = float(extents.max())
     if size > MAX_EXTENT_M:
-        raise ModelError(f"{where}: largest extent {size:.4g} m exceeds {MAX_EXTENT_M} m with the file read in "
+        raise ModelError(f"{where}: largest extent {size:.4g} m exceeds {MAX_EXTENT_M:g} m with the file read in "
                          f"{unit}: drawn in millimetres? {UNIT_HINT.format(unit='mm')}")
     if size <= 0:
         raise ModelError(f"{where}: all vertices coincide")
