@@ -26,7 +26,7 @@ def object_mesh_path(name_or_path: str, unit: str = "m") -> Path:
 
     lib = ModelLibrary()
     if name_or_path in lib.names:
-        return lib.path(name_or_path)
+        return model_file_in_metres(lib.path(name_or_path), lib.unit)
     raise ModelError(f"no object {name_or_path!r}; known objects: {', '.join(lib.names)} (or give a mesh path)")
 
 

@@ -7,6 +7,7 @@ import cv2
 import numpy as np
 import pytest
 
+from test_cao import CUBE
 from vespro.cli import main
 from vespro.recording import Recording
 from vespro.track import parse_pose
@@ -14,28 +15,8 @@ from vespro.visp import read_visp_camera, read_visp_pose
 
 VISP_MBT = Path("/usr/share/visp-images-data/ViSP-images/mbt")
 
-CUBE_CAO = """V1
-8
- 0.000  0.000  0.000
--0.084  0.000  0.000
--0.084  0.084  0.000
- 0.000  0.084  0.000
- 0.000  0.000  0.084
--0.084  0.000  0.084
--0.084  0.084  0.084
- 0.000  0.084  0.084
-0
-0
-6
-4 0 4 5 1
-4 1 5 6 2
-4 6 7 3 2
-4 3 7 4 0
-4 0 1 2 3
-4 7 6 5 4
-0
-0
-"""
+CUBE_CAO = CUBE  # ViSP's tutorial cube, as a .cao
+
 
 # vpXmlParserCamera's layout, both models; the importer takes the one with distortion.
 CAMERA_XML = """<?xml version="1.0"?>
@@ -153,7 +134,7 @@ def _break(folder: Path, what: str) -> list[str]:
     ("xml field", r"cube.xml: <model> perspectiveProjWithDistortion: <py> must be a number, got 'abc'"),
     ("negative focal", r"cube.xml: .*focal lengths px, py must be positive"),
     ("bad pos", r"cube.0.pos: expected 6 finite numbers"),
-    ("bad cao", r"cube.cao:15: point index 12 out of range"),
+    ("bad cao", r"cube.cao:19: point index 12 out of range"),
     ("16-bit image", r"image0001.pgm: uint16 image"),
     ("size", r"image0001.pgm: image size 64x40 differs"),
     ("two models", r"holds several models \(cube, other\): choose one with --name"),
