@@ -262,6 +262,9 @@ def import_visp(folder, out=None, name: str | None = None, rate_hz: float = 30.0
     cao = folder / f"{name}.cao"
     if not cao.is_file():
         raise VispError(f"{cao}: no such model (give the sequence name with --name)")
+    if not images and not (folder / name).is_dir():
+        raise VispError(f"{folder / name}: no such image folder (the sequence NAME/ next to NAME.cao; "
+                        f"give another with --images)")
     seq = image_sequence(Path(images) if images else folder / name)
     if frames is not None:
         if frames <= 0:
@@ -271,6 +274,9 @@ def import_visp(folder, out=None, name: str | None = None, rate_hz: float = 30.0
     notes = [cam_note]
     pose_path = Path(pose) if pose else folder / f"{name}.0.pos"
     T_co = read_visp_pose(pose_path) if (pose or pose_path.is_file()) else None
+    if (folder / f"{name}.init").is_file():
+        notes.append(f"{name}.init (3D points for ViSP's click start) is not used: the start pose comes from "
+                     f"{pose_path.name}" + ("" if T_co is not None else " (missing) or the automatic start"))
 
     first = _read_image(seq[0], None)
     h, w = first.shape[:2]
