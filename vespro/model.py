@@ -1,10 +1,15 @@
 """CAD models of tracked parts: loading, validation, planar faces and features.
 
-A model is a closed triangle mesh in the object frame (metres). Loading states
-the CAD unit (``load_model(path, unit="mm")`` scales on load), validates the
-mesh at the boundary (watertight, consistently wound with outward normals, no
-zero-area triangles, a size that looks like metres) and derives what the
-tracker and the visibility query need:
+A model is a closed triangle mesh in the object frame (metres), read from STL,
+OBJ, PLY or ViSP ``.cao`` (``vespro.cao``). Loading states the CAD unit
+(``load_model(path, unit="mm")`` scales on load), validates the mesh at the
+boundary (watertight, consistently wound with outward normals, no zero-area
+triangles, a size that looks like metres; a file whose faces all point inward
+is turned right way out with a note) and derives what the tracker and the
+visibility query need. Open surfaces are refused: occlusion (``vespro.bsp``)
+and corner visibility take the model as a solid. Commands that hand the model
+to the simulator or a recording take it through ``model_file_in_metres``.
+What the tracker and the visibility query get:
 
 - planar faces: coplanar, edge-adjacent triangles merged into polygons (outer
   loop plus holes), each with its plane ``n . x = d`` (``n`` the outward unit
