@@ -105,13 +105,13 @@ def export_bop(recording: str | Path, out: str | Path, poses: str | Path | None 
     from .recording import Recording
 
     rec = Recording(recording)
+    model = load_model(rec.model_path, name=rec.object_name)
     out = Path(out)
     if out.exists() and any(out.iterdir()):
         if not overwrite:
             raise FileExistsError(f"{out}: exists and is not empty")
         shutil.rmtree(out)
     (out / "models").mkdir(parents=True, exist_ok=True)
-    model = load_model(rec.model_path, name=rec.object_name)
     write_ply_mm(out / "models" / f"obj_{OBJ_ID:06d}.ply", model.vertices, model.triangles)
     (out / "models" / "models_info.json").write_text(json.dumps(_models_info(model), indent=2))
     c0 = rec.rig.cameras[0].intrinsics

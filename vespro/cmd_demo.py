@@ -19,7 +19,11 @@ def add_parser(sub) -> None:
         ),
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
-    p.add_argument("--object", default="bracket", help="box, lblock, bracket")
+    from .cmd_record import add_model_unit_option
+
+    p.add_argument("--object", default="bracket",
+                   help="box, lblock, bracket, or a model file (STL, OBJ, PLY, ViSP .cao; see --model-unit)")
+    add_model_unit_option(p)
     p.add_argument("--cameras", choices=["fixed", "eye-in-hand", "hybrid"], default="hybrid")
     p.add_argument("--duration", type=float, default=40.0, help="seconds of cell time")
     p.add_argument("--out", type=Path, default=Path("out/demo"), help="output folder")
@@ -41,7 +45,11 @@ def _f(v, fmt="{:.2f}"):
 
 
 def run(args) -> int:
+    from .cmd_record import object_mesh_path
     from .demo import DemoConfig, run_demo
+
+    if Path(args.object).is_file():  # checked (and put in metres) once, before any process starts
+        args.object = str(object_mesh_path(args.object, args.model_unit))
 
     cfg = DemoConfig(out=args.out, object=args.object, cameras=args.cameras, duration=args.duration,
                      speed=args.speed, stop_time=args.stop_time, noise_px=args.noise, link=args.link,

@@ -9,6 +9,7 @@ from pathlib import Path
 
 
 def add_parser(sub) -> None:
+    from .cmd_record import add_model_unit_option
     from .cmd_track import add_tracker_options
 
     p = sub.add_parser(
@@ -32,6 +33,7 @@ def add_parser(sub) -> None:
     p.add_argument("--gt-init", action="store_true",
                    help="start from the ground-truth pose of frame 0 (evaluates tracking alone)")
     add_tracker_options(p)
+    add_model_unit_option(p)
     p.add_argument("--no-progress", action="store_true")
     p.set_defaults(func=run)
 
@@ -78,14 +80,14 @@ def run(args) -> int:
         print(f"vespro eval: groundtruth.csv has {len(T_true)} rows for {len(rec)} frames", file=sys.stderr)
         return 2
     out = args.out or (args.recording / "eval")
-    out.mkdir(parents=True, exist_ok=True)
     init_pose = parse_pose(args.init_pose) if args.init_pose else (T_true[0] if args.gt_init else None)
-    tracker = make_tracker(rec, tracker_config(args))
+    tracker = make_tracker(rec, tracker_config(args), unit=args.model_unit)
     if init_pose is None:
         tracker.initializer = initializer_for(args, rec, tracker.model)
         if tracker.initializer is None:
             print("vespro eval: an initial pose is needed (--init-pose, or --gt-init)", file=sys.stderr)
             return 2
+    out.mkdir(parents=True, exist_ok=True)  # after the inputs are checked: bad input leaves nothing behind
     outs = track_recording(rec, tracker, init_pose, progress=not args.no_progress)
     write_track(out / "poses.csv", rec, outs)
     model = tracker.model

@@ -10,17 +10,30 @@ import numpy as np
 DEFAULT_DISTORTION = (-0.22, 0.09, 0.0006, -0.0004, -0.015)
 
 
-def object_mesh_path(name_or_path: str) -> Path:
-    """A CAD file: an existing path, or a model name in ``models/objects``."""
+def object_mesh_path(name_or_path: str, unit: str = "m") -> Path:
+    """A validated CAD file in metres: a model name in ``models/objects``, or a file path.
+
+    A file drawn in ``unit`` is checked (closed, outward, a plausible size) and,
+    unless it is already an STL, OBJ or PLY in metres, converted to one
+    (``vespro.model.model_file_in_metres``).
+    """
+    from .model import ModelError, model_file_in_metres
+
     p = Path(name_or_path)
     if p.is_file():
-        return p
+        return model_file_in_metres(p, unit)
     from .library import ModelLibrary
 
     lib = ModelLibrary()
     if name_or_path in lib.names:
-        return lib.path(name_or_path)
-    raise ValueError(f"no object {name_or_path!r}; known objects: {', '.join(lib.names)} (or give a mesh path)")
+        return model_file_in_metres(lib.path(name_or_path), lib.unit)
+    raise ModelError(f"no object {name_or_path!r}; known objects: {', '.join(lib.names)} (or give a mesh path)")
+
+
+def add_model_unit_option(p: argparse.ArgumentParser) -> None:
+    """``--model-unit``: the unit a model file is drawn in (scaled to metres on load)."""
+    p.add_argument("--model-unit", choices=["m", "cm", "mm", "in"], default="m",
+                   help="unit the model file is drawn in (ViSP .cao models are in metres)")
 
 
 def rig_path(name_or_path: str) -> Path:
@@ -67,7 +80,9 @@ def _distortion(s: str):
 
 def add_scenario_options(p: argparse.ArgumentParser) -> None:
     """Options describing a simulated scenario (shared by record, serve, demo)."""
-    p.add_argument("--object", default="bracket", help="object name in models/objects (box, lblock, bracket) or a mesh path (metres)")
+    p.add_argument("--object", default="bracket",
+                   help="object name in models/objects (box, lblock, bracket) or a model file (STL, OBJ, PLY, ViSP .cao)")
+    add_model_unit_option(p)
     p.add_argument("--rig", default="fixed2", help="standard rig in cameras/ (fixed1, fixed2, fixed3, hand, hybrid) or a cameras.yaml path")
     p.add_argument("--motion", default="conveyor", choices=["conveyor", "sinusoid", "random", "static"],
                    help="conveyor: on the belt; sinusoid: free 6-DoF sinusoids; random: random smooth 6-DoF; static")
@@ -125,7 +140,7 @@ def build_config(args) -> tuple:
     from .sim.imaging import ImageEffects
     from .sim.motion import make_motion
 
-    mesh = object_mesh_path(args.object)
+    mesh = object_mesh_path(args.object, getattr(args, "model_unit", "m"))
     rig = load_rig(rig_path(args.rig))
     cams = []
     for c in rig:

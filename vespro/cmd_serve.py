@@ -34,7 +34,7 @@ def add_parser(sub) -> None:
     p.add_argument("--recording", type=Path, help="replay: the recording folder")
     p.add_argument("--loop", action="store_true", help="replay: start over at the end")
     p.add_argument("--device", action="append", default=[], help="camera: a cv2.VideoCapture device per rig camera")
-    p.add_argument("--model", type=Path, help="camera: the object's CAD file (metres)")
+    p.add_argument("--model", type=Path, help="camera: the object's CAD file (STL, OBJ, PLY, ViSP .cao; see --model-unit)")
     p.add_argument("--lockstep", action="store_true",
                    help="sim/replay: run on simulated time as fast as possible instead of in real time")
     link = p.add_mutually_exclusive_group()
@@ -60,7 +60,7 @@ def add_parser(sub) -> None:
 def run(args) -> int:
     from .clock import SimClock, WallClock
     from .link import PosePublisher
-    from .model import load_model
+    from .model import load_model, model_file_in_metres
     from .recording import Recording, RecordingError
     from .server import PoseServer
     from .sources import CameraSource, ReplaySource, SimSource
@@ -81,7 +81,8 @@ def run(args) -> int:
                 raise ValueError("--source replay needs --recording PATH")
             rec = Recording(args.recording)
             source = ReplaySource(rec, clock, loop=args.loop)
-            model = load_model(rec.model_path, name=rec.object_name)
+            model_file = model_file_in_metres(rec.model_path, args.model_unit)
+            model = load_model(model_file, name=rec.object_name)
         elif args.source == "sim":
             from .cmd_record import build_config
             from .sim.cell import SimCell
@@ -90,7 +91,8 @@ def run(args) -> int:
             cell = SimCell(config, motion)
             cell.settle_arm()
             source = SimSource(cell, clock)
-            model = load_model(config.object_mesh, name=name)
+            model_file = config.object_mesh
+            model = load_model(model_file, name=name)
         elif args.source == "world":
             from .cmd_record import build_config
             from .sources import WorldSource
@@ -99,7 +101,8 @@ def run(args) -> int:
                 raise ValueError("--source world needs --world-shm NAME")
             config, _, name = build_config(args)
             source = WorldSource(args.world_shm, config, clock)
-            model = load_model(config.object_mesh, name=name)
+            model_file = config.object_mesh
+            model = load_model(model_file, name=name)
         else:
             from .cmd_record import rig_path
             from .rig import load_rig
@@ -107,8 +110,9 @@ def run(args) -> int:
             if not args.model:
                 raise ValueError("--source camera needs --model CAD_FILE")
             rig = load_rig(rig_path(args.rig))
+            model_file = model_file_in_metres(args.model, args.model_unit)
             source = CameraSource(rig, args.device or ["0"], clock, rate_hz=args.rate)
-            model = load_model(args.model)
+            model = load_model(model_file, name=args.model.stem)
     except (ValueError, RecordingError) as e:
         print(f"vespro serve: {e}", file=sys.stderr)
         return 2
@@ -154,9 +158,7 @@ def run(args) -> int:
         from .recording import AsyncRecordingWriter
 
         args.record.mkdir(parents=True, exist_ok=True)
-        mesh = getattr(getattr(source, "cell", None), "config", None)
-        mesh = mesh.object_mesh if mesh is not None else (args.model or rec.model_path)
-        writer = AsyncRecordingWriter(args.record / "recording", source.rig, mesh, source.rate_hz, model.name,
+        writer = AsyncRecordingWriter(args.record / "recording", source.rig, model_file, source.rate_hz, model.name,
                                       overwrite=True, defer_png=args.record_defer_png)
 
     def on_output(fs, out):

@@ -8,8 +8,9 @@ from pathlib import Path
 
 
 def add_tracker_options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--init-pose", metavar="x,y,z,qw,qx,qy,qz",
-                   help="object pose T_world_object at the first frame (overrides automatic initialisation)")
+    p.add_argument("--init-pose", metavar="x,y,z,qw,qx,qy,qz|FILE",
+                   help="object pose T_world_object at the first frame (overrides automatic initialisation), "
+                        "or a file holding it (e.g. the init_pose.txt that `vespro import` writes)")
     p.add_argument("--features", type=int, default=8, help="features selected per camera and frame")
     p.add_argument("--selection", choices=["information", "quality"], default="quality",
                    help="feature selection: information-greedy (log-det) or the classic quality index")
@@ -50,9 +51,12 @@ def add_parser(sub) -> None:
                     "output (index,t,pose,status,time_ms,velocity,covariance).",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
+    from .cmd_record import add_model_unit_option
+
     p.add_argument("recording", type=Path)
     p.add_argument("-o", "--output", type=Path, default=Path("poses.csv"), help="output CSV")
     add_tracker_options(p)
+    add_model_unit_option(p)
     p.add_argument("--no-progress", action="store_true")
     p.set_defaults(func=run)
 
@@ -75,7 +79,7 @@ def run(args) -> int:
         except ValueError as e:
             print(f"vespro track: {e}", file=sys.stderr)
             return 2
-    tracker = make_tracker(rec, tracker_config(args))
+    tracker = make_tracker(rec, tracker_config(args), unit=args.model_unit)
     tracker.initializer = initializer_for(args, rec, tracker.model)
     if init_pose is None and tracker.initializer is None:
         print("vespro track: an initial pose is needed: pass --init-pose x,y,z,qw,qx,qy,qz "

@@ -1,7 +1,7 @@
 """A library of CAD models by name (``models/objects/`` by default).
 
 The folder is indexed once when the library is created: every ``.stl``,
-``.obj`` or ``.ply`` file is a model named by its file stem. Models (and their
+``.obj``, ``.ply`` or ViSP ``.cao`` file is a model named by its file stem. Models (and their
 BSP trees) are loaded on first use and cached for the library's lifetime.
 """
 
@@ -18,7 +18,7 @@ __all__ = ["ModelLibrary", "DEFAULT_ROOT"]
 #: The project's own models.
 DEFAULT_ROOT = Path(__file__).resolve().parents[1] / "models" / "objects"
 
-_SUFFIXES = (".stl", ".obj", ".ply")
+_SUFFIXES = (".stl", ".obj", ".ply", ".cao")
 
 
 class ModelLibrary:

@@ -1,10 +1,15 @@
 """CAD models of tracked parts: loading, validation, planar faces and features.
 
-A model is a closed triangle mesh in the object frame (metres). Loading states
-the CAD unit (``load_model(path, unit="mm")`` scales on load), validates the
-mesh at the boundary (watertight, consistently wound with outward normals, no
-zero-area triangles, a size that looks like metres) and derives what the
-tracker and the visibility query need:
+A model is a closed triangle mesh in the object frame (metres), read from STL,
+OBJ, PLY or ViSP ``.cao`` (``vespro.cao``). Loading states the CAD unit
+(``load_model(path, unit="mm")`` scales on load), validates the mesh at the
+boundary (watertight, consistently wound with outward normals, no zero-area
+triangles, a size that looks like metres; a file whose faces all point inward
+is turned right way out with a note) and derives what the tracker and the
+visibility query need. Open surfaces are refused: occlusion (``vespro.bsp``)
+and corner visibility take the model as a solid. Commands that hand the model
+to the simulator or a recording take it through ``model_file_in_metres``.
+What the tracker and the visibility query get:
 
 - planar faces: coplanar, edge-adjacent triangles merged into polygons (outer
   loop plus holes), each with its plane ``n . x = d`` (``n`` the outward unit
@@ -21,13 +26,14 @@ are read-only (shared/STYLE.md: set-up is built once, never mutated).
 
 from __future__ import annotations
 
-from .errors import InputError
-
 import hashlib
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+
+from .errors import InputError
 
 __all__ = [
     "ModelError",
@@ -35,6 +41,8 @@ __all__ = [
     "Model",
     "UNIT_SCALE",
     "load_model",
+    "model_file_in_metres",
+    "default_model_cache_dir",
     "model_from_arrays",
     "box_model",
 ]
@@ -44,6 +52,9 @@ UNIT_SCALE = {"m": 1.0, "cm": 1e-2, "mm": 1e-3, "in": 0.0254}
 
 #: A model whose largest extent exceeds this (m) was almost surely drawn in mm.
 MAX_EXTENT_M = 5.0
+#: ... and one smaller than this (m) was stated in a unit too large (a metre
+#: file loaded as millimetres).
+MIN_EXTENT_M = 1e-3
 
 #: Two triangles (or planar faces) are coplanar when their normals differ by
 #: less than this angle (rad) ...
@@ -55,7 +66,10 @@ COPLANAR_REL_DIST = 1e-6
 #: A triangle whose area is below this fraction of (model size)^2 is degenerate.
 DEGENERATE_REL_AREA = 1e-14
 
-_SUPPORTED = (".stl", ".obj", ".ply")
+_SUPPORTED = (".stl", ".obj", ".ply", ".cao")
+
+#: How to state the unit, for messages: the command-line option and the argument.
+UNIT_HINT = "pass --model-unit {unit} on the command line (unit=\"{unit}\" to load_model)"
 
 
 class ModelError(InputError):
@@ -217,7 +231,10 @@ def content_hash(vertices: np.ndarray, triangles: np.ndarray) -> str:
 
 
 def load_model(path, unit: str = "m", name: str | None = None) -> Model:
-    """Load and validate a closed CAD mesh (STL, OBJ or PLY).
+    """Load and validate a closed CAD mesh (STL, OBJ, PLY or ViSP ``.cao``).
+
+    A mesh whose faces all point inward (inside out) is turned right way out,
+    with a note on standard error; every other defect is refused.
 
     Parameters
     ----------
@@ -235,12 +252,16 @@ def load_model(path, unit: str = "m", name: str | None = None) -> Model:
     ------
     ModelError
         Unreadable, empty or garbage file; mesh that is not a valid closed
-        solid; a size that suggests millimetres while ``unit="m"``. The message
-        names the file.
+        solid; a size that suggests another unit than ``unit``. The message
+        names the file and says what to do.
     """
-    import trimesh
+    model, notes = _load(Path(path), unit, name)
+    for note in notes:
+        print(f"note: {note}", file=sys.stderr)
+    return model
 
-    path = Path(path)
+
+def _load(path: Path, unit: str, name: str | None):
     if unit not in UNIT_SCALE:
         raise ValueError(f"unknown unit {unit!r}; use one of {sorted(UNIT_SCALE)}")
     if path.suffix.lower() not in _SUPPORTED:
@@ -249,6 +270,71 @@ def load_model(path, unit: str = "m", name: str | None = None) -> Model:
         raise ModelError(f"{path}: no such file")
     if path.stat().st_size == 0:
         raise ModelError(f"{path}: file is empty")
+    if path.suffix.lower() == ".cao":
+        from .cao import read_cao
+
+        vertices, faces = read_cao(path)
+    else:
+        vertices, faces = _read_mesh(path)
+    notes: list = []
+    model = model_from_arrays(vertices, faces, unit=unit, name=name or path.stem, source=str(path),
+                              fix_inside_out=notes)
+    return model, notes
+
+
+def default_model_cache_dir() -> Path:
+    """``$VESPRO_MODEL_CACHE`` if set, else ``~/.cache/vespro/models``."""
+    import os
+
+    env = os.environ.get("VESPRO_MODEL_CACHE")
+    return Path(env) if env else Path.home() / ".cache" / "vespro" / "models"
+
+
+def model_file_in_metres(path, unit: str = "m", cache_dir=None) -> Path:
+    """A validated mesh file in metres for consumers that read files (simulator, recordings).
+
+    The file itself when it is an STL, OBJ or PLY drawn in metres that loads
+    as is; otherwise (another unit, a ``.cao``, an inside-out mesh turned
+    right way out) the validated model written as a binary STL in metres, in
+    ``cache_dir/<content hash>/<file stem>.stl`` (the stem names the object).
+
+    Parameters
+    ----------
+    path : str or Path
+    unit : str
+        Key of ``UNIT_SCALE``: the unit the file is drawn in.
+    cache_dir : str or Path, optional
+        Defaults to ``default_model_cache_dir()``.
+
+    Raises
+    ------
+    ModelError
+        As ``load_model``.
+    """
+    path = Path(path)
+    model, notes = _load(path, unit, None)
+    for note in notes:
+        print(f"note: {note}", file=sys.stderr)
+    if unit == "m" and not notes and path.suffix.lower() in (".stl", ".obj", ".ply"):
+        return path
+    out = Path(cache_dir or default_model_cache_dir()) / model.content_hash[:16] / f"{path.stem}.stl"
+    if not out.is_file():
+        import os
+        import tempfile
+
+        import trimesh
+
+        out.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(suffix=".stl", dir=out.parent)
+        os.close(fd)
+        trimesh.Trimesh(model.vertices, model.triangles, process=False).export(tmp, file_type="stl")
+        os.replace(tmp, out)  # atomic: concurrent processes see a whole file or none
+    return out
+
+
+def _read_mesh(path: Path):
+    import trimesh
+
     try:
         # process=True merges STL's duplicated vertices; validate=False keeps
         # degenerate and duplicate faces so that we can reject them by name.
@@ -259,7 +345,7 @@ def load_model(path, unit: str = "m", name: str | None = None) -> Model:
     faces = np.asarray(getattr(mesh, "faces", np.zeros((0, 3))))
     if faces.size == 0 or vertices.size == 0:
         raise ModelError(f"{path}: no triangles found (empty or not a {path.suffix} mesh)")
-    return model_from_arrays(vertices, faces, unit=unit, name=name or path.stem, source=str(path))
+    return vertices, faces
 
 
 def box_model(extents, center=(0.0, 0.0, 0.0), name: str = "box") -> Model:
@@ -281,7 +367,8 @@ def box_model(extents, center=(0.0, 0.0, 0.0), name: str = "box") -> Model:
     return model_from_arrays(np.asarray(m.vertices) + np.asarray(center, float), m.faces, name=name)
 
 
-def model_from_arrays(vertices, triangles, unit: str = "m", name: str = "model", source: str = "") -> Model:
+def model_from_arrays(vertices, triangles, unit: str = "m", name: str = "model", source: str = "",
+                      fix_inside_out: list | None = None) -> Model:
     """Validate a triangle mesh and derive its planar faces, corners and edges.
 
     Parameters
@@ -294,6 +381,10 @@ def model_from_arrays(vertices, triangles, unit: str = "m", name: str = "model",
         Key of ``UNIT_SCALE``.
     name, source : str
         Used in messages and kept in the model.
+    fix_inside_out : list, optional
+        When given, a mesh whose faces all point inward is turned right way
+        out and a note saying so is appended to this list; otherwise such a
+        mesh is refused.
 
     Raises
     ------
@@ -325,10 +416,13 @@ def model_from_arrays(vertices, triangles, unit: str = "m", name: str = "model",
     extents = V.max(0) - V.min(0)
     size = float(extents.max())
     if size > MAX_EXTENT_M:
-        hint = ' (drawn in millimetres? load with unit="mm")' if unit == "m" else ""
-        raise ModelError(f"{where}: largest extent {size:.4g} m exceeds {MAX_EXTENT_M} m{hint}")
+        raise ModelError(f"{where}: largest extent {size:.4g} m exceeds {MAX_EXTENT_M:g} m with the file read in "
+                         f"{unit}: drawn in millimetres? {UNIT_HINT.format(unit='mm')}")
     if size <= 0:
         raise ModelError(f"{where}: all vertices coincide")
+    if size < MIN_EXTENT_M:
+        raise ModelError(f"{where}: largest extent {size:.4g} m is below {MIN_EXTENT_M * 1e3:g} mm with the file "
+                         f"read in {unit}: state the unit it is drawn in, e.g. {UNIT_HINT.format(unit='m')}")
 
     # Degenerate triangles: repeated indices or (near) zero area.
     cross = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
@@ -350,16 +444,28 @@ def model_from_arrays(vertices, triangles, unit: str = "m", name: str = "model",
     _, u_inv, u_cnt = np.unique(u_key, return_inverse=True, return_counts=True)
     if np.any(u_cnt == 1):
         raise ModelError(
-            f"{where}: not watertight: {int(np.sum(u_cnt == 1))} boundary edge(s) (a hole or missing face)"
+            f"{where}: not watertight: {int(np.sum(u_cnt == 1))} boundary edge(s): an open surface (a hole, or a "
+            f"missing face such as walls without a top); the tracker needs a closed solid: add the missing faces"
         )
     if np.any(u_cnt > 2):
         raise ModelError(f"{where}: not a manifold: {int(np.sum(u_cnt > 2))} edge(s) shared by more than two triangles")
     d_key = d_edges[:, 0] * nV + d_edges[:, 1]
     if np.unique(d_key).size != d_key.size:
-        raise ModelError(f"{where}: inconsistent winding (some triangles are flipped relative to their neighbours)")
+        raise ModelError(f"{where}: inconsistent winding (some triangles are flipped relative to their neighbours): "
+                         f"wind every face counter-clockwise seen from outside")
     volume = float(np.einsum("ij,ij->i", V[F[:, 0]], np.cross(V[F[:, 1]], V[F[:, 2]])).sum() / 6.0)
+    if volume < 0 and fix_inside_out is not None:
+        F = np.ascontiguousarray(F[:, ::-1])
+        cross = -cross
+        volume = -volume
+        d_edges = F[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
+        u_key = np.minimum(d_edges[:, 0], d_edges[:, 1]) * nV + np.maximum(d_edges[:, 0], d_edges[:, 1])
+        _, u_inv, u_cnt = np.unique(u_key, return_inverse=True, return_counts=True)
+        fix_inside_out.append(f"{where}: every face pointed inward (the mesh was inside out); "
+                              f"reversed them all so that they point outward")
     if volume <= 0:
-        raise ModelError(f"{where}: normals point inward (volume {volume:.3g} m^3 <= 0): all faces are flipped")
+        raise ModelError(f"{where}: normals point inward (volume {volume:.3g} m^3 <= 0): all faces are flipped; "
+                         f"reverse the order of every face's vertices")
 
     tri_n = cross / dbl_area[:, None]
     tri_area = 0.5 * dbl_area

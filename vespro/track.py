@@ -15,23 +15,47 @@ __all__ = ["make_tracker", "track_recording", "rows_from_outputs", "parse_pose"]
 
 
 def parse_pose(text: str) -> np.ndarray:
-    """``"x,y,z,qw,qx,qy,qz"`` -> ``T_world_object``; raises ValueError with the reason."""
+    """``"x,y,z,qw,qx,qy,qz"``, or a file holding it, -> ``T_world_object``.
+
+    In a file the numbers may be split by commas, spaces or new lines; text
+    after ``#`` is a comment.
+
+    Raises
+    ------
+    InputError
+        The reason, naming the file if one was given.
+    """
+    from .errors import InputError
     from .se3 import transform_from_pq
 
+    what = "--init-pose"
+    path = Path(text.strip())
+    if path.is_file():
+        what = f"--init-pose file {path}"
+        try:
+            text = path.read_text(errors="replace")
+        except OSError as e:
+            raise InputError(f"{what}: cannot read ({e.strerror or e})") from None
+        text = ",".join(line.split("#", 1)[0] for line in text.splitlines())
+    elif not any(c.isdigit() for c in text) or "/" in text or text.endswith(".txt"):
+        raise InputError(f"--init-pose: {text!r} is neither 7 numbers x,y,z,qw,qx,qy,qz nor an existing file")
     try:
-        vals = np.array([float(v) for v in text.replace(" ", "").split(",")])
+        vals = np.array([float(v) for v in text.replace(" ", ",").replace("\t", ",").split(",") if v.strip()])
     except ValueError:
-        raise ValueError(f"--init-pose needs 7 numbers x,y,z,qw,qx,qy,qz, got {text!r}") from None
+        raise InputError(f"{what} needs 7 numbers x,y,z,qw,qx,qy,qz, got {text.strip()!r}") from None
     if vals.shape != (7,):
-        raise ValueError(f"--init-pose needs 7 numbers x,y,z,qw,qx,qy,qz, got {vals.size}")
+        raise InputError(f"{what} needs 7 numbers x,y,z,qw,qx,qy,qz, got {vals.size}")
+    if not np.all(np.isfinite(vals)):
+        raise InputError(f"{what} needs finite numbers, got {vals.tolist()}")
     if abs(np.linalg.norm(vals[3:]) - 1.0) > 1e-2:
-        raise ValueError(f"--init-pose quaternion must be unit length, got norm {np.linalg.norm(vals[3:]):.4f}")
+        raise InputError(f"{what}: quaternion must be unit length, got norm {np.linalg.norm(vals[3:]):.4f}")
     return transform_from_pq(vals)
 
 
-def make_tracker(rec: Recording, config: TrackerConfig = TrackerConfig(), initializer=None) -> Tracker:
-    """A tracker for a recording's rig and model."""
-    model = load_model(rec.model_path, name=rec.object_name)
+def make_tracker(rec: Recording, config: TrackerConfig = TrackerConfig(), initializer=None,
+                 unit: str = "m") -> Tracker:
+    """A tracker for a recording's rig and model (the model file drawn in ``unit``)."""
+    model = load_model(rec.model_path, unit=unit, name=rec.object_name)
     return Tracker(rec.rig, model, config, initializer=initializer)
 
 
