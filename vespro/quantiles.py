@@ -66,6 +66,8 @@ class LogHistogram:
         if self.count == 0:
             return math.nan
         rank = min(max(int(math.ceil(q * self.count)), 1), self.count)
+        if rank == 1 or rank == self.count:
+            return self.min if rank == 1 else self.max  # the ends are kept exactly
         i = int(np.searchsorted(np.cumsum(self.counts), rank))
         # Bin i > 0 holds (lo * (1+rel)^(i-1), lo * (1+rel)^i]: its geometric middle.
         mid = self.lo if i == 0 else math.exp(self._log_lo + (i - 0.5) * self._log_step)

@@ -157,7 +157,7 @@ class _Device:
         self.name, self.spec = name, spec
         self.open_capture = open_capture
         self.cap = None
-        self.frames = 0           # frames read since the last (re)open
+        self.frames = 0           # frames grabbed since the last (re)open
         self.retries = 0          # reopen attempts since it last ended
         self.retry_at_ns = 0
         self.backoff_s = 0.0
@@ -281,7 +281,9 @@ class CameraSource:
         """The next frame set; a :class:`SourceGap` when none came in time; None once ended."""
         if not self._threaded:
             fs = None if self._ended else self._capture()
-            if fs is not None:
+            if fs is None:
+                self._ended = True
+            else:
                 self._last_ns = fs.t_ns
             return fs
         if self._thread is None:
@@ -347,6 +349,7 @@ class CameraSource:
             ok = [d.cap.grab() for d in up]
             t_grab = self.clock.now_ns()
             for d, g in zip(up, ok):
+                d.frames += bool(g)
                 if not g and not self._device_ended(d, t_grab):
                     return None
             if not any(ok):
@@ -368,7 +371,6 @@ class CameraSource:
             for cam, d in zip(self.rig, self._devs):
                 img = None
                 if d in up and ok[up.index(d)]:
-                    d.frames += 1
                     d.retries, d.backoff_s = 0, 0.0
                     img = d.cap.retrieve()[1]
                     if img is not None and img.shape[:2] != (cam.intrinsics.height, cam.intrinsics.width):
@@ -399,7 +401,7 @@ class CameraSource:
     def _reopen_due(self) -> None:
         now = self.clock.now_ns()
         for d in self._devs:
-            if d.cap is not None or now < d.retry_at_ns:
+            if d.cap is not None or now < d.retry_at_ns or self.on_end != "retry":
                 continue
             d.retries += 1
             if d.open():

@@ -312,3 +312,115 @@ def test_catch_up_after_a_late_initialisation_keeps_the_live_rate(rec_path):
     assert tracking  # confirmed again on the live frames
     for o in tracking:
         assert np.linalg.norm(o.T_world_object[:3, 3] - T[o.index][:3, 3]) < 3e-3
+
+
+class _ListSource:
+    """Frame sets and source gaps from a list (a camera that stalls, scripted)."""
+
+    def __init__(self, items, rig, rate_hz):
+        self.items, self.rig, self.rate_hz = list(items), rig, rate_hz
+
+    def next(self):
+        return self.items.pop(0) if self.items else None
+
+    def close(self):
+        pass
+
+
+class _Collect:
+    """A publisher that keeps every message."""
+
+    def __init__(self):
+        self.msgs = []
+
+    def publish(self, msg):
+        self.msgs.append(msg)
+
+    def stats(self):
+        from vespro.link import LinkStats
+
+        return LinkStats(len(self.msgs), len(self.msgs), 0, 0, 1, 1, 0, 0, ())
+
+
+def test_a_stalled_camera_is_published_lost_and_the_track_found_again_after_it(rec_path):
+    """Frames 0-14, a 2 s stall (the source reports gaps), frames 15-29 2 s later: ``lost``
+    is published at the gap, the filter is dropped (its prediction across 2 s is a guess),
+    the initialiser finds the part again and it is tracked to the end; the stall and the
+    return are each logged once."""
+    from vespro.frames import FrameSet
+    from vespro.sources import SourceGap
+
+    rec = Recording(rec_path)
+    _, _, T = read_groundtruth(rec_path)
+    frames = [rec.frameset(i) for i in range(len(rec))]
+    stall_ns = 2_000_000_000
+    t9 = frames[14].t_ns
+    gaps = [SourceGap(t9 + k * 100_000_000, t9, "no frame from the cameras for 0.1 s (stalled)") for k in (1, 2, 3)]
+    after = [FrameSet(f.index, f.t_ns + stall_ns, f.images, f.T_world_camera) for f in frames[15:]]
+    clock = SimClock()
+    lines, pub = [], _Collect()
+    calls = []
+
+    def init(fs):  # finds the part wherever it is shown (the truth of that frame)
+        calls.append(fs.index)
+        return InitResult(T[fs.index])
+
+    server = PoseServer(_ListSource(frames[:15] + gaps + after, rec.rig, rec.rate_hz),
+                        Tracker(rec.rig, load_model(rec.model_path)), pub, clock, init,
+                        background_init=False, log=lines.append)
+    stats = server.run()
+    status = [m.status for m in pub.msgs]
+    assert len(pub.msgs) == len(frames) + len(gaps) + 1  # every frame, every gap report, the end
+    before, during, back = status[:15], status[15:18], status[18:-1]
+    assert before[-1] == PoseStatus.TRACKING
+    assert during == [PoseStatus.LOST] * 3 and stats.source_gaps == 3
+    assert back[0] != PoseStatus.TRACKING and back[-1] == PoseStatus.TRACKING  # found again, not coasted
+    assert calls.count(15) == 1  # the initialiser called on the first frame after the stall
+    assert status[-1] == PoseStatus.LOST  # the source ended: nothing tracks the part now
+    assert sum("published lost" in ln for ln in lines) == 1
+    assert sum("frames again after 2.0 s; the track starts over" in ln for ln in lines) == 1
+    for m in pub.msgs[18:-1]:
+        if m.status == PoseStatus.TRACKING:
+            i = next(f.index for f in after if f.t_ns == m.t_capture_ns)
+            assert np.linalg.norm(m.p_world_object - T[i][:3, 3]) < 3e-3
+
+
+def test_server_statistics_do_not_grow_with_the_number_of_frames():
+    """Per-frame figures are kept as histograms and counts: the statistics of 10x the frames
+    take the same memory, and still give the median and p99 of what was measured."""
+    import pickle
+
+    from vespro.frames import FrameSet
+    from vespro.tracker import TrackerOutput
+
+    class Quick:  # a tracker that takes 1-3 ms, status by frame
+        initializer, ekf, provisional, blind_frames = None, None, False, 0
+
+        def process(self, fs):
+            return TrackerOutput(fs.index, fs.t_ns, ("tracking", "lost")[fs.index % 4 == 0],
+                                 time_ms=1.0 + (fs.index % 3))
+
+    class Frames:
+        rate_hz, rig = 30.0, None
+
+        def __init__(self, clock):
+            self.clock, self.k = clock, 0
+
+        def next(self):
+            self.clock.advance(33_333_333)  # a frame period; sent 5 ms after capture
+            self.k += 1
+            return FrameSet(self.k, self.clock.now_ns() - 5_000_000, {})
+
+    sizes = {}
+    for n in (1000, 10_000):
+        clock = SimClock()
+        server = PoseServer(Frames(clock), Quick(), None, clock, None, background_init=False, log=None)
+        stats = server.run(max_frames=n)
+        sizes[n] = len(pickle.dumps(stats))
+        assert len(server._window) <= 31  # the status line's window: one second of frames
+    assert sizes[10_000] <= sizes[1000] + 64, sizes  # a few bytes for larger integers
+    s = stats.summary()
+    assert s["statuses"] == {"tracking": 7500, "lost": 2500}
+    # within half a 1 % bin of the exact values (2, 3 and 5 ms)
+    assert s["tracker_ms_median"] == pytest.approx(2.0, rel=0.005) and s["tracker_ms_p99"] == pytest.approx(3.0, rel=0.005)
+    assert s["latency_ms_median"] == pytest.approx(5.0, rel=0.005)
