@@ -33,7 +33,7 @@ from .realtime import leave_realtime
 from .se3 import quat_from_matrix
 from .sources import SourceGap
 from .throttle import LogThrottle
-from .tracker import Tracker, TrackerOutput
+from .tracker import InitResult, Tracker, TrackerOutput
 from .wire import PoseMsg, PoseStatus
 
 __all__ = ["PoseServer", "ServerStats", "pose_message"]
@@ -168,8 +168,7 @@ class PoseServer:
     max_gap_s : float
         A source gap (:class:`~vespro.sources.SourceGap`: a camera stalled) is
         published ``lost`` while it lasts; once frames come back after a gap longer
-        than this, the filter is dropped (its prediction across the gap is a guess)
-        and the initialiser starts again from the last good pose.
+        than this, the filter starts again from its last pose (see :meth:`_resume`).
     """
 
     def __init__(self, source, tracker: Tracker, publisher, clock: Clock,
@@ -401,16 +400,34 @@ class PoseServer:
         self._publish(TrackerOutput(-1, g.t_ns, "lost"))
 
     def _resume(self, fs: FrameSet) -> None:
-        """The first frame set after a gap: say so; drop the filter if the gap was long."""
+        """The first frame set after a gap: say so; after a long one, start the filter again.
+
+        Across more than ``max_gap_s`` the filter's velocity is no evidence (the
+        stream may have paused, or lost the frames while the part moved on): a
+        confirmed track is started again at its last pose with a start's
+        uncertainty, published once the tracker confirms it on the new frames as
+        any start; one not confirmed within ``confirm_within_s`` is dropped and the
+        initialiser searches, seeded from the last good pose. On ViSP's cube
+        sequence after a 2 s pause the restart tracked from the second frame;
+        kept across the gap, the filter's prediction (its velocity over 2 s) lost
+        the part on the first and waited for the initialiser.
+        """
         waited = (fs.t_ns - (self._last_fs_ns if self._last_fs_ns is not None else self._gap_since)) * 1e-9
         self._gap_since = None
         long_gap = waited > self.max_gap_s
+        tr = self.tracker
+        restart = long_gap and tr.ekf is not None and tr.confirmed and not tr.provisional and self._catching is None
+        if restart:
+            tr.start(InitResult(tr.ekf.pose), fs.t_ns)
+        elif long_gap:
+            tr.lose()
         if long_gap:
-            self.tracker.lose()
+            self._catching = None  # frames from before the gap: stale now
             self._backlog.clear()  # an answer for a frame before the gap is not caught up across it
         if self.log:
             self.log(f"source: frames again after {waited:.1f} s" +
-                     ("; the track starts over from its last pose" if long_gap else ""))
+                     ("; the track starts again from its last pose, to be confirmed" if restart else
+                      "; the track starts over" if long_gap else ""))
 
     def _publish(self, out: TrackerOutput) -> int:
         """Publish ``out``; its send stamp."""
