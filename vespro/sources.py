@@ -189,11 +189,13 @@ class CameraSource:
         A local camera (:func:`is_live_device`) paces itself: its frames are stamped
         when ``grab`` returns. A file or network stream is paced at its frame rate
         (``rate_hz``, else the container's FPS): frame k is delivered at, and
-        stamped, ``t0 + k / rate``. A frame later than one period behind its
-        instant is dropped (counted in ``missed``, as a camera's frame would be when
-        processing falls behind); one later than ``stall_s`` (the stream itself
-        stopped, then resumed) starts the timeline anew from its arrival. The grabs
-        of all cameras are issued back to back before any decoding.
+        stamped, ``t0 + k / rate``. A frame that comes more than a period after
+        its instant (a stream that stopped and resumed, a reader held up) starts
+        the timeline anew from its arrival (counted in ``resyncs``): dropping it
+        instead lost every frame of a stream read at its live edge, where each
+        frame comes just as it is sent. The grabs of all cameras are issued back
+        to back before any decoding. Frame sets the server has not taken when a
+        newer one is ready are dropped, newest kept (``missed``).
     End of a stream
         A device whose ``grab`` fails has ended (end of file, camera unplugged,
         stream closed): said once through ``log``. ``on_end="stop"``: the source
@@ -261,8 +263,8 @@ class CameraSource:
         self.paced = not all(is_live_device(d.spec) for d in self._devs)
         self.stall_ns = ns_from_s(stall_s if stall_s is not None else max(0.1, 3.0 / self.rate_hz))
         self._period_ns = 1e9 / self.rate_hz
-        self.missed = 0      # frames dropped: processing (or the reader) fell behind
-        self.resyncs = 0     # times the timeline started anew after the stream stopped and resumed
+        self.missed = 0      # frame sets dropped: the server fell behind (newest kept)
+        self.resyncs = 0     # times the timeline started anew (a frame more than a period late)
         self.ends = 0        # device ends (each said once)
         self._t0 = None
         self._k = 0
@@ -356,14 +358,10 @@ class CameraSource:
                 continue
             t_cap = t_grab
             if self.paced:
-                if self._t0 is None or t_grab - self._instant(self._k) > self.stall_ns:
+                if self._t0 is None or t_grab - self._instant(self._k) > self._period_ns:
                     if self._t0 is not None:
                         self.resyncs += 1
                     self._t0, self._k = t_grab, 0  # a new timeline from this arrival
-                elif t_grab - self._instant(self._k) > self._period_ns:
-                    self.missed += 1  # decoded too late for its instant: dropped, the next one is due
-                    self._k += 1
-                    continue
                 t_cap = self._instant(self._k)
                 self.clock.sleep_until(t_cap)
                 self._k += 1

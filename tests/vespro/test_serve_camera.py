@@ -75,9 +75,11 @@ def _serve(video, *extra):
     return proc.returncode, out, msgs
 
 
-def _on_grid(stamps_ns, period_ns):
-    steps = np.diff(stamps_ns) / period_ns
-    return np.all(np.abs(steps - np.round(steps)) < 1e-4) and np.all(np.round(steps) >= 1)
+def _paced(stamps_ns, period_ns):
+    """Stamps a period apart (more where a frame set was dropped or a late one restarted
+    the timeline), never closer: the stream's rate, not as fast as it decodes."""
+    steps = np.diff(stamps_ns)
+    return np.all(steps >= period_ns - 1e3) and abs(np.median(steps) - period_ns) <= 1e3
 
 
 def test_a_video_is_paced_at_its_rate_and_the_server_stops_at_its_end(video):
@@ -87,7 +89,7 @@ def test_a_video_is_paced_at_its_rate_and_the_server_stops_at_its_end(video):
     assert "stopped after" in out
     frames = [m for m in msgs if m.t_capture_ns != msgs[-1].t_capture_ns]
     assert len(frames) >= 20, out  # the client joined within the first half of the clip
-    assert _on_grid([m.t_capture_ns for m in frames], 1e9 / FPS)  # the file's 30 Hz, not as fast as it decodes
+    assert _paced([m.t_capture_ns for m in frames], 1e9 / FPS)  # the file's 30 Hz
     assert msgs[-1].status == PoseStatus.LOST  # at the end: nothing tracks the part any more
     assert sum(m.status == PoseStatus.TRACKING for m in msgs) >= 10, out
 
