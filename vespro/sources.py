@@ -153,9 +153,10 @@ def is_live_device(spec) -> bool:
 class _Device:
     """One camera's capture: its cv2.VideoCapture (or None while down) and its end/retry state."""
 
-    def __init__(self, name: str, spec, open_capture):
+    def __init__(self, name: str, spec, open_capture, size: tuple, rate_hz: float | None):
         self.name, self.spec = name, spec
         self.open_capture = open_capture
+        self.size, self.rate_hz = size, rate_hz  # asked of a local camera at each (re)open
         self.cap = None
         self.frames = 0           # frames grabbed since the last (re)open
         self.retries = 0          # reopen attempts since it last ended
@@ -167,6 +168,13 @@ class _Device:
         if not cap.isOpened():
             cap.release()
             return False
+        if is_live_device(self.spec):
+            import cv2
+
+            cap.set(cv2.CAP_PROP_FRAME_WIDTH, self.size[0])
+            cap.set(cv2.CAP_PROP_FRAME_HEIGHT, self.size[1])
+            if self.rate_hz is not None:
+                cap.set(cv2.CAP_PROP_FPS, self.rate_hz)
         self.cap, self.frames = cap, 0
         return True
 
@@ -245,13 +253,12 @@ class CameraSource:
         self.on_end = on_end
         self.log = log or (lambda line: print(line, file=sys.stderr, flush=True))
         self._retry_min_s, self._retry_max_s = float(retry_min_s), float(retry_max_s)
-        self._devs = [_Device(cam.name, dev, open_capture or cv2.VideoCapture) for cam, dev in zip(rig, devices)]
-        for cam, d in zip(rig, self._devs):
+        self._devs = [_Device(cam.name, dev, open_capture or cv2.VideoCapture,
+                              (cam.intrinsics.width, cam.intrinsics.height), rate_hz) for cam, dev in zip(rig, devices)]
+        for d in self._devs:
             if not d.open():
-                raise CameraError(f"camera {cam.name}: cannot open device {d.spec!r} (an index, a video file "
+                raise CameraError(f"camera {d.name}: cannot open device {d.spec!r} (an index, a video file "
                                   "or a stream URL that cv2.VideoCapture reads)")
-            d.cap.set(cv2.CAP_PROP_FRAME_WIDTH, cam.intrinsics.width)
-            d.cap.set(cv2.CAP_PROP_FRAME_HEIGHT, cam.intrinsics.height)
         fps = float(self._devs[0].cap.get(cv2.CAP_PROP_FPS) or 0.0)
         if rate_hz is None:
             rate_hz = fps if 0.0 < fps < 1000.0 else 26.0
@@ -312,6 +319,8 @@ class CameraSource:
             self._cond.notify_all()
         if self._thread is not None:
             self._thread.join(timeout=2.0)
+            if self._thread.is_alive():
+                return  # blocked in a grab (a stalled stream): releasing under it is unsafe; the process ends it
         for d in self._devs:
             d.release()
 
@@ -366,9 +375,10 @@ class CameraSource:
                 self.clock.sleep_until(t_cap)
                 self._k += 1
             images = {}
+            grabbed = {d.name for d, g in zip(up, ok) if g}
             for cam, d in zip(self.rig, self._devs):
                 img = None
-                if d in up and ok[up.index(d)]:
+                if d.name in grabbed:
                     d.retries, d.backoff_s = 0, 0.0
                     img = d.cap.retrieve()[1]
                     if img is not None and img.shape[:2] != (cam.intrinsics.height, cam.intrinsics.width):
