@@ -12,8 +12,16 @@ the latest frame set; meanwhile every frame is still published with status
 returns a pose, the filter starts at that frame's capture stamp and is
 predicted forward to the current frame.
 
+When a live source has no frame set when one was due (a camera stalled, or
+is being reopened) it returns a :class:`~vespro.sources.SourceGap`: the server
+publishes ``lost`` for it, says so once, and when frames come back after a long
+gap starts the filter again from its last pose. When the source ends, ``lost``
+is published once more and :meth:`PoseServer.run` returns.
+
 Once a second the server logs one line: frame rate, tracker time, vision
-latency (capture to send), status and link statistics.
+latency (capture to send), status and link statistics. Lines of a kind that
+repeats (an initialisation that finds nothing) go out at most once a second.
+Statistics are kept in memory that does not grow with the run's length.
 """
 
 from __future__ import annotations
