@@ -94,7 +94,7 @@ def test_a_video_is_paced_at_its_rate_and_the_server_stops_at_its_end(video):
     assert sum(m.status == PoseStatus.TRACKING for m in msgs) >= 10, out
 
 
-def test_retry_reopens_the_ended_stream_and_publishes_lost_meanwhile(video):
+def test_retry_reopens_the_ended_stream_and_publishes_lost_meanwhile(video, kept_publisher):
     """In process (the same code as the command): the file ends, is reopened after the
     0.5 s backoff and starts over; the camera down meanwhile is published lost, said once."""
     from vespro.clock import WallClock
@@ -107,7 +107,7 @@ def test_retry_reopens_the_ended_stream_and_publishes_lost_meanwhile(video):
     path, rig_path, mesh, pose = video
     clock, lines = WallClock(), []
     src = CameraSource(load_rig(rig_path), [str(path)], clock, on_end="retry", log=lines.append)
-    pub = _Keep()
+    pub = kept_publisher
     fired = []
 
     def init(fs):
@@ -128,17 +128,3 @@ def test_retry_reopens_the_ended_stream_and_publishes_lost_meanwhile(video):
     assert sum("down (reopening); the track is published lost" in ln for ln in lines) == ends, lines  # once each
     assert server.stats.source_gaps >= 1 and any(m.status == PoseStatus.LOST for m in pub.msgs)
 
-
-class _Keep:
-    """A publisher that keeps every message."""
-
-    def __init__(self):
-        self.msgs = []
-
-    def publish(self, msg):
-        self.msgs.append(msg)
-
-    def stats(self):
-        from vespro.link import LinkStats
-
-        return LinkStats(len(self.msgs), len(self.msgs), 0, 0, 1, 1, 0, 0, ())

@@ -327,22 +327,7 @@ class _ListSource:
         pass
 
 
-class _Collect:
-    """A publisher that keeps every message."""
-
-    def __init__(self):
-        self.msgs = []
-
-    def publish(self, msg):
-        self.msgs.append(msg)
-
-    def stats(self):
-        from vespro.link import LinkStats
-
-        return LinkStats(len(self.msgs), len(self.msgs), 0, 0, 1, 1, 0, 0, ())
-
-
-def test_a_stalled_camera_is_published_lost_and_the_track_found_again_after_it(rec_path):
+def test_a_stalled_camera_is_published_lost_and_the_track_found_again_after_it(rec_path, kept_publisher):
     """Frames 0-14, a 2 s stall (the source reports gaps), frames 15-29 2 s later (a stream
     that paused): ``lost`` is published at the gap; the filter starts again at its last
     pose, confirmed on the new frames before it is published, and the part is tracked to
@@ -358,7 +343,7 @@ def test_a_stalled_camera_is_published_lost_and_the_track_found_again_after_it(r
     gaps = [SourceGap(t9 + k * 100_000_000, t9, "no frame from the cameras for 0.1 s (stalled)") for k in (1, 2, 3)]
     after = [FrameSet(f.index, f.t_ns + stall_ns, f.images, f.T_world_camera) for f in frames[15:]]
     clock = SimClock()
-    lines, pub = [], _Collect()
+    lines, pub = [], kept_publisher
     calls = []
 
     def init(fs):  # finds the part wherever it is shown (the truth of that frame)
