@@ -398,15 +398,15 @@ def test_server_statistics_do_not_grow_with_the_number_of_frames():
             return FrameSet(self.k, self.clock.now_ns() - 5_000_000, {})
 
     sizes = {}
-    for n in (1000, 10_000):
+    for n in (400, 4000):
         clock = SimClock()
         server = PoseServer(Frames(clock), Quick(), None, clock, None, background_init=False, log=None)
         stats = server.run(max_frames=n)
         sizes[n] = len(pickle.dumps(stats))
         assert len(server._window) <= 31  # the status line's window: one second of frames
-    assert sizes[10_000] <= sizes[1000] + 64, sizes  # a few bytes for larger integers
+    assert sizes[4000] <= sizes[400] + 64, sizes  # a few bytes for larger integers
     s = stats.summary()
-    assert s["statuses"] == {"tracking": 7500, "lost": 2500}
+    assert s["statuses"] == {"tracking": 3000, "lost": 1000}
     # within half a 1 % bin of the exact values (2, 3 and 5 ms)
     assert s["tracker_ms_median"] == pytest.approx(2.0, rel=0.005) and s["tracker_ms_p99"] == pytest.approx(3.0, rel=0.005)
     assert s["latency_ms_median"] == pytest.approx(5.0, rel=0.005)
