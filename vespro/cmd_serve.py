@@ -66,9 +66,9 @@ def add_parser(sub) -> None:
     p.add_argument("--fifo", type=int, default=0, metavar="PRIO",
                    help="run the live loop SCHED_FIFO at this priority (1-99; 0 = normal scheduling), as on a "
                         "dedicated vision PC: other work on its core waits; the initialisation worker is not")
-    add_scenario_options(p)
+    add_scenario_options(p, rate_default=None)
     add_tracker_options(p)
-    p.set_defaults(func=run, rate=None)  # camera: the stream's own rate unless given; sim, world: 26 Hz
+    p.set_defaults(func=run)
 
 
 def run(args) -> int:
