@@ -78,15 +78,20 @@ def _distortion(s: str):
     return v
 
 
-def add_scenario_options(p: argparse.ArgumentParser) -> None:
-    """Options describing a simulated scenario (shared by record, serve, demo)."""
+def add_scenario_options(p: argparse.ArgumentParser, rate_default: float | None = 26.0) -> None:
+    """Options describing a simulated scenario (shared by record, serve, demo).
+
+    ``rate_default=None`` (serve): ``--rate`` unset means a camera's own rate, 26 Hz otherwise.
+    """
     p.add_argument("--object", default="bracket",
                    help="object name in models/objects (box, lblock, bracket) or a model file (STL, OBJ, PLY, ViSP .cao)")
     add_model_unit_option(p)
     p.add_argument("--rig", default="fixed2", help="standard rig in cameras/ (fixed1, fixed2, fixed3, hand, hybrid) or a cameras.yaml path")
     p.add_argument("--motion", default="conveyor", choices=["conveyor", "sinusoid", "random", "static"],
                    help="conveyor: on the belt; sinusoid: free 6-DoF sinusoids; random: random smooth 6-DoF; static")
-    p.add_argument("--rate", type=float, default=26.0, help="capture rate, Hz")
+    p.add_argument("--rate", type=float, default=rate_default,
+                   help="capture rate, Hz" + ("" if rate_default is not None else
+                                              "; unset (%(default)s): a camera stream's own rate, 26 for the simulated cell"))
     p.add_argument("--resolution", type=_resolution, help="image size WxH (scales the rig's intrinsics)")
     p.add_argument("--speed", type=float, help="belt speed in m/s (conveyor, default 0.1) or frequency scale of free motions (default 1)")
     p.add_argument("--amplitude", type=float, help="free motions: position amplitude per axis, m (default 0.05)")

@@ -7,6 +7,8 @@ import signal
 import sys
 from pathlib import Path
 
+from .errors import InputError
+
 
 def add_parser(sub) -> None:
     from .cmd_record import add_scenario_options
@@ -33,7 +35,19 @@ def add_parser(sub) -> None:
                         "(saves 3-8 ms of CPU per image while the loop runs; needs the disk for raw frames)")
     p.add_argument("--recording", type=Path, help="replay: the recording folder")
     p.add_argument("--loop", action="store_true", help="replay: start over at the end")
-    p.add_argument("--device", action="append", default=[], help="camera: a cv2.VideoCapture device per rig camera")
+    p.add_argument("--device", action="append", default=[],
+                   help="camera: a cv2.VideoCapture device per rig camera, in the rig's order: an index (0), "
+                        "a video file or a stream URL; files and streams are paced at their frame rate (their "
+                        "own, or --rate)")
+    p.add_argument("--on-camera-end", choices=["stop", "retry"], default="stop",
+                   help="camera: when a stream ends or a camera fails: stop the server, or reopen the device "
+                        "with backoff (0.5 s doubling to 8 s; a file starts over). Either way the end is logged "
+                        "once and the track published lost")
+    p.add_argument("--stall-s", type=float, metavar="S",
+                   help="camera: no frame for this long after one was due is a stall, published lost "
+                        "(default: 3 frame periods, at least 0.1 s)")
+    p.add_argument("--max-clients", type=int, default=8,
+                   help="TCP: clients served at once; one more is sent a line saying why, then closed")
     p.add_argument("--model", type=Path, help="camera: the object's CAD file (STL, OBJ, PLY, ViSP .cao; see --model-unit)")
     p.add_argument("--lockstep", action="store_true",
                    help="sim/replay: run on simulated time as fast as possible instead of in real time")
@@ -52,7 +66,7 @@ def add_parser(sub) -> None:
     p.add_argument("--fifo", type=int, default=0, metavar="PRIO",
                    help="run the live loop SCHED_FIFO at this priority (1-99; 0 = normal scheduling), as on a "
                         "dedicated vision PC: other work on its core waits; the initialisation worker is not")
-    add_scenario_options(p)
+    add_scenario_options(p, rate_default=None)
     add_tracker_options(p)
     p.set_defaults(func=run)
 
@@ -70,6 +84,14 @@ def run(args) -> int:
 
     from .cmd_track import tracker_config
 
+    camera_rate = args.rate
+    if args.rate is None:
+        args.rate = 26.0
+    if args.max_clients < 1:
+        raise ServeOptionError(f"--max-clients must be at least 1, got {args.max_clients}")
+    if args.stall_s is not None and not args.stall_s > 0:
+        raise ServeOptionError(f"--stall-s must be positive, got {args.stall_s}")
+    log = None if args.quiet else (lambda line: print(line, flush=True))
     clock = SimClock() if args.lockstep else WallClock()
     from .realtime import enter_realtime, leave_realtime
 
@@ -111,7 +133,9 @@ def run(args) -> int:
                 raise ValueError("--source camera needs --model CAD_FILE")
             rig = load_rig(rig_path(args.rig))
             model_file = model_file_in_metres(args.model, args.model_unit)
-            source = CameraSource(rig, args.device or ["0"], clock, rate_hz=args.rate)
+            source = CameraSource(rig, args.device or ["0"], clock, rate_hz=camera_rate, on_end=args.on_camera_end,
+                                  stall_s=args.stall_s, threaded=not args.lockstep,
+                                  log=lambda line: print(f"vespro serve: {line}", flush=True))
             model = load_model(model_file, name=args.model.stem)
     except (ValueError, RecordingError) as e:
         print(f"vespro serve: {e}", file=sys.stderr)
@@ -149,10 +173,11 @@ def run(args) -> int:
         publisher = PosePublisher.serial(hello, args.serial, baudrate=args.baud, clock_ns=clock_ns)
         where = f"serial {args.serial} at {args.baud} baud"
     else:
-        publisher = PosePublisher.tcp(hello, port=args.tcp, host=args.host, clock_ns=clock_ns)
+        publisher = PosePublisher.tcp(hello, port=args.tcp, host=args.host, clock_ns=clock_ns,
+                                      max_clients=args.max_clients,
+                                      log=lambda line: print(f"vespro serve: {line}", flush=True))
         host, port = publisher.address
         where = f"tcp: connect to socket://{host}:{port}"
-    log = None if args.quiet else (lambda line: print(line, flush=True))
     outputs, writer = [], None
     if args.record:
         from .recording import AsyncRecordingWriter
@@ -190,17 +215,24 @@ def run(args) -> int:
             _save_run(args.record, writer, outputs, server.stats, link_stats, source)
         for s, h in old.items():  # restored last: a late signal must not interrupt the saving
             signal.signal(s, h)
+    summ = stats.summary()
     print(f"vespro serve: stopped after {stats.frames} frames ({stats.tracking} tracking, "
-          f"{stats.init_successes} initialisations)", flush=True)
+          f"{stats.init_successes} initialisations); statuses {summ['statuses']}; tracker "
+          f"{summ['tracker_ms_median']:.1f} ms median, {summ['tracker_ms_p99']:.1f} ms p99; latency "
+          f"{summ['latency_ms_median']:.1f} ms median, {summ['latency_ms_p99']:.1f} ms p99"
+          + (f"; {stats.source_gaps} source gap reports" if stats.source_gaps else "")
+          + (f"; {source.missed} frames dropped behind" if getattr(source, "missed", 0) else ""), flush=True)
     return 0
+
+
+class ServeOptionError(InputError):
+    """An option of ``vespro serve`` out of its range."""
 
 
 def _save_run(folder: Path, writer, outputs, stats, link_stats, source) -> None:
     """What a recorded server run leaves for evaluation (the demo's summary)."""
     import json
     import pickle
-
-    import numpy as np
 
     from .poses import PoseRow, write_poses
 
@@ -211,14 +243,11 @@ def _save_run(folder: Path, writer, outputs, stats, link_stats, source) -> None:
         for o in outputs])
     with open(folder / "outputs.pkl", "wb") as f:
         pickle.dump(outputs, f)
-    lat = np.array(stats.latency_ms) if stats.latency_ms else np.zeros(1)
-    tm = np.array(stats.tracker_ms) if stats.tracker_ms else np.zeros(1)
     info = {
         "frames": stats.frames, "tracking": stats.tracking, "init_attempts": stats.init_attempts,
         "init_successes": stats.init_successes, "recording_dropped": writer.dropped,
         "missed_captures": getattr(source, "missed", 0),
-        "tracker_ms_median": float(np.median(tm)), "tracker_ms_p99": float(np.percentile(tm, 99)),
-        "latency_ms_median": float(np.median(lat)), "latency_ms_p99": float(np.percentile(lat, 99)),
+        **stats.summary(),
         "link": {"frames_published": link_stats.frames_published, "frames_sent": link_stats.frames_sent,
                  "drops": link_stats.drops, "clients_accepted": link_stats.clients_accepted,
                  "errors": link_stats.errors},

@@ -25,6 +25,9 @@ Design
   for ``heartbeat_period_s``, repeats HELLO on a serial line every
   ``hello_period_s`` (a serial receiver can join at any time and has no
   connect event) and reopens a serial port that failed.
+- A TCP client beyond ``max_clients`` is not served: it receives one line of
+  text starting ``vespro refused: `` (:data:`vespro.wire.REFUSAL_PREFIX`) and
+  the connection is closed; the refusal is counted (``clients_refused``).
 - The kernel send buffer of each client is set small (``sndbuf_bytes``) so
   stale poses do not pile up in the kernel either.
 - A serial port opened by URL that has a file descriptor (a tty, a pty) is
@@ -45,7 +48,8 @@ from collections import deque
 from dataclasses import dataclass
 from typing import Callable
 
-from vespro.wire import HeartbeatMsg, HelloMsg, encode
+from vespro.throttle import LogThrottle
+from vespro.wire import REFUSAL_PREFIX, HeartbeatMsg, HelloMsg, encode
 
 __all__ = ["PosePublisher", "PublishStatus", "LinkStats", "SinkStats"]
 
@@ -241,15 +245,24 @@ class PosePublisher:
         self._closed_totals = [0, 0, 0]  # frames_sent, bytes_sent, drops of gone sinks
         self._accepted = 0
         self._refused = 0
+        self._refusal_log = LogThrottle(None, clock_ns)
         self._errors = 0
 
     # --- construction -------------------------------------------------------------
 
     @classmethod
     def tcp(cls, hello: HelloMsg, port: int = 0, host: str = "127.0.0.1", *, max_clients: int = 8,
-            sndbuf_bytes: int = 8192, **kwargs) -> "PosePublisher":
-        """Listen on ``host:port`` (``port=0``: any free port, see :attr:`address`)."""
+            sndbuf_bytes: int = 8192, log: Callable[[str], None] | None = None, **kwargs) -> "PosePublisher":
+        """Listen on ``host:port`` (``port=0``: any free port, see :attr:`address`).
+
+        A client beyond ``max_clients`` is sent one line of text,
+        ``vespro refused: ...`` (:data:`vespro.wire.REFUSAL_PREFIX`), and closed;
+        ``log`` hears of it (the first refusal, then at most one line a minute).
+        """
+        if max_clients < 1:
+            raise ValueError(f"max_clients must be >= 1, got {max_clients}")
         pub = cls(hello, **kwargs)
+        pub._refusal_log = LogThrottle(log, pub._clock_ns, period_s=60.0)
         lst = socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET, socket.SOCK_STREAM)
         try:
             # A restarted server must be able to bind while old connections sit in TIME_WAIT.
@@ -444,8 +457,7 @@ class PosePublisher:
                 self._errors += 1
                 return
             if len(self._clients) >= self._max_clients:
-                self._refused += 1
-                sock.close()
+                self._refuse(sock, addr)
                 continue
             sock.setblocking(False)
             sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
@@ -457,6 +469,20 @@ class PosePublisher:
             self._sel.register(sock, selectors.EVENT_READ, sink)
             self._masks[sock] = selectors.EVENT_READ
             sink.offer(b"\x00" + self._hello_frame)
+
+    def _refuse(self, sock: socket.socket, addr) -> None:
+        """Tell a client over the limit why, in one line it can read, and close it."""
+        self._refused += 1
+        why = f"this pose server takes at most {self._max_clients} clients at once (vespro serve --max-clients)"
+        try:
+            sock.setblocking(False)
+            sock.send(REFUSAL_PREFIX + why.encode() + b"\n")  # a few bytes: the socket buffer takes them
+            sock.shutdown(socket.SHUT_WR)
+        except OSError:
+            pass
+        sock.close()
+        self._refusal_log("refused", f"link: refused a client from {addr[0]}:{addr[1]}: {why}; "
+                                     f"{self._refused} refused so far")
 
     def _service_client(self, sock: socket.socket, mask: int) -> None:
         sink = self._clients.get(sock)

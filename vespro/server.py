@@ -12,8 +12,16 @@ the latest frame set; meanwhile every frame is still published with status
 returns a pose, the filter starts at that frame's capture stamp and is
 predicted forward to the current frame.
 
+When a live source has no frame set when one was due (a camera stalled, or
+is being reopened) it returns a :class:`~vespro.sources.SourceGap`: the server
+publishes ``lost`` for it, says so once, and when frames come back after a long
+gap starts the filter again from its last pose. When the source ends, ``lost``
+is published once more and :meth:`PoseServer.run` returns.
+
 Once a second the server logs one line: frame rate, tracker time, vision
-latency (capture to send), status and link statistics.
+latency (capture to send), status and link statistics. Lines of a kind that
+repeats (an initialisation that finds nothing) go out at most once a second.
+Statistics are kept in memory that does not grow with the run's length.
 """
 
 from __future__ import annotations
@@ -28,9 +36,12 @@ import numpy as np
 
 from .clock import Clock
 from .frames import FrameSet
+from .quantiles import LogHistogram
 from .realtime import leave_realtime
 from .se3 import quat_from_matrix
-from .tracker import Tracker, TrackerOutput
+from .sources import SourceGap
+from .throttle import LogThrottle
+from .tracker import InitResult, Tracker, TrackerOutput
 from .wire import PoseMsg, PoseStatus
 
 __all__ = ["PoseServer", "ServerStats", "pose_message"]
@@ -110,7 +121,13 @@ def pose_message(out: TrackerOutput, seq: int, t_send_ns: int, object_id: int = 
 
 @dataclass
 class ServerStats:
-    """Counters of a server run."""
+    """Counters of a server run, in memory that does not grow with its length.
+
+    ``tracker_ms`` and ``latency_ms`` are histograms (:class:`~vespro.quantiles.LogHistogram`:
+    median, p99 within 0.5 %); ``status_counts`` counts the published statuses;
+    ``source_gaps`` the times the source had no frame set when one was due (a camera
+    that stalled or is being reopened): each published ``lost``.
+    """
 
     frames: int = 0
     tracking: int = 0
@@ -118,9 +135,16 @@ class ServerStats:
     init_successes: int = 0
     publish_failures: int = 0
     tracker_errors: int = 0
-    tracker_ms: list = field(default_factory=list)
-    latency_ms: list = field(default_factory=list)
-    statuses: list = field(default_factory=list)
+    source_gaps: int = 0
+    tracker_ms: LogHistogram = field(default_factory=LogHistogram)
+    latency_ms: LogHistogram = field(default_factory=LogHistogram)
+    status_counts: dict = field(default_factory=dict)
+
+    def summary(self) -> dict:
+        """Median and p99 of the tracker time and the latency (ms), and the status counts."""
+        return {"tracker_ms_median": self.tracker_ms.quantile(0.5), "tracker_ms_p99": self.tracker_ms.quantile(0.99),
+                "latency_ms_median": self.latency_ms.quantile(0.5), "latency_ms_p99": self.latency_ms.quantile(0.99),
+                "statuses": dict(self.status_counts), "source_gaps": self.source_gaps}
 
 
 class PoseServer:
@@ -149,12 +173,16 @@ class PoseServer:
         Receives the once-a-second status line.
     on_output : callable, optional
         Called with every (frameset, TrackerOutput), e.g. to record them.
+    max_gap_s : float
+        A source gap (:class:`~vespro.sources.SourceGap`: a camera stalled) is
+        published ``lost`` while it lasts; once frames come back after a gap longer
+        than this, the filter starts again from its last pose (see :meth:`_resume`).
     """
 
     def __init__(self, source, tracker: Tracker, publisher, clock: Clock,
                  initializer: Callable[[FrameSet], object] | None = None, background_init: bool = True,
                  log: Callable[[str], None] | None = print, on_output=None, object_id: int = 0,
-                 initializer_factory=None):
+                 initializer_factory=None, max_gap_s: float = 0.5):
         self.source = source
         self.tracker = tracker
         self.tracker.initializer = None
@@ -167,6 +195,10 @@ class PoseServer:
         self.on_output = on_output
         self.object_id = object_id
         self.stats = ServerStats()
+        self.max_gap_s = float(max_gap_s)
+        self._note = LogThrottle(log, clock.now_ns)  # repeated kinds of line: at most one a second
+        self._gap_since: int | None = None  # stamp of the last frame set before the current source gap
+        self._last_fs_ns: int | None = None
         self._stop = threading.Event()
         if background_init == "process":
             if initializer_factory is None:
@@ -187,6 +219,7 @@ class PoseServer:
         self._last_T = None
         self._last_log_ns = None
         self._window: list = []
+        self._window_lat: list = []  # latency (ms) of each output in _window
         # Frame sets that arrived while initialising (about 3 s): once a pose comes back for
         # an older frame, the filter is started there and caught up through these.
         self._rate = float(getattr(source, "rate_hz", 26.0))
@@ -244,7 +277,7 @@ class PoseServer:
                 found = (f"no pose ({why})" if why else "no pose") if res is None else (
                     "a provisional pose" if res.provisional else "a pose") + "".join(
                     f" ({name} hidden: judged without it)" for name in res.hidden)
-                self.log(f"initialisation on the frame of {waited:.1f} s ago: {found}")
+                self._note(found, f"initialisation on the frame of {waited:.1f} s ago: {found}")
             newer = [old for old in self._backlog if old.t_ns > job_t]
             first_after = newer[0].t_ns if newer else fs.t_ns  # this frame, when none came between
             max_gap_ns = max(2.5e9 / self._rate, 0.25e9)  # a skipped capture or two, not seconds
@@ -253,8 +286,7 @@ class PoseServer:
                 # gap could lock onto the wrong corners. Start over on a current frame.
                 self.stale_inits += 1
                 res = None
-                if self.log:
-                    self.log("  discarded: the frames right after it are gone (no catch-up across the gap)")
+                self._note("discarded", "  discarded: the frames right after it are gone (no catch-up across the gap)")
             if res is not None:
                 self.stats.init_successes += 1
                 if not self._start(res, job_t):
@@ -328,19 +360,13 @@ class PoseServer:
         if out.status == "tracking":
             self._last_T = out.T_world_object
             self.stats.tracking += 1
-        t_send = self.clock.now_ns()
-        msg = pose_message(out, self._seq, t_send, self.object_id, self._last_T)
-        self._seq = (self._seq + 1) & 0xFFFFFFFF
-        if self.publisher is not None:
-            try:
-                self.publisher.publish(msg)
-            except Exception:  # the link must never take the tracker down
-                self.stats.publish_failures += 1
+        t_send = self._publish(out)
         s = self.stats
         s.frames += 1
-        s.tracker_ms.append(out.time_ms)
-        s.latency_ms.append((t_send - fs.t_ns) * 1e-6)
-        s.statuses.append(out.status)
+        s.tracker_ms.add(out.time_ms)
+        s.latency_ms.add((t_send - fs.t_ns) * 1e-6)
+        s.status_counts[out.status] = s.status_counts.get(out.status, 0) + 1
+        self._window_lat.append((t_send - fs.t_ns) * 1e-6)
         if self.on_output is not None:
             self.on_output(fs, out)
         self._log_line(out)
@@ -355,31 +381,94 @@ class PoseServer:
         if now - self._last_log_ns < 1_000_000_000:
             return
         w, self._window = self._window, []
+        lat, self._window_lat = np.array(self._window_lat), []
         blind = self.tracker.blind_frames - self._blind_logged
         self._blind_logged = self.tracker.blind_frames
         dt = (now - self._last_log_ns) * 1e-9
         self._last_log_ns = now
         if not self.log:
             return
-        lat = np.array(self.stats.latency_ms[-len(w):])
         tm = np.array([o.time_ms for o in w])
         link = ""
         if self.publisher is not None:
             st = self.publisher.stats()
             link = f" | link clients {st.clients_connected} sent {st.frames_sent} drops {st.drops} errors {st.errors}"
+            link += f" refused {st.clients_refused}" if st.clients_refused else ""
         self.log(f"{len(w) / dt:5.1f} Hz | {w[-1].status:12s} | tracker {np.median(tm):5.2f} ms "
                  f"(max {tm.max():5.2f}) | latency {np.median(lat):6.2f} ms | features {w[-1].n_accepted:2d}"
                  f"{f' (a camera blind in {blind} frames)' if blind else ''}{link}")
 
+    def gap(self, g: SourceGap) -> None:
+        """No frame set came when one was due: publish ``lost`` (said once a gap)."""
+        self.stats.source_gaps += 1
+        if self._gap_since is None:
+            self._gap_since = g.last_ns
+            if self.log:
+                self.log(f"source: {g.reason}; the track is published lost until frames come back")
+        self._publish(TrackerOutput(-1, g.t_ns, "lost"))
+
+    def _resume(self, fs: FrameSet) -> None:
+        """The first frame set after a gap: say so; after a long one, start the filter again.
+
+        Across more than ``max_gap_s`` the filter's velocity is no evidence (the
+        stream may have paused, or lost the frames while the part moved on): a
+        confirmed track is started again at its last pose with a start's
+        uncertainty, published once the tracker confirms it on the new frames as
+        any start; one not confirmed within ``confirm_within_s`` is dropped and the
+        initialiser searches, seeded from the last good pose. On ViSP's cube
+        sequence after a 2 s pause the restart tracked from the second frame;
+        kept across the gap, the filter's prediction (its velocity over 2 s) lost
+        the part on the first and waited for the initialiser.
+        """
+        waited = (fs.t_ns - (self._last_fs_ns if self._last_fs_ns is not None else self._gap_since)) * 1e-9
+        self._gap_since = None
+        long_gap = waited > self.max_gap_s
+        tr = self.tracker
+        restart = long_gap and tr.ekf is not None and tr.confirmed and not tr.provisional and self._catching is None
+        if restart:
+            tr.start(InitResult(tr.ekf.pose), fs.t_ns)
+        elif long_gap:
+            tr.lose()
+        if long_gap:
+            self._catching = None  # frames from before the gap: stale now
+            self._backlog.clear()  # an answer for a frame before the gap is not caught up across it
+        if self.log:
+            self.log(f"source: frames again after {waited:.1f} s" +
+                     ("; the track starts again from its last pose, to be confirmed" if restart else
+                      "; the track starts over" if long_gap else ""))
+
+    def _publish(self, out: TrackerOutput) -> int:
+        """Publish ``out``; its send stamp."""
+        t_send = self.clock.now_ns()
+        msg = pose_message(out, self._seq, t_send, self.object_id, self._last_T)
+        self._seq = (self._seq + 1) & 0xFFFFFFFF
+        if self.publisher is not None:
+            try:
+                self.publisher.publish(msg)
+            except Exception:  # the link must never take the tracker down
+                self.stats.publish_failures += 1
+        return t_send
+
     def run(self, max_frames: int | None = None) -> ServerStats:
-        """Run until the source ends, ``max_frames`` or :meth:`stop`."""
+        """Run until the source ends, ``max_frames`` or :meth:`stop`.
+
+        When the source ends, the track is published ``lost`` once more (nothing
+        tracks it now).
+        """
         try:
             while not self._stop.is_set():
                 if max_frames is not None and self.stats.frames >= max_frames:
                     break
                 fs = self.source.next()
                 if fs is None:
+                    self._publish(TrackerOutput(-1, self.clock.now_ns(), "lost"))
                     break
+                if isinstance(fs, SourceGap):
+                    self.gap(fs)
+                    continue
+                if self._gap_since is not None:
+                    self._resume(fs)
+                self._last_fs_ns = fs.t_ns
                 self.step(fs)
         finally:
             if self._pool is not None:

@@ -743,6 +743,13 @@ class Tracker:
         else:
             self._drop_start()
 
+    def lose(self) -> None:
+        """Drop the filter from outside: its frames stopped coming for longer than it can
+        predict across (a stalled camera). As a loss found here (:meth:`_lose`): a confirmed
+        track is ``lost`` and the initialiser seeded from its last good pose."""
+        if self.ekf is not None:
+            self._lose()
+
     def _drop_start(self) -> None:
         """A start not confirmed goes; the initialiser looks again (``unconfirmed_drops``)."""
         self.ekf = None

@@ -62,6 +62,15 @@ costs 26 x 198 = 5148 B/s (45 %), leaving room for a 1 Hz heartbeat
 so more than one object needs a faster line (230400 baud or TCP). A frame
 takes 198 / 11520 = 17.2 ms on the line.
 
+Refusal
+-------
+A TCP server that serves no more clients answers a new one with a single line
+of UTF-8 text instead of the stream, ``REFUSAL_PREFIX`` followed by the reason
+and ``\n``, then closes the connection. The line holds no ``0x00``, so a
+:class:`Decoder` fed with it returns no message; a receiver that finds
+``REFUSAL_PREFIX`` at the start of what it read before the close can show the
+line to its user.
+
 Robustness
 ----------
 ``encode`` raises ``ValueError`` on invalid content (wrong shape, non-finite,
@@ -100,6 +109,7 @@ __all__ = [
     "MAX_BODY_BYTES",
     "MAX_FRAME_BYTES",
     "LINE_BYTES_PER_S_115200",
+    "REFUSAL_PREFIX",
 ]
 
 PROTOCOL_VERSION = 1
@@ -117,6 +127,8 @@ MAX_FRAME_BYTES = _HEADER.size + MAX_BODY_BYTES + _CRC.size + (MAX_BODY_BYTES //
 POSE_FRAME_BYTES = _HEADER.size + _POSE_BODY.size + _CRC.size + 1 + 1
 HEARTBEAT_FRAME_BYTES = _HEADER.size + _HEARTBEAT_BODY.size + _CRC.size + 1 + 1
 LINE_BYTES_PER_S_115200 = 115200 // 10  # 8N1: start + 8 data + stop bits
+#: First bytes of the text line a server sends a client it refuses, before closing (see Refusal).
+REFUSAL_PREFIX = b"vespro refused: "
 
 _U32 = 2**32
 _I64_MIN, _I64_MAX = -(2**63), 2**63 - 1

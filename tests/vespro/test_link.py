@@ -19,7 +19,7 @@ import pytest
 
 from vespro import wire
 from vespro.link import PosePublisher, PublishStatus
-from vespro.wire import HeartbeatMsg, HelloMsg, PoseMsg, PoseStatus
+from vespro.wire import REFUSAL_PREFIX, Decoder, HeartbeatMsg, HelloMsg, PoseMsg, PoseStatus
 
 HELLO = HelloMsg(26.0, ("box", "bracket"))
 WAIT_S = 10.0  # upper bound for "eventually" (a hang guard, not a speed requirement)
@@ -304,16 +304,39 @@ def test_send_time_is_stamped_from_the_clock(tcp_pub):
     s.close()
 
 
-def test_max_clients_refuses_extra_connections(tcp_pub):
-    pub = tcp_pub(max_clients=1)
+def _read_to_eof(sock) -> bytes:
+    sock.settimeout(WAIT_S)
+    data = b""
+    while True:
+        chunk = sock.recv(4096)
+        if not chunk:
+            return data
+        data += chunk
+
+
+def test_max_clients_refuses_extra_connections_and_says_why(tcp_pub):
+    """A client over the limit reads one line saying why, then the close; the server logs
+    the first refusal (not every one) and counts them all; the served client is unharmed."""
+    lines = []
+    pub = tcp_pub(max_clients=1, log=lines.append)
     a = connect(pub)
     assert wait_for(lambda: pub.stats().clients_connected == 1)
-    b = connect(pub)
-    assert wait_for(lambda: pub.stats().clients_refused == 1)
-    b.settimeout(WAIT_S)
-    assert b.recv(10) == b""       # closed by the server
+    refused = []
+    for _ in range(3):
+        b = connect(pub)
+        refused.append(_read_to_eof(b))  # the line, then closed by the server
+        b.close()
+    assert wait_for(lambda: pub.stats().clients_refused == 3)
+    for text in refused:
+        assert text.startswith(REFUSAL_PREFIX) and text.endswith(b"\n") and b"\x00" not in text, text
+        assert b"at most 1 clients" in text and b"--max-clients" in text
+    assert Decoder().feed(refused[0]) == []  # no 0x00: a receiver's decoder takes nothing from it
+    assert len(lines) == 1 and "refused a client" in lines[0], lines
+    assert pub.stats().clients_connected == 1
+    r = socket_reader(a)
+    assert r.wait(lambda m: m == [HELLO])
+    r.stop()
     a.close()
-    b.close()
 
 
 def test_serial_port_that_fails_is_closed_and_retried_without_raising():

@@ -93,7 +93,7 @@ def test_a_failing_tracker_never_stops_the_server(rec_path):
     tracker.process = boom
     server = PoseServer(ReplaySource(rec, clock), tracker, None, clock, None, background_init=False, log=None)
     stats = server.run(max_frames=5)
-    assert stats.frames == 5 and stats.tracker_errors == 5 and set(stats.statuses) == {"lost"}
+    assert stats.frames == 5 and stats.tracker_errors == 5 and stats.status_counts == {"lost": 5}
 
 
 def test_serve_process_streams_and_stops_cleanly_on_sigterm(rec_path):
@@ -312,3 +312,101 @@ def test_catch_up_after_a_late_initialisation_keeps_the_live_rate(rec_path):
     assert tracking  # confirmed again on the live frames
     for o in tracking:
         assert np.linalg.norm(o.T_world_object[:3, 3] - T[o.index][:3, 3]) < 3e-3
+
+
+class _ListSource:
+    """Frame sets and source gaps from a list (a camera that stalls, scripted)."""
+
+    def __init__(self, items, rig, rate_hz):
+        self.items, self.rig, self.rate_hz = list(items), rig, rate_hz
+
+    def next(self):
+        return self.items.pop(0) if self.items else None
+
+    def close(self):
+        pass
+
+
+def test_a_stalled_camera_is_published_lost_and_the_track_found_again_after_it(rec_path, kept_publisher):
+    """Frames 0-14, a 2 s stall (the source reports gaps), frames 15-29 2 s later (a stream
+    that paused): ``lost`` is published at the gap; the filter starts again at its last
+    pose, confirmed on the new frames before it is published, and the part is tracked to
+    the end; the stall and the return are each logged once."""
+    from vespro.frames import FrameSet
+    from vespro.sources import SourceGap
+
+    rec = Recording(rec_path)
+    _, _, T = read_groundtruth(rec_path)
+    frames = [rec.frameset(i) for i in range(len(rec))]
+    stall_ns = 2_000_000_000
+    t9 = frames[14].t_ns
+    gaps = [SourceGap(t9 + k * 100_000_000, t9, "no frame from the cameras for 0.1 s (stalled)") for k in (1, 2, 3)]
+    after = [FrameSet(f.index, f.t_ns + stall_ns, f.images, f.T_world_camera) for f in frames[15:]]
+    clock = SimClock()
+    lines, pub = [], kept_publisher
+    calls = []
+
+    def init(fs):  # finds the part wherever it is shown (the truth of that frame)
+        calls.append(fs.index)
+        return InitResult(T[fs.index])
+
+    server = PoseServer(_ListSource(frames[:15] + gaps + after, rec.rig, rec.rate_hz),
+                        Tracker(rec.rig, load_model(rec.model_path)), pub, clock, init,
+                        background_init=False, log=lines.append)
+    stats = server.run()
+    status = [m.status for m in pub.msgs]
+    assert len(pub.msgs) == len(frames) + len(gaps) + 1  # every frame, every gap report, the end
+    before, during, back = status[:15], status[15:18], status[18:-1]
+    assert before[-1] == PoseStatus.TRACKING
+    assert during == [PoseStatus.LOST] * 3 and stats.source_gaps == 3
+    assert back[0] == PoseStatus.INITIALIZING  # a start again, not a coast: confirmed first
+    assert back[-1] == PoseStatus.TRACKING and back.index(PoseStatus.TRACKING) <= 5
+    assert calls == [0]  # found again from its last pose, without a search
+    assert status[-1] == PoseStatus.LOST  # the source ended: nothing tracks the part now
+    assert sum("published lost" in ln for ln in lines) == 1
+    assert sum("frames again after 2.0 s; the track starts again from its last pose" in ln for ln in lines) == 1
+    for m in pub.msgs[18:-1]:
+        if m.status == PoseStatus.TRACKING:
+            i = next(f.index for f in after if f.t_ns == m.t_capture_ns)
+            assert np.linalg.norm(m.p_world_object - T[i][:3, 3]) < 3e-3
+
+
+def test_server_statistics_do_not_grow_with_the_number_of_frames():
+    """Per-frame figures are kept as histograms and counts: the statistics of 10x the frames
+    take the same memory, and still give the median and p99 of what was measured."""
+    import pickle
+
+    from vespro.frames import FrameSet
+    from vespro.tracker import TrackerOutput
+
+    class Quick:  # a tracker that takes 1-3 ms, status by frame
+        initializer, ekf, provisional, blind_frames = None, None, False, 0
+
+        def process(self, fs):
+            return TrackerOutput(fs.index, fs.t_ns, ("tracking", "lost")[fs.index % 4 == 0],
+                                 time_ms=1.0 + (fs.index % 3))
+
+    class Frames:
+        rate_hz, rig = 30.0, None
+
+        def __init__(self, clock):
+            self.clock, self.k = clock, 0
+
+        def next(self):
+            self.clock.advance(33_333_333)  # a frame period; sent 5 ms after capture
+            self.k += 1
+            return FrameSet(self.k, self.clock.now_ns() - 5_000_000, {})
+
+    sizes = {}
+    for n in (400, 4000):
+        clock = SimClock()
+        server = PoseServer(Frames(clock), Quick(), None, clock, None, background_init=False, log=None)
+        stats = server.run(max_frames=n)
+        sizes[n] = len(pickle.dumps(stats))
+        assert len(server._window) <= 31  # the status line's window: one second of frames
+    assert sizes[4000] <= sizes[400] + 64, sizes  # a few bytes for larger integers
+    s = stats.summary()
+    assert s["statuses"] == {"tracking": 3000, "lost": 1000}
+    # within half a 1 % bin of the exact values (2, 3 and 5 ms)
+    assert s["tracker_ms_median"] == pytest.approx(2.0, rel=0.005) and s["tracker_ms_p99"] == pytest.approx(3.0, rel=0.005)
+    assert s["latency_ms_median"] == pytest.approx(5.0, rel=0.005)
