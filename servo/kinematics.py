@@ -21,7 +21,11 @@ least-squares inverse whose damping grows smoothly as the smallest singular
 value falls below ``eps`` (Nakamura & Hanafusa 1986, Maciejewski & Klein 1988):
 ``lambda^2 = (1 - (s_min/eps)^2) lambda_max^2`` inside the singular region,
 0 outside. Joint rates are scaled (direction kept) to the velocity limits,
-then each joint is slowed so it can brake before its position limit.
+then each joint is slowed so it can brake before its position limit. The
+commanded TCP speed ``|v_ref + K e_p|`` is capped at ``tcp_speed_max`` (the
+planner's limit) first, so a tracking error is closed at the planner's speed at
+most, never by a faster catch-up. :attr:`Clik.limited` tells the caller when a
+cap or limit changed the motion (the reference then has to wait for the arm).
 """
 
 from __future__ import annotations
@@ -306,14 +310,22 @@ class Clik:
     kin : ArmKinematics
     config : ClikConfig
 
+    tcp_speed_max : float, m/s
+        Cap on the commanded TCP linear speed (reference velocity plus error
+        feedback).
+
     Attributes after :meth:`step`: ``s_min`` (smallest singular value),
     ``qd_raw`` (n,) the DLS rates before the limits (diagnostics, tests),
-    ``p``, ``quat`` the TCP pose at the input joints.
+    ``p``, ``quat`` the TCP pose at the input joints, ``limited`` (True when
+    the speed cap, the joint velocity scaling or a joint limit brake cut the
+    motion the reference asked for).
     """
 
-    def __init__(self, kin: ArmKinematics, config: ClikConfig = ClikConfig()):
+    def __init__(self, kin: ArmKinematics, config: ClikConfig = ClikConfig(), tcp_speed_max: float = math.inf):
         self.kin = kin
         self.cfg = config
+        self.tcp_speed_max = float(tcp_speed_max)
+        self.limited = False  # the last step's motion was cut by a cap or a joint limit
         n = kin.n
         self.lo = kin.q_min + config.joint_margin_rad
         self.hi = kin.q_max - config.joint_margin_rad
@@ -326,6 +338,7 @@ class Clik:
         self.quat_inv = np.zeros(4)
         self.quat_err = np.zeros(4)
         self.qd_raw = np.zeros(n)
+        self._v3 = np.zeros(3)
         self._t = np.zeros(n)
         self.s_min = 0.0
 
@@ -370,8 +383,24 @@ class Clik:
         x[3:] *= cfg.gain_rot
         x[:3] += v_ref
         x[3:] += w_ref
+        sp = math.sqrt(x[0] * x[0] + x[1] * x[1] + x[2] * x[2])
+        capped = sp > self.tcp_speed_max
+        if capped:
+            x[:3] *= self.tcp_speed_max / sp
         self.s_min = dls_solve_into(kin.J, x, cfg.eps, cfg.lambda_max, self.qd_raw)
-        return self._limit_and_integrate(q, self.qd_raw, dt, q_out, qd_out)
+        s_min = self._limit_and_integrate(q, self.qd_raw, dt, q_out, qd_out)
+        # The damped inverse trades linear against angular error, so the linear
+        # speed it realises may exceed what was asked: check J qd.
+        v = self._v3
+        np.dot(kin.J[:3], qd_out, out=v)
+        sp = math.sqrt(float(v @ v))
+        if sp > self.tcp_speed_max:
+            k = self.tcp_speed_max / sp
+            q_out -= qd_out * (dt * (1.0 - k))  # q_out may alias q: shrink the step in place
+            qd_out *= k
+            capped = True
+        self.limited = self.limited or capped
+        return s_min
 
     def _limit_and_integrate(self, q, qd, dt, q_out, qd_out) -> float:
         # Plain floats: six-element NumPy calls cost more than the arithmetic.
@@ -386,6 +415,7 @@ class Clik:
             if not r <= worst:  # also takes a NaN, which then propagates to a FAULT
                 worst = r
         s = 1.0 / worst if worst > 1.0 else 1.0
+        limited = s < 1.0
         a2 = 2.0 * self.cfg.joint_brake_acc
         inv_dt = 1.0 / dt
         qn_l = [0.0] * n
@@ -396,20 +426,21 @@ class Clik:
             up = hi[i] - qv[i]
             up = math.sqrt(a2 * up) if up > 0.0 else 0.0
             if x > up:
-                x = up
+                x, limited = up, True
             dn = qv[i] - lo[i]
             dn = math.sqrt(a2 * dn) if dn > 0.0 else 0.0
             if x < -dn:
-                x = -dn
+                x, limited = -dn, True
             qn = qv[i] + x * dt
             if qn > hi[i]:
-                qn = hi[i]
+                qn, limited = hi[i], True
             elif qn < lo[i]:
-                qn = lo[i]
+                qn, limited = lo[i], True
             qn_l[i] = qn
             qd_l[i] = (qn - qv[i]) * inv_dt
         q_out[:] = qn_l
         qd_out[:] = qd_l
+        self.limited = limited
         return self.s_min
 
 

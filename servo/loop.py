@@ -20,6 +20,7 @@ from __future__ import annotations
 import ctypes
 import ctypes.util
 import gc
+import math
 import os
 import time
 import warnings
@@ -39,6 +40,7 @@ from .planner import (
     Workspace,
 )
 from .rotation import quat_from_matrix_into
+from .events import EventKind, SafetyRecord
 from .safety import Check, Safety, SafetyConfig, Status, StopPolicy
 from .target import TargetSample
 
@@ -60,7 +62,15 @@ class LoopConfig:
 
     model_path : MJCF of the arm; site : the TCP site
     period_ns : nominal tick, ns
-    max_dt_ticks : a dt longer than this many periods is a timing FAULT
+    late_tick_ticks, max_late_ticks, late_window_s, stop_dt_ticks, max_dt_ticks :
+        the timing policy. A tick whose dt exceeds ``late_tick_ticks`` periods
+        is late: counted, and integrated with its real dt. More than
+        ``max_late_ticks`` late ticks within ``late_window_s``, or one tick
+        longer than ``stop_dt_ticks`` periods, make a controlled stop (cause
+        TIMING; ``safety.policy_timing`` IMMEDIATE makes it a stop with drives
+        off instead); tracking resumes once ``late_window_s`` has passed without
+        another such trip. A tick longer than ``max_dt_ticks`` periods, or a
+        clock that does not advance, is a FAULT: drives off, latched.
     limits, workspace : planner limits and reachable target region
     clik : CLIK gains
     safety : overrides of :class:`SafetyConfig` fields (joint limits come from the model)
@@ -71,7 +81,11 @@ class LoopConfig:
     model_path: Path | str = DEFAULT_ARM_XML
     site: str = "tool"
     period_ns: int = 2_000_000
-    max_dt_ticks: int = 5
+    late_tick_ticks: float = 1.5
+    max_late_ticks: int = 10
+    late_window_s: float = 1.0
+    stop_dt_ticks: int = 10
+    max_dt_ticks: int = 50
     limits: CartesianLimits = CartesianLimits()
     workspace: Workspace = field(default_factory=Workspace)
     clik: ClikConfig = ClikConfig()
@@ -84,7 +98,8 @@ class LoopConfig:
     def from_dict(cls, d: dict) -> "LoopConfig":
         """Build from plain data (a parsed YAML/JSON file), SI units.
 
-        Keys: model_path, site, period_ns, max_dt_ticks, latency_compensation,
+        Keys: model_path, site, period_ns, late_tick_ticks, max_late_ticks,
+        late_window_s, stop_dt_ticks, max_dt_ticks, latency_compensation,
         max_prediction_s; ``limits`` / ``workspace`` / ``clik``: the fields of
         :class:`CartesianLimits` / :class:`Workspace` / :class:`ClikConfig`;
         ``safety``: fields of :class:`SafetyConfig` (policies as
@@ -96,7 +111,8 @@ class LoopConfig:
 
         d = dict(d)
         kw = {}
-        for k in ("model_path", "site", "period_ns", "max_dt_ticks", "latency_compensation", "max_prediction_s"):
+        for k in ("model_path", "site", "period_ns", "late_tick_ticks", "max_late_ticks", "late_window_s",
+                  "stop_dt_ticks", "max_dt_ticks", "latency_compensation", "max_prediction_s"):
             if k in d:
                 kw[k] = d.pop(k)
         if "limits" in d:
@@ -124,6 +140,12 @@ class LoopConfig:
             raise ValueError(f"LoopConfig: unknown keys {sorted(d)}")
         return cls(**kw)
 
+    def __post_init__(self):
+        if not (self.late_tick_ticks >= 1.0 and self.stop_dt_ticks >= self.late_tick_ticks
+                and self.max_dt_ticks >= 1 and self.max_late_ticks >= 0 and self.late_window_s > 0):
+            raise ValueError("LoopConfig timing policy: need 1 <= late_tick_ticks <= stop_dt_ticks, max_dt_ticks >= 1, "
+                             "max_late_ticks >= 0, late_window_s > 0")
+
 
 class Command:
     """Output of one tick (preallocated, overwritten each tick).
@@ -131,7 +153,10 @@ class Command:
     q (n,) rad, qd (n,) rad/s: joint command and velocity feedforward;
     drives_on: False after an immediate stop or a fault (the scheduler then
     calls ``robot.stop()``); status; flags: ``Check`` bits fired this tick;
-    ref: the TCP reference (world frame); s_min: smallest Jacobian singular value.
+    ref: the TCP reference (world frame); s_min: smallest Jacobian singular value;
+    reject: why a pose that arrived this tick was not used (``servo.safety.Reject``,
+    0 when used or none arrived); trip_value, trip_limit: what tripped the first
+    of ``flags`` and its limit (SI units, see ``servo.events``; NaN when nothing).
     """
 
     def __init__(self, n: int):
@@ -142,6 +167,9 @@ class Command:
         self.flags = 0
         self.ref = Reference()
         self.s_min = 0.0
+        self.reject = 0
+        self.trip_value = math.nan
+        self.trip_limit = math.nan
 
 
 class LoopState:
@@ -155,7 +183,8 @@ class LoopState:
         self.cfg = config
         self.kin = ArmKinematics(config.model_path, config.site)
         self.n = self.kin.n
-        self.clik = Clik(self.kin, config.clik)
+        # The tool speed cap of the CLIK is the planner's linear limit (as a norm).
+        self.clik = Clik(self.kin, config.clik, tcp_speed_max=config.limits.v_lin)
         self.planner = TrackingPlanner(
             config.limits,
             config.workspace,
@@ -165,6 +194,12 @@ class LoopState:
         )
         self.safety = Safety(SafetyConfig.from_kinematics(self.kin, **config.safety))
         self.max_dt_ns = config.max_dt_ticks * config.period_ns
+        self.stop_dt_ns = config.stop_dt_ticks * config.period_ns
+        self.late_ns = int(config.late_tick_ticks * config.period_ns)
+        self.late_window_ns = int(round(config.late_window_s * 1e9))
+        self.max_late = int(config.max_late_ticks)
+        self._late_ring = np.zeros(self.max_late + 1, np.int64)  # times of the last late ticks
+        self.record = SafetyRecord()
         self.q_cmd = np.zeros(self.n)
         self.q_new = np.zeros(self.n)
         self.qd = np.zeros(self.n)
@@ -184,6 +219,9 @@ class LoopState:
         self.latched = False  # a controlled stop by a limit check: no auto-resume
         self.last_capture_ns: int | None = None
         self.n_rejected = 0
+        self.n_used = 0  # poses taken by the planner
+        self.n_late = 0
+        self.timing_hold_until_ns = 0
         self.flags_seen = 0
         self.motion = None
         self.motion_t0_ns = 0
@@ -205,6 +243,8 @@ class LoopState:
         self.flags_seen = 0
         self.last_capture_ns = None
         self.motion = None
+        self.n_late = 0
+        self.timing_hold_until_ns = 0
 
     def reset(self, q_measured: np.ndarray, t_ns: int) -> None:
         """Clear a latched stop or fault (explicit operator action); restart from rest."""
@@ -264,14 +304,29 @@ def _run_motion(state: LoopState, t_ns: int, dt: float, ref: Reference) -> bool:
     return t >= m.duration
 
 
-def _clik(state: LoopState, dt: float) -> None:
-    """Joints for t + dt from the reference at t (``ref_prev``) and the mean velocity."""
+def _clik(state: LoopState, dt: float, hold_back: bool = False) -> None:
+    """Joints for t + dt from the reference at t (``ref_prev``) and the mean velocity.
+
+    ``hold_back``: when the CLIK had to cut the motion (speed cap, joint
+    velocity or joint limit), the planner's reference is moved to the arm
+    (:meth:`TrackingPlanner.hold_back`), i.e. the plan is time-scaled to what
+    the joints can do instead of running ahead of them.
+    """
     rp, r = state.ref_prev, state.planner.ref
     np.add(rp.v, r.v, out=state.v_ff)
     state.v_ff *= 0.5
     np.add(rp.w, r.w, out=state.w_ff)
     state.w_ff *= 0.5
-    state.clik.step(state.q_cmd, rp.p, rp.quat, state.v_ff, state.w_ff, dt, state.q_new, state.qd)
+    clik = state.clik
+    clik.step(state.q_cmd, rp.p, rp.quat, state.v_ff, state.w_ff, dt, state.q_new, state.qd)
+    if hold_back and clik.limited:
+        kin = state.kin
+        kin.update(state.q_new)
+        quat_from_matrix_into(kin.R, state._quat)
+        J = kin.J
+        np.dot(J[:3], state.qd, out=state.v_ff)
+        np.dot(J[3:], state.qd, out=state.w_ff)
+        state.planner.hold_back(kin.p, state._quat, state.v_ff, state.w_ff)
 
 
 def step(state: LoopState, sample: TargetSample | None, t_ns: int, out: Command) -> Status:
@@ -288,12 +343,51 @@ def step(state: LoopState, sample: TargetSample | None, t_ns: int, out: Command)
         Time of this tick, ns (dt is taken from the previous tick's stamp).
     out : Command
         Written in place.
+
+    Every stop, fault, late tick and rejected pose is counted by cause in
+    ``state.record`` (:class:`~servo.events.SafetyRecord`).
     """
+    out.reject = 0
+    out.trip_value = math.nan
+    out.trip_limit = math.nan
     try:
         return _step(state, sample, t_ns, out)
     except Exception:  # noqa: BLE001 -- the loop must not raise; a bug becomes a FAULT
         state.flags_seen |= Check.PLANNER
+        state.record.add(t_ns, EventKind.FAULT, Check.PLANNER, math.nan, math.nan)
         return _hold(state, out, Status.FAULT, int(Check.PLANNER), False)
+
+
+def _trip(state: LoopState, out: Command, t_ns: int, kind: EventKind, flags: int, value: float, limit: float) -> None:
+    """Record an event for each fired check (the first one's value goes into ``out``)."""
+    tv, tl = state.safety.trip_value, state.safety.trip_limit
+    first = True
+    for bit in range(8):
+        c = 1 << bit
+        if flags & c:
+            v, lim = (value, limit) if c in (Check.WATCHDOG, Check.TIMING) else (tv[bit], tl[bit])
+            state.record.add(t_ns, kind, Check(c), v, lim)
+            if first:
+                out.trip_value, out.trip_limit, first = v, lim, False
+
+
+def _timing(state: LoopState, t_ns: int, dt_ns: int) -> tuple[bool, float, float]:
+    """Late-tick bookkeeping; returns (trip, value, limit) under the timing policy."""
+    if dt_ns <= state.late_ns:
+        return False, 0.0, 0.0
+    state.record.add(t_ns, EventKind.LATE_TICK, 0, dt_ns * 1e-9, state.late_ns * 1e-9)
+    ring = state._late_ring
+    ring[state.n_late % len(ring)] = t_ns
+    state.n_late += 1
+    if dt_ns > state.stop_dt_ns:
+        trip, value, limit = True, dt_ns * 1e-9, state.stop_dt_ns * 1e-9
+    elif state.n_late >= len(ring) and t_ns - ring[state.n_late % len(ring)] <= state.late_window_ns:
+        # max_late + 1 late ticks within the window (value and limit are counts)
+        trip, value, limit = True, float(len(ring)), float(state.max_late)
+    else:
+        return False, 0.0, 0.0
+    state.timing_hold_until_ns = t_ns + state.late_window_ns
+    return trip, value, limit
 
 
 def _step(state: LoopState, sample, t_ns: int, out: Command) -> Status:
@@ -304,27 +398,46 @@ def _step(state: LoopState, sample, t_ns: int, out: Command) -> Status:
         state.t_prev_ns = t_ns
         return _hold(state, out, st, 0, False)
     dt_ns = t_ns - state.t_prev_ns
+    safety = state.safety
     if dt_ns <= 0 or dt_ns > state.max_dt_ns:
         state.flags_seen |= Check.TIMING
+        _trip(state, out, t_ns, EventKind.FAULT, Check.TIMING, dt_ns * 1e-9, state.max_dt_ns * 1e-9)
         return _hold(state, out, Status.FAULT, int(Check.TIMING), False)
     state.t_prev_ns = t_ns
     dt = dt_ns * 1e-9
     planner = state.planner
-    safety = state.safety
     ref = planner.ref
     state.ref_prev.copy_from(ref)  # the reference at t (last tick's output)
-
-    # 1. pose stream
-    if sample is not None and sample.t_capture_ns != state.last_capture_ns:
-        state.last_capture_ns = sample.t_capture_ns
-        if safety.sample_valid(sample, t_ns):
-            safety.feed(t_ns)
-            planner.set_sample(sample)
-        else:
-            state.n_rejected += 1
     flags = 0
 
-    # 2. mode and reference
+    # 1. timing policy
+    late_trip, late_value, late_limit = _timing(state, t_ns, dt_ns)
+    if late_trip:
+        flags |= Check.TIMING
+        state.flags_seen |= Check.TIMING
+        if safety.cfg.policy_timing == StopPolicy.IMMEDIATE:
+            _trip(state, out, t_ns, EventKind.IMMEDIATE_STOP, Check.TIMING, late_value, late_limit)
+            return _hold(state, out, Status.STOPPED, flags, False)
+        if st == Status.TRACKING or st == Status.FINISHED:
+            _trip(state, out, t_ns, EventKind.STOP, Check.TIMING, late_value, late_limit)
+            st = Status.STOPPING
+        state.motion = None
+
+    # 2. pose stream
+    if sample is not None and sample.t_capture_ns != state.last_capture_ns:
+        state.last_capture_ns = sample.t_capture_ns
+        why = safety.sample_reject(sample, t_ns)
+        if why == 0:
+            safety.feed(t_ns)
+            planner.set_sample(sample)
+            state.n_used += 1
+        else:
+            state.n_rejected += 1
+            out.reject = int(why)
+            state.record.add(t_ns, EventKind.REJECT, int(why), safety.reject_value, safety.reject_limit)
+            safety.reject_value = safety.reject_limit = math.nan
+
+    # 3. mode and reference
     if state.motion is not None and st in (Status.TRACKING, Status.FINISHED):
         done = _run_motion(state, t_ns, dt, ref)
         st = Status.FINISHED if done else Status.TRACKING
@@ -344,12 +457,17 @@ def _step(state: LoopState, sample, t_ns: int, out: Command) -> Status:
             state.motion = None
         if st == Status.TRACKING and planner.task is not None and not safety.stream_ok(t_ns):
             flags |= Check.WATCHDOG
-            if safety.cfg.policy_watchdog == StopPolicy.IMMEDIATE:
-                state.flags_seen |= flags
+            state.flags_seen |= Check.WATCHDOG
+            since = (t_ns - safety.t_last_valid_ns) * 1e-9 if safety.have_valid else math.inf
+            immediate = safety.cfg.policy_watchdog == StopPolicy.IMMEDIATE
+            _trip(state, out, t_ns, EventKind.IMMEDIATE_STOP if immediate else EventKind.STOP, Check.WATCHDOG,
+                  since, safety.cfg.watchdog_timeout_s)
+            if immediate:
                 return _hold(state, out, Status.STOPPED, flags, False)
             st = Status.STOPPING
         if st == Status.HOLD or st == Status.FINISHED:
-            if not state.latched and planner.task is not None and safety.resume_ok(t_ns):
+            if (not state.latched and planner.task is not None and safety.resume_ok(t_ns)
+                    and t_ns >= state.timing_hold_until_ns):
                 st = Status.TRACKING
                 if planner.phase == Phase.IDLE:
                     planner.phase = Phase.APPROACH
@@ -357,30 +475,35 @@ def _step(state: LoopState, sample, t_ns: int, out: Command) -> Status:
             res = planner.step(t_ns, dt)
             if res < 0:
                 state.flags_seen |= Check.PLANNER
+                _trip(state, out, t_ns, EventKind.FAULT, Check.PLANNER, float(res), 0.0)
                 return _hold(state, out, Status.FAULT, int(Check.PLANNER), False)
         else:
             at_rest = planner.stop_step(dt)
             if st == Status.STOPPING and at_rest:
                 st = Status.HOLD
-        _clik(state, dt)
+        _clik(state, dt, hold_back=True)
 
-    # 3. check the command
+    # 4. check the command
     kin = state.kin
     kin.update(state.q_new, jacobian=False)
-    flags |= safety.check_command(state.q_new, state.q_cmd, dt, kin.p, state.p_prev)
-    if flags:
-        state.flags_seen |= flags
-        if flags & Check.NONFINITE:
+    checks = safety.check_command(state.q_new, state.q_cmd, dt, kin.p, state.p_prev)
+    if checks:
+        flags |= checks
+        state.flags_seen |= checks
+        if checks & Check.NONFINITE:
+            _trip(state, out, t_ns, EventKind.FAULT, Check.NONFINITE, math.nan, math.nan)
             return _hold(state, out, Status.FAULT, flags, False)
-        if safety.policy(flags & ~Check.WATCHDOG) == StopPolicy.IMMEDIATE:
+        if safety.policy(checks) == StopPolicy.IMMEDIATE:
+            _trip(state, out, t_ns, EventKind.IMMEDIATE_STOP, checks, math.nan, math.nan)
             return _hold(state, out, Status.STOPPED, flags, False)
-        if flags & ~Check.WATCHDOG:  # a controlled stop by a limit check: latched
-            state.latched = True
-            state.motion = None
-            if st == Status.TRACKING or st == Status.FINISHED:
-                st = Status.STOPPING
+        # a controlled stop by a limit check: latched
+        state.latched = True
+        state.motion = None
+        if st == Status.TRACKING or st == Status.FINISHED:
+            _trip(state, out, t_ns, EventKind.STOP, checks, math.nan, math.nan)
+            st = Status.STOPPING
 
-    # 4. commit
+    # 5. commit
     state.q_cmd[:] = state.q_new
     state.p_prev[:] = kin.p
     out.q[:] = state.q_cmd

@@ -283,6 +283,7 @@ class TrackingPlanner:
         self.clamped = False
         self.last_result = 0
         self.n_fallbacks = 0  # Ruckig retries without time synchronisation (diagnostics)
+        self.n_held_back = 0  # ticks the reference waited for the arm (diagnostics)
         # work buffers
         self._cur_p = np.zeros(6)
         self._cur_v = np.zeros(6)
@@ -524,6 +525,23 @@ class TrackingPlanner:
         if math.sqrt(float(self._r3 @ self._r3)) > t.approach_tol_rad:
             return
         self.phase = Phase.FOLLOW
+
+    def hold_back(self, p, quat, v, w) -> None:
+        """Time-scale the reference to the arm: take its pose and velocity as the reference's.
+
+        Called when the arm could not follow the last step (the CLIK's speed
+        cap, a joint velocity limit or a joint limit brake cut the motion). The
+        reference then goes on from where the arm really is, at the speed it
+        really has, so no tracking error builds up to be caught up later; the
+        acceleration is kept (it is within the limits, and Ruckig re-plans from
+        this state at the next tick).
+        """
+        ref = self.ref
+        ref.p[:] = p
+        ref.quat[:] = quat
+        ref.v[:] = v
+        ref.w[:] = w
+        self.n_held_back += 1
 
     def stop_step(self, dt: float) -> bool:
         """Decelerate to rest within the limits (Ruckig velocity interface).
