@@ -222,6 +222,7 @@ class LoopState:
         self.n_used = 0  # poses taken by the planner
         self.n_late = 0
         self.timing_hold_until_ns = 0
+        self.stop_requested = False
         self.flags_seen = 0
         self.motion = None
         self.motion_t0_ns = 0
@@ -245,6 +246,14 @@ class LoopState:
         self.motion = None
         self.n_late = 0
         self.timing_hold_until_ns = 0
+        self.stop_requested = False
+
+    def request_stop(self) -> None:
+        """Ask for a controlled stop at the next tick (cause OPERATOR, latched until reset).
+
+        Safe to call from a signal handler or another thread (sets a flag).
+        """
+        self.stop_requested = True
 
     def reset(self, q_measured: np.ndarray, t_ns: int) -> None:
         """Clear a latched stop or fault (explicit operator action); restart from rest."""
@@ -362,10 +371,10 @@ def _trip(state: LoopState, out: Command, t_ns: int, kind: EventKind, flags: int
     """Record an event for each fired check (the first one's value goes into ``out``)."""
     tv, tl = state.safety.trip_value, state.safety.trip_limit
     first = True
-    for bit in range(8):
+    for bit in range(len(tv)):
         c = 1 << bit
         if flags & c:
-            v, lim = (value, limit) if c in (Check.WATCHDOG, Check.TIMING) else (tv[bit], tl[bit])
+            v, lim = (value, limit) if c in (Check.WATCHDOG, Check.TIMING, Check.OPERATOR) else (tv[bit], tl[bit])
             state.record.add(t_ns, kind, Check(c), v, lim)
             if first:
                 out.trip_value, out.trip_limit, first = v, lim, False
@@ -422,6 +431,15 @@ def _step(state: LoopState, sample, t_ns: int, out: Command) -> Status:
             _trip(state, out, t_ns, EventKind.STOP, Check.TIMING, late_value, late_limit)
             st = Status.STOPPING
         state.motion = None
+
+    if state.stop_requested:  # the operator's stop: controlled, latched until reset
+        state.stop_requested = False
+        state.latched = True
+        state.motion = None
+        flags |= Check.OPERATOR
+        if st == Status.TRACKING or st == Status.FINISHED:
+            _trip(state, out, t_ns, EventKind.STOP, Check.OPERATOR, math.nan, math.nan)
+            st = Status.STOPPING
 
     # 2. pose stream
     if sample is not None and sample.t_capture_ns != state.last_capture_ns:
@@ -566,7 +584,8 @@ class Scheduler:
         Polled each tick (``latest(now_ns)``).
     recorder : servo.recorder.Recorder or None
         Channels recorded when the recorder has them: t_ns, q_cmd, qd_cmd,
-        q_meas, p_ref, quat_ref, v_ref, status, flags, compute_ns.
+        q_meas, p_ref, quat_ref, v_ref, status, flags, compute_ns, reject,
+        trip_value, trip_limit (see ``servo.recorder.LOOP_CHANNELS``).
     realtime : bool
         Real-time mode: the tick time is the actual wake-up time (so a late
         tick yields a longer dt) and overruns are counted. In lockstep
@@ -787,3 +806,9 @@ class Scheduler:
             rec.data["flags"][row] = out.flags
         if "compute_ns" in ch:
             rec.data["compute_ns"][row] = compute_ns
+        if "reject" in ch:
+            rec.data["reject"][row] = out.reject
+        if "trip_value" in ch:
+            rec.data["trip_value"][row] = out.trip_value
+        if "trip_limit" in ch:
+            rec.data["trip_limit"][row] = out.trip_limit

@@ -24,7 +24,10 @@ LOOP_CHANNELS = {
     "quat_ref": ((4,), np.float64),
     "v_ref": ((3,), np.float64),
     "status": ((), np.int8),
-    "flags": ((), np.int32),
+    "flags": ((), np.int32),  # servo.safety.Check bits fired this tick
+    "reject": ((), np.int8),  # servo.safety.Reject code of a pose not used this tick (0: none)
+    "trip_value": ((), np.float64),  # what tripped the first check in flags (NaN: nothing), SI
+    "trip_limit": ((), np.float64),  # its limit
     "compute_ns": ((), np.int64),
 }
 

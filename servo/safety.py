@@ -58,6 +58,7 @@ class Check(enum.IntFlag):
     NONFINITE = 32
     TIMING = 64
     PLANNER = 128
+    OPERATOR = 256  # a stop asked for by the operator (SIGINT in ``servo run``)
 
 
 class Reject(enum.IntEnum):
@@ -145,8 +146,8 @@ class Safety:
         self._max_age_ns = int(round(config.max_sample_age_s * 1e9))
         self._max_future_ns = int(round(config.max_future_s * 1e9))
         # What tripped each check last (index: the Check bit), SI units (see servo.events).
-        self.trip_value = np.zeros(8)
-        self.trip_limit = np.zeros(8)
+        self.trip_value = np.zeros(len(Check.__members__))
+        self.trip_limit = np.zeros(len(Check.__members__))
         self._var_max = config.max_position_std_m**2
         self._policy = {
             Check.JOINT_POSITION: config.policy_joint_position,
