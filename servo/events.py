@@ -19,7 +19,10 @@ Event kinds
   error);
 - ``late_tick``: a tick later than the late-tick limit (counted; a stop only
   under the timing policy);
-- ``reject``: a pose not used, cause: the reason (see :data:`REJECT_NAMES`).
+- ``reject``: a pose not used, cause: the reason (see :data:`REJECT_NAMES`);
+- ``clamp``: the target left the planner's workspace and is held at its
+  boundary (value: how far it was moved, m; recorded when it leaves, not per
+  tick); no stop: the reference waits at the boundary.
 
 Values and limits are in SI units: seconds for the watchdog (time since the
 last valid pose) and for timing (the tick's dt), m/s for the TCP speed, rad/s
@@ -44,6 +47,7 @@ class EventKind(enum.IntEnum):
     FAULT = 2
     LATE_TICK = 3
     REJECT = 4
+    CLAMP = 5
 
 
 #: Reasons the loop rejects a pose (``servo.safety.Reject``), as they appear in the record.
@@ -84,7 +88,7 @@ class SafetyRecord:
 
     def add(self, t_ns: int, kind: EventKind, cause: int, value: float, limit: float) -> None:
         """Record one event. ``cause``: a single ``Check`` flag, or a ``Reject`` code."""
-        idx = int(cause) if kind == EventKind.REJECT or kind == EventKind.LATE_TICK else _CHECK_BIT[cause]
+        idx = _CHECK_BIT[cause] if kind <= EventKind.FAULT else int(cause)
         self.counts[int(kind), idx] += 1
         j = self.n_events % self.capacity
         self.t_ns[j] = t_ns
@@ -99,7 +103,7 @@ class SafetyRecord:
         row = self.counts[int(kind)]
         if cause is None:
             return int(row.sum())
-        idx = int(cause) if kind in (EventKind.REJECT, EventKind.LATE_TICK) else _CHECK_BIT[Check(cause)]
+        idx = _CHECK_BIT[Check(cause)] if kind <= EventKind.FAULT else int(cause)
         return int(row[idx])
 
     def by_cause(self, kind: EventKind) -> dict[str, int]:
@@ -107,8 +111,8 @@ class SafetyRecord:
         row = self.counts[int(kind)]
         if kind == EventKind.REJECT:
             return {Reject(i).name.lower(): int(row[i]) for i in range(1, len(Reject)) if row[i]}
-        if kind == EventKind.LATE_TICK:
-            return {"late": int(row.sum())} if row.sum() else {}
+        if kind in (EventKind.LATE_TICK, EventKind.CLAMP):
+            return {kind.name.lower(): int(row.sum())} if row.sum() else {}
         return {c.name: int(row[i]) for i, c in enumerate(_CHECKS) if row[i]}
 
     def recent(self) -> list[dict]:
@@ -122,8 +126,8 @@ class SafetyRecord:
             c = int(self.cause[j])
             if kind == EventKind.REJECT:
                 cause = Reject(c).name.lower()
-            elif kind == EventKind.LATE_TICK:
-                cause = "late"
+            elif kind in (EventKind.LATE_TICK, EventKind.CLAMP):
+                cause = "workspace" if kind == EventKind.CLAMP else "late"
             else:
                 cause = "|".join(check_names(c)) or "NONE"
             out.append({"t_s": round(int(self.t_ns[j]) * 1e-9, 6), "kind": kind.name.lower(), "cause": cause,
@@ -137,6 +141,7 @@ class SafetyRecord:
             "immediate_stops": self.by_cause(EventKind.IMMEDIATE_STOP),
             "faults": self.by_cause(EventKind.FAULT),
             "late_ticks": self.count(EventKind.LATE_TICK),
+            "target_clamped": self.count(EventKind.CLAMP),
             "rejected": self.by_cause(EventKind.REJECT),
             "events_total": self.n_events,
             "recent_events": self.recent(),
@@ -153,4 +158,7 @@ class SafetyRecord:
         late = self.count(EventKind.LATE_TICK)
         if late:
             parts.append(f"late {late}")
+        clamp = self.count(EventKind.CLAMP)
+        if clamp:
+            parts.append(f"clamped {clamp}")
         return " | ".join(parts) if parts else "no safety events"

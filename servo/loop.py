@@ -223,6 +223,7 @@ class LoopState:
         self.n_late = 0
         self.timing_hold_until_ns = 0
         self.stop_requested = False
+        self.was_clamped = False
         self.flags_seen = 0
         self.motion = None
         self.motion_t0_ns = 0
@@ -495,6 +496,9 @@ def _step(state: LoopState, sample, t_ns: int, out: Command) -> Status:
                 state.flags_seen |= Check.PLANNER
                 _trip(state, out, t_ns, EventKind.FAULT, Check.PLANNER, float(res), 0.0)
                 return _hold(state, out, Status.FAULT, int(Check.PLANNER), False)
+            if planner.clamped and not state.was_clamped:
+                state.record.add(t_ns, EventKind.CLAMP, 0, planner.clamp_distance, 0.0)
+            state.was_clamped = planner.clamped
         else:
             at_rest = planner.stop_step(dt)
             if st == Status.STOPPING and at_rest:

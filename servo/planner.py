@@ -281,6 +281,7 @@ class TrackingPlanner:
         self.tgt_v = np.zeros(3)
         self.tgt_w = np.zeros(3)
         self.clamped = False
+        self.clamp_distance = 0.0  # how far the last clamped target was moved, m
         self.last_result = 0
         self.n_fallbacks = 0  # Ruckig retries without time synchronisation (diagnostics)
         self.n_held_back = 0  # ticks the reference waited for the arm (diagnostics)
@@ -365,7 +366,10 @@ class TrackingPlanner:
         self.tgt_w[:] = sw
         if self.phase == Phase.APPROACH and self.task is not None:
             self.tgt_p[2] += self.task.standoff_m
+        self._p3[:] = self.tgt_p
         self.clamped = self.workspace.clamp_into(self.tgt_p, self.tgt_p)
+        if self.clamped:
+            self.clamp_distance = math.dist(self._p3, self.tgt_p)
         if self.clamped or stale:
             # Wait at the boundary; a stale target is no longer predicted to move.
             tv[:] = 0.0

@@ -14,7 +14,7 @@ from servo.robot import MujocoArm, Robot
 from servo.safety import Check, Status
 from servo.virtual_target import ConveyorTarget
 
-from servo_helpers import DT_NS, T_DOWN, ScriptedStream, make_loop, obj_sample, q_above
+from servo_helpers import DT_NS, T_DOWN, MockRobot, ScriptedStream, make_loop, obj_sample, q_above
 
 
 def test_step_before_start_is_a_fault():
@@ -152,34 +152,6 @@ def test_too_many_late_ticks_in_the_window_stop():
 def test_step_never_raises():
     a, out_a, _, _, _, t = _tracking_pair()
     assert step(a, "not a sample", t + DT_NS, out_a) == Status.FAULT
-
-
-class MockRobot:
-    """Records what the scheduler sends; a perfect plant (measured = commanded)."""
-
-    def __init__(self, q0):
-        self.n = 6
-        self.q = np.array(q0, float)
-        self.commands = 0
-        self.stops = 0
-        self.steps = 0
-        self.enables = 0
-
-    def read(self, q_out):
-        q_out[:] = self.q
-
-    def command(self, q, qd):
-        self.q[:] = q
-        self.commands += 1
-
-    def stop(self):
-        self.stops += 1
-
-    def enable(self):
-        self.enables += 1
-
-    def plant_step(self):
-        self.steps += 1
 
 
 class StreamSource:
