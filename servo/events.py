@@ -24,7 +24,8 @@ Event kinds
   boundary (value: how far it was moved, m; recorded when it leaves, not per
   tick); no stop: the reference waits at the boundary.
 
-Values and limits are in SI units: seconds for the watchdog (time since the
+Values and limits are in SI units (None where there is no number: a lost
+pose, a non-finite command): seconds for the watchdog (time since the
 last valid pose) and for timing (the tick's dt), m/s for the TCP speed, rad/s
 for a joint velocity, rad for a joint position, m for the workspace (distance
 outside the box), s for the age of a stale or future pose.
@@ -33,6 +34,7 @@ outside the box), s for the age of a stale or future pose.
 from __future__ import annotations
 
 import enum
+import math
 
 import numpy as np
 
@@ -55,6 +57,12 @@ REJECT_NAMES = tuple(r.name.lower() for r in Reject if r != Reject.NONE)
 
 _CHECKS = tuple(c for c in Check if c != Check.NONE)
 _CHECK_BIT = {c: i for i, c in enumerate(_CHECKS)}
+
+
+def _num(x) -> float | None:
+    """A float for JSON (None for NaN: nothing was measured)."""
+    x = float(x)
+    return None if math.isnan(x) else x
 
 
 def check_names(flags: int) -> list[str]:
@@ -131,7 +139,7 @@ class SafetyRecord:
             else:
                 cause = "|".join(check_names(c)) or "NONE"
             out.append({"t_s": round(int(self.t_ns[j]) * 1e-9, 6), "kind": kind.name.lower(), "cause": cause,
-                        "value": float(self.value[j]), "limit": float(self.limit[j])})
+                        "value": _num(self.value[j]), "limit": _num(self.limit[j])})
         return out
 
     def to_dict(self) -> dict:
