@@ -19,8 +19,9 @@ def add_parser(sub) -> None:
             "then run the 500 Hz visual-servoing loop on the wall clock: approach a stand-off above the "
             "object, then follow it. The arm is the simulated MuJoCo arm (models/arm.xml) stepped in real "
             "time; a real arm is another Robot class. Prints one status line a second (status, poses used, "
-            "their age, the link, and every stop, fault, late tick and rejected pose so far by cause); SIGINT "
-            "or SIGTERM makes a controlled stop and exits."
+            "their age, the link, and every stop, fault, late tick and rejected pose so far by cause), and a "
+            "line for each stop, fault and status change with its time on the monotonic clock (s) and what "
+            "tripped it; SIGINT or SIGTERM makes a controlled stop and exits."
         ),
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
@@ -181,9 +182,23 @@ def run(args) -> int:
     stopping = {"sigint": False, "t": None}
     sched = None
     last_line = [time.monotonic()]
+    logged = {"events": 0, "status": None}
+
+    def log_changes(t_ns, st):
+        """One line per stop, fault or clamp (cause, value, limit) and per status change, on the loop clock."""
+        rec = state.record
+        if rec.stops.n != logged["events"]:
+            for e in rec.stops_since(logged["events"]):
+                print(f"servo run: t={e['t_s']:.6f} {e['kind']} {e['cause']} value {e['value']} "
+                      f"limit {e['limit']}", flush=True)
+            logged["events"] = rec.stops.n
+        if st != logged["status"]:
+            print(f"servo run: t={t_ns * 1e-9:.6f} status {st.name}", flush=True)
+            logged["status"] = st
 
     def on_tick(t_ns, out):
-        st = Status(state.status) if hasattr(state, "status") else None
+        st = Status(state.status)
+        log_changes(t_ns, st)
         if not getattr(robot, "plant_alive", True):
             sched.request_stop()  # the plant (the arm's controller) has gone
         if stopping["sigint"]:

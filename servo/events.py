@@ -70,41 +70,83 @@ def check_names(flags: int) -> list[str]:
     return [c.name for c in _CHECKS if flags & c]
 
 
-class SafetyRecord:
-    """Counters by cause and a ring of recent events (preallocated; no allocation per event).
+class _Ring:
+    """The last ``capacity`` events of some kinds (preallocated arrays)."""
 
-    Parameters
-    ----------
-    capacity : int
-        Recent events kept (the oldest is overwritten; counters are never lost).
-    """
-
-    def __init__(self, capacity: int = 256):
+    def __init__(self, capacity: int):
         self.capacity = int(capacity)
         self.t_ns = np.zeros(self.capacity, np.int64)
         self.kind = np.zeros(self.capacity, np.int8)
         self.cause = np.zeros(self.capacity, np.int32)
         self.value = np.zeros(self.capacity)
         self.limit = np.zeros(self.capacity)
-        self.n_events = 0
-        # counters[kind, cause]: causes are Check bits for stops/faults, Reject codes for rejects
-        self.counts = np.zeros((len(EventKind), 32), np.int64)
+        self.n = 0  # events ever added
 
-    def clear(self) -> None:
-        self.n_events = 0
-        self.counts[:] = 0
-
-    def add(self, t_ns: int, kind: EventKind, cause: int, value: float, limit: float) -> None:
-        """Record one event. ``cause``: a single ``Check`` flag, or a ``Reject`` code."""
-        idx = _CHECK_BIT[cause] if kind <= EventKind.FAULT else int(cause)
-        self.counts[int(kind), idx] += 1
-        j = self.n_events % self.capacity
+    def add(self, t_ns: int, kind: int, cause: int, value: float, limit: float) -> None:
+        j = self.n % self.capacity
         self.t_ns[j] = t_ns
         self.kind[j] = kind
         self.cause[j] = cause
         self.value[j] = value
         self.limit[j] = limit
-        self.n_events += 1
+        self.n += 1
+
+    def since(self, k: int) -> list[dict]:
+        out = []
+        for i in range(max(int(k), self.n - self.capacity), self.n):
+            j = i % self.capacity
+            kind = EventKind(int(self.kind[j]))
+            c = int(self.cause[j])
+            if kind == EventKind.REJECT:
+                cause = Reject(c).name.lower()
+            elif kind == EventKind.LATE_TICK:
+                cause = "late"
+            elif kind == EventKind.CLAMP:
+                cause = "workspace"
+            else:
+                cause = "|".join(check_names(c)) or "NONE"
+            out.append({"t_s": round(int(self.t_ns[j]) * 1e-9, 6), "kind": kind.name.lower(), "cause": cause,
+                        "value": _num(self.value[j]), "limit": _num(self.limit[j])})
+        return out
+
+
+class SafetyRecord:
+    """Counters by cause and rings of recent events (preallocated; no allocation per event).
+
+    Stops, faults and clamps go into one ring, late ticks and rejected poses
+    into another, so that a flood of the frequent kinds (a loaded machine, a
+    tracker reporting ``lost``) cannot push the stops out of the record.
+
+    Parameters
+    ----------
+    capacity : int
+        Recent events kept per ring (the oldest is overwritten; counters are never lost).
+    """
+
+    def __init__(self, capacity: int = 128):
+        self.stops = _Ring(capacity)  # stop, immediate stop, fault, clamp
+        self.minor = _Ring(capacity)  # late tick, reject
+        # counters[kind, cause]: causes are Check bits for stops/faults, Reject codes for rejects
+        self.counts = np.zeros((len(EventKind), 32), np.int64)
+        self.max_late_s = 0.0  # the longest late tick's dt
+
+    @property
+    def n_events(self) -> int:
+        return self.stops.n + self.minor.n
+
+    def add(self, t_ns: int, kind: EventKind, cause: int, value: float, limit: float) -> None:
+        """Record one event. ``cause``: a single ``Check`` flag, or a ``Reject`` code."""
+        if kind <= EventKind.FAULT:
+            self.counts[int(kind), _CHECK_BIT[cause]] += 1
+            self.stops.add(t_ns, kind, cause, value, limit)
+        elif kind == EventKind.CLAMP:
+            self.counts[int(kind), 0] += 1
+            self.stops.add(t_ns, kind, cause, value, limit)
+        else:
+            self.counts[int(kind), int(cause)] += 1
+            self.minor.add(t_ns, kind, cause, value, limit)
+            if kind == EventKind.LATE_TICK and value > self.max_late_s:
+                self.max_late_s = value
 
     def count(self, kind: EventKind, cause: int | None = None) -> int:
         """Events of ``kind`` (of one cause, or all)."""
@@ -124,23 +166,15 @@ class SafetyRecord:
         return {c.name: int(row[i]) for i, c in enumerate(_CHECKS) if row[i]}
 
     def recent(self) -> list[dict]:
-        """The events still in the ring, oldest first, as plain data."""
-        n = min(self.n_events, self.capacity)
-        start = self.n_events - n
-        out = []
-        for k in range(start, self.n_events):
-            j = k % self.capacity
-            kind = EventKind(int(self.kind[j]))
-            c = int(self.cause[j])
-            if kind == EventKind.REJECT:
-                cause = Reject(c).name.lower()
-            elif kind in (EventKind.LATE_TICK, EventKind.CLAMP):
-                cause = "workspace" if kind == EventKind.CLAMP else "late"
-            else:
-                cause = "|".join(check_names(c)) or "NONE"
-            out.append({"t_s": round(int(self.t_ns[j]) * 1e-9, 6), "kind": kind.name.lower(), "cause": cause,
-                        "value": _num(self.value[j]), "limit": _num(self.limit[j])})
-        return out
+        """The events still in both rings, oldest first, as plain data."""
+        return sorted(self.stops.since(0) + self.minor.since(0), key=lambda e: e["t_s"])
+
+    def stops_since(self, k: int) -> list[dict]:
+        """Stops, faults and clamps number ``k`` onwards (0 = the first ever) still in the ring.
+
+        Each: ``t_s`` (the loop's clock, s), ``kind``, ``cause``, ``value``, ``limit``.
+        """
+        return self.stops.since(k)
 
     def to_dict(self) -> dict:
         """Counters by kind and cause, plus the recent events (``--stats-json``)."""
@@ -149,10 +183,12 @@ class SafetyRecord:
             "immediate_stops": self.by_cause(EventKind.IMMEDIATE_STOP),
             "faults": self.by_cause(EventKind.FAULT),
             "late_ticks": self.count(EventKind.LATE_TICK),
+            "late_tick_max_s": self.max_late_s,
             "target_clamped": self.count(EventKind.CLAMP),
             "rejected": self.by_cause(EventKind.REJECT),
             "events_total": self.n_events,
-            "recent_events": self.recent(),
+            "recent_stops": self.stops.since(0),
+            "recent_late_ticks_and_rejects": self.minor.since(0),
         }
 
     def summary(self) -> str:

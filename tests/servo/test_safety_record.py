@@ -83,14 +83,15 @@ def test_stats_json_shows_every_event_by_cause(tmp_path):
     saf = info["safety"]
     assert info["controlled_stops"] == 1 and saf["stops"] == {"WATCHDOG": 1}
     assert saf["immediate_stops"] == {} and saf["faults"] == {}
-    assert saf["late_ticks"] == 1
+    assert saf["late_ticks"] == 1 and np.isclose(saf["late_tick_max_s"], 0.007)
     assert saf["rejected"] == {"lost": 1, "stale": 1, "uncertain": 1}
     assert info["link"]["poses_rejected"] == {"no_hello": 1, "unknown_object": 1, "future_stamp": 1,
                                               "duplicate": 1, "out_of_order": 1}
     # poses used: those the loop took, not the rejected ones
     assert info["poses_used"] == state.n_used == src.samples - 3
     # the events, with when and what tripped them
-    ev = {e["kind"] + ":" + e["cause"]: e for e in saf["recent_events"]}
+    assert [e["kind"] + ":" + e["cause"] for e in saf["recent_stops"]] == ["stop:WATCHDOG"]
+    ev = {e["kind"] + ":" + e["cause"]: e for e in saf["recent_stops"] + saf["recent_late_ticks_and_rejects"]}
     wd = ev["stop:WATCHDOG"]
     assert 1.5 < wd["t_s"] < 1.8 and wd["value"] >= wd["limit"] == state.safety.cfg.watchdog_timeout_s
     late = ev["late_tick:late"]
