@@ -20,6 +20,9 @@ Event kinds
 - ``late_tick``: a tick later than the late-tick limit (counted; a stop only
   under the timing policy);
 - ``reject``: a pose not used, cause: the reason (see :data:`REJECT_NAMES`);
+- ``joint_approach``: the Cartesian approach was held at a joint limit and
+  a joint-space approach was planned (value: its duration, s; None when no
+  safe one was found and the arm keeps waiting);
 - ``clamp``: the target left the planner's workspace and is held at its
   boundary (value: how far it was moved, m; recorded when it leaves, not per
   tick); no stop: the reference waits at the boundary.
@@ -50,6 +53,7 @@ class EventKind(enum.IntEnum):
     LATE_TICK = 3
     REJECT = 4
     CLAMP = 5
+    JOINT_APPROACH = 6
 
 
 #: Reasons the loop rejects a pose (``servo.safety.Reject``), as they appear in the record.
@@ -103,6 +107,8 @@ class _Ring:
                 cause = "late"
             elif kind == EventKind.CLAMP:
                 cause = "workspace"
+            elif kind == EventKind.JOINT_APPROACH:
+                cause = "joint_limit"
             else:
                 cause = "|".join(check_names(c)) or "NONE"
             out.append({"t_s": round(int(self.t_ns[j]) * 1e-9, 6), "kind": kind.name.lower(), "cause": cause,
@@ -124,7 +130,7 @@ class SafetyRecord:
     """
 
     def __init__(self, capacity: int = 128):
-        self.stops = _Ring(capacity)  # stop, immediate stop, fault, clamp
+        self.stops = _Ring(capacity)  # stop, immediate stop, fault, clamp, joint approach
         self.minor = _Ring(capacity)  # late tick, reject
         # counters[kind, cause]: causes are Check bits for stops/faults, Reject codes for rejects
         self.counts = np.zeros((len(EventKind), 32), np.int64)
@@ -139,7 +145,7 @@ class SafetyRecord:
         if kind <= EventKind.FAULT:
             self.counts[int(kind), _CHECK_BIT[cause]] += 1
             self.stops.add(t_ns, kind, cause, value, limit)
-        elif kind == EventKind.CLAMP:
+        elif kind == EventKind.CLAMP or kind == EventKind.JOINT_APPROACH:
             self.counts[int(kind), 0] += 1
             self.stops.add(t_ns, kind, cause, value, limit)
         else:
@@ -161,7 +167,7 @@ class SafetyRecord:
         row = self.counts[int(kind)]
         if kind == EventKind.REJECT:
             return {Reject(i).name.lower(): int(row[i]) for i in range(1, len(Reject)) if row[i]}
-        if kind in (EventKind.LATE_TICK, EventKind.CLAMP):
+        if kind in (EventKind.LATE_TICK, EventKind.CLAMP, EventKind.JOINT_APPROACH):
             return {kind.name.lower(): int(row.sum())} if row.sum() else {}
         return {c.name: int(row[i]) for i, c in enumerate(_CHECKS) if row[i]}
 
@@ -185,6 +191,7 @@ class SafetyRecord:
             "late_ticks": self.count(EventKind.LATE_TICK),
             "late_tick_max_s": self.max_late_s,
             "target_clamped": self.count(EventKind.CLAMP),
+            "joint_approaches": self.count(EventKind.JOINT_APPROACH),
             "rejected": self.by_cause(EventKind.REJECT),
             "events_total": self.n_events,
             "recent_stops": self.stops.since(0),

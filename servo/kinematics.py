@@ -271,7 +271,7 @@ def dls_solve_into(J: np.ndarray, x: np.ndarray, eps: float, lambda_max: float, 
         return 0.0
     s_min = float(s[-1])
     lam2 = damping_squared(s_min, eps, lambda_max)
-    y = U.T @ x
+    y = (U.T if len(s) == U.shape[0] else U[:, : len(s)].T) @ x  # J may have fewer columns than rows
     y *= s / (s * s + lam2)
     np.dot(Vt.T, y, out=out)
     return s_min
@@ -326,6 +326,8 @@ class Clik:
         self.cfg = config
         self.tcp_speed_max = float(tcp_speed_max)
         self.limited = False  # the last step's motion was cut by a cap or a joint limit
+        self.at_limit = False  # ... by a joint position limit (its brake or its clamp)
+        self._blocked = [False] * kin.n  # joints braked at a limit in the last pass
         n = kin.n
         self.lo = kin.q_min + config.joint_margin_rad
         self.hi = kin.q_max - config.joint_margin_rad
@@ -389,6 +391,8 @@ class Clik:
             x[:3] *= self.tcp_speed_max / sp
         self.s_min = dls_solve_into(kin.J, x, cfg.eps, cfg.lambda_max, self.qd_raw)
         s_min = self._limit_and_integrate(q, self.qd_raw, dt, q_out, qd_out)
+        if self.at_limit:
+            self._without_blocked_joints(q, x, dt, q_out, qd_out)
         # The damped inverse trades linear against angular error, so the linear
         # speed it realises may exceed what was asked: check J qd.
         v = self._v3
@@ -401,6 +405,34 @@ class Clik:
             capped = True
         self.limited = self.limited or capped
         return s_min
+
+    def _without_blocked_joints(self, q, x, dt, q_out, qd_out) -> None:
+        """Solve again with the joints braked at a limit held still (their Jacobian columns removed).
+
+        A braked joint does not do its share of the motion; merely clipping it
+        would leave the others moving the tool in another direction than asked
+        (a drift of the reference that waits for the arm). Without it, the free
+        joints do the least-squares best for the whole twist. Repeated while
+        another joint reaches its limit; allocates (only on this path).
+        """
+        cfg = self.cfg
+        n = self.kin.n
+        blocked = list(self._blocked)
+        for _ in range(n):
+            free = [i for i in range(n) if not blocked[i]]
+            qd = np.zeros(n)
+            if free:
+                qf = np.zeros(len(free))
+                dls_solve_into(np.ascontiguousarray(self.kin.J[:, free]), x, cfg.eps, cfg.lambda_max, qf)
+                qd[free] = qf
+            self._limit_and_integrate(q, qd, dt, q_out, qd_out)
+            new = [i for i in free if self._blocked[i]]
+            if not new:
+                break
+            for i in new:
+                blocked[i] = True
+        self.at_limit = True
+        self.limited = True
 
     def _limit_and_integrate(self, q, qd, dt, q_out, qd_out) -> float:
         # Plain floats: six-element NumPy calls cost more than the arithmetic.
@@ -416,31 +448,37 @@ class Clik:
                 worst = r
         s = 1.0 / worst if worst > 1.0 else 1.0
         limited = s < 1.0
+        at_limit = False
         a2 = 2.0 * self.cfg.joint_brake_acc
         inv_dt = 1.0 / dt
         qn_l = [0.0] * n
         qd_l = [0.0] * n
+        blocked = self._blocked
         for i in range(n):
             x = v[i] * s
             # braking distance to each limit: |qd| <= sqrt(2 a d)
             up = hi[i] - qv[i]
             up = math.sqrt(a2 * up) if up > 0.0 else 0.0
+            b = False
             if x > up:
-                x, limited = up, True
+                x, b = up, True
             dn = qv[i] - lo[i]
             dn = math.sqrt(a2 * dn) if dn > 0.0 else 0.0
             if x < -dn:
-                x, limited = -dn, True
+                x, b = -dn, True
             qn = qv[i] + x * dt
             if qn > hi[i]:
-                qn, limited = hi[i], True
+                qn, b = hi[i], True
             elif qn < lo[i]:
-                qn, limited = lo[i], True
+                qn, b = lo[i], True
+            blocked[i] = b
+            at_limit = at_limit or b
             qn_l[i] = qn
             qd_l[i] = (qn - qv[i]) * inv_dt
         q_out[:] = qn_l
         qd_out[:] = qd_l
-        self.limited = limited
+        self.limited = limited or at_limit
+        self.at_limit = at_limit
         return self.s_min
 
 

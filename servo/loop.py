@@ -39,7 +39,7 @@ from .planner import (
     TrackingPlanner,
     Workspace,
 )
-from .rotation import quat_from_matrix_into
+from .rotation import matrix_from_quat, quat_from_matrix_into
 from .events import EventKind, SafetyRecord
 from .safety import Check, Safety, SafetyConfig, Status, StopPolicy
 from .target import TargetSample
@@ -76,6 +76,9 @@ class LoopConfig:
     safety : overrides of :class:`SafetyConfig` fields (joint limits come from the model)
     task : the follow task, or None (hold until a task or motion is given)
     latency_compensation : predict the object pose to the tick time
+    joint_approach_after_ticks : when the Cartesian approach has been held at a
+        joint limit for this many ticks, approach in joint space
+        (:mod:`servo.joint_approach`); 0 never does
     """
 
     model_path: Path | str = DEFAULT_ARM_XML
@@ -93,6 +96,7 @@ class LoopConfig:
     task: FollowTask | None = None
     latency_compensation: bool = True
     max_prediction_s: float = 0.3
+    joint_approach_after_ticks: int = 100
 
     @classmethod
     def from_dict(cls, d: dict) -> "LoopConfig":
@@ -112,7 +116,8 @@ class LoopConfig:
         d = dict(d)
         kw = {}
         for k in ("model_path", "site", "period_ns", "late_tick_ticks", "max_late_ticks", "late_window_s",
-                  "stop_dt_ticks", "max_dt_ticks", "latency_compensation", "max_prediction_s"):
+                  "stop_dt_ticks", "max_dt_ticks", "latency_compensation", "max_prediction_s",
+                  "joint_approach_after_ticks"):
             if k in d:
                 kw[k] = d.pop(k)
         if "limits" in d:
@@ -224,6 +229,9 @@ class LoopState:
         self.timing_hold_until_ns = 0
         self.stop_requested = False
         self.was_clamped = False
+        self.joint_approach = None  # a joint-space approach in progress (servo.joint_approach)
+        self.joint_approach_t0_ns = 0
+        self.stall_ticks = 0
         self.flags_seen = 0
         self.motion = None
         self.motion_t0_ns = 0
@@ -248,6 +256,8 @@ class LoopState:
         self.n_late = 0
         self.timing_hold_until_ns = 0
         self.stop_requested = False
+        self.joint_approach = None
+        self.stall_ticks = 0
 
     def request_stop(self) -> None:
         """Ask for a controlled stop at the next tick (cause OPERATOR, latched until reset).
@@ -286,25 +296,63 @@ def _hold(state: LoopState, out: Command, status: Status, flags: int, drives_on:
     return status
 
 
+def _joint_motion_step(state: LoopState, m, t: float, ref: Reference) -> None:
+    """Joints from a joint-space motion at time ``t`` (s into it), the TCP reference from them."""
+    m.sample(t, state.q_new, state.qd, state.qdd)
+    np.clip(state.q_new, state.clik.lo, state.clik.hi, out=state.q_new)
+    # Keep the TCP reference on the joint motion (pose, J qd, J qdd without
+    # the Jd qd term), so that a controlled stop decelerates from where the
+    # arm really is and how fast it really moves.
+    kin = state.kin
+    kin.update(state.q_new)
+    ref.p[:] = kin.p
+    quat_from_matrix_into(kin.R, ref.quat)
+    J = kin.J
+    np.dot(J[:3], state.qd, out=ref.v)
+    np.dot(J[3:], state.qd, out=ref.w)
+    np.dot(J[:3], state.qdd, out=ref.a)
+    np.dot(J[3:], state.qdd, out=ref.alpha)
+
+
+def _maybe_plan_joint_approach(state: LoopState, t_ns: int) -> None:
+    """After the Cartesian approach has been held at a joint limit for ``stall_ticks``, plan in joint space."""
+    planner = state.planner
+    if planner.phase != Phase.APPROACH or not state.clik.at_limit:
+        state.stall_ticks = 0
+        return
+    state.stall_ticks += 1
+    if state.stall_ticks < state.cfg.joint_approach_after_ticks:
+        return
+    state.stall_ticks = 0
+    from .joint_approach import plan_joint_approach
+
+    kin, saf = state.kin, state.safety.cfg
+    qdd = np.full(state.n, state.cfg.clik.joint_brake_acc / 3.0)
+    args = (kin.qd_max, qdd, state.cfg.limits.v_lin, saf.box_min, saf.box_max)
+    T = np.eye(4)
+    m = None
+    for _ in range(2):  # aim where the part will be when the motion ends
+        T[:3, :3] = matrix_from_quat(planner.tgt_q)
+        T[:3, 3] = planner.tgt_p
+        m = plan_joint_approach(kin, state.q_cmd, T, *args)
+        if m is None:
+            break
+        planner.update_target(t_ns + int(m.duration * 1e9))
+    planner.update_target(t_ns)
+    state.record.add(t_ns, EventKind.JOINT_APPROACH, 0, math.nan if m is None else m.duration, math.nan)
+    if m is None:  # nothing safe from here: the arm waits; try again in 1 s (the part moves)
+        state.stall_ticks = -4 * state.cfg.joint_approach_after_ticks
+    else:
+        state.joint_approach = m
+        state.joint_approach_t0_ns = t_ns
+
+
 def _run_motion(state: LoopState, t_ns: int, dt: float, ref: Reference) -> bool:
     """Sample the classic motion; returns True when it has ended."""
     m = state.motion
     t = (t_ns - state.motion_t0_ns) * 1e-9
     if m.space == "joint":
-        m.sample(t, state.q_new, state.qd, state.qdd)
-        np.clip(state.q_new, state.clik.lo, state.clik.hi, out=state.q_new)
-        # Keep the TCP reference on the joint motion (pose, J qd, J qdd without
-        # the Jd qd term), so that a controlled stop decelerates from where the
-        # arm really is and how fast it really moves.
-        kin = state.kin
-        kin.update(state.q_new)
-        ref.p[:] = kin.p
-        quat_from_matrix_into(kin.R, ref.quat)
-        J = kin.J
-        np.dot(J[:3], state.qd, out=ref.v)
-        np.dot(J[3:], state.qd, out=ref.w)
-        np.dot(J[:3], state.qdd, out=ref.a)
-        np.dot(J[3:], state.qdd, out=ref.alpha)
+        _joint_motion_step(state, m, t, ref)
     elif m.space == "task":
         m.sample(t, ref)
         _clik(state, dt)
@@ -490,7 +538,17 @@ def _step(state: LoopState, sample, t_ns: int, out: Command) -> Status:
                 st = Status.TRACKING
                 if planner.phase == Phase.IDLE:
                     planner.phase = Phase.APPROACH
-        if st == Status.TRACKING:
+        if st == Status.TRACKING and state.joint_approach is not None:
+            m = state.joint_approach
+            t_m = (t_ns - state.joint_approach_t0_ns) * 1e-9
+            _joint_motion_step(state, m, t_m, ref)
+            if t_m >= m.duration:  # at rest where the Cartesian approach can reach: it takes over
+                state.joint_approach = None
+                state.kin.update(state.q_new, jacobian=False)
+                quat_from_matrix_into(state.kin.R, state._quat)
+                ref.set_rest(state.kin.p, state._quat)
+                planner.otg.reset()
+        elif st == Status.TRACKING:
             res = planner.step(t_ns, dt)
             if res < 0:
                 state.flags_seen |= Check.PLANNER
@@ -499,11 +557,15 @@ def _step(state: LoopState, sample, t_ns: int, out: Command) -> Status:
             if planner.clamped and not state.was_clamped:
                 state.record.add(t_ns, EventKind.CLAMP, 0, planner.clamp_distance, 0.0)
             state.was_clamped = planner.clamped
+            _clik(state, dt, hold_back=True)
+            if state.cfg.joint_approach_after_ticks > 0:
+                _maybe_plan_joint_approach(state, t_ns)
         else:
+            state.joint_approach = None
             at_rest = planner.stop_step(dt)
             if st == Status.STOPPING and at_rest:
                 st = Status.HOLD
-        _clik(state, dt, hold_back=True)
+            _clik(state, dt, hold_back=True)
 
     # 4. check the command
     kin = state.kin
