@@ -49,6 +49,9 @@ def add_parser(sub) -> None:
                    help="more late ticks (over 1.5 periods) than this within --late-window make a controlled stop "
                         "(loop config default: 10)")
     p.add_argument("--late-window", type=float, help="window of the late-tick count, s (loop config default: 1.0)")
+    p.add_argument("--clock-tolerance", type=float,
+                   help="a pose captured after it was sent, or stamped after the tick, by more than this is "
+                        "rejected (future_stamp / future), s (loop config safety.max_future_s, default 0.005)")
     p.set_defaults(func=run)
 
 
@@ -158,8 +161,14 @@ def run(args) -> int:
                 return 2
     if args.no_latency_compensation:
         cfg = LoopConfig(**{**cfg.__dict__, "latency_compensation": False})
+    if args.clock_tolerance is not None:
+        if not args.clock_tolerance >= 0:
+            print("servo run: --clock-tolerance: expected a time >= 0 in seconds", file=sys.stderr)
+            return 2
+        cfg = LoopConfig(**{**cfg.__dict__, "safety": {**cfg.safety, "max_future_s": args.clock_tolerance}})
     clock = WallClock()
-    receiver = PoseReceiver(args.connect, baudrate=args.baud)
+    receiver = PoseReceiver(args.connect, baudrate=args.baud,
+                            future_tolerance_s=cfg.safety.get("max_future_s", 0.005))
     source = LinkSource(receiver)
     if args.robot.startswith("shm:"):
         from .shm_robot import ShmArm

@@ -1,10 +1,12 @@
 """Approaching a part on the belt from anywhere in the workspace, over the link, without a stop.
 
 A fake pose server publishes a part moving at 0.1 m/s that enters from either
-end of the belt; the arm starts at home or at three other poses in the
-workspace. The plan keeps within the planner's limits (the CLIK caps the tool
-speed at ``v_lin`` and the reference waits for the arm when a joint limit cuts
-the motion), so the safety checks, which stay strict, never fire. Lockstep on
+end of the belt; the arm starts at home or at four other poses in the
+workspace, one of them wound so that the straight tool path runs into joint
+limits. The plan keeps within the planner's limits (the CLIK caps the tool
+speed at ``v_lin``, the reference waits for the arm when a joint limit cuts
+the motion, and a blocked Cartesian approach is replaced by a joint-space
+one), so the safety checks, which stay strict, never fire. Lockstep on
 the simulated clock with a perfect plant (measured joints = commanded joints).
 """
 
@@ -29,6 +31,8 @@ STARTS = {
     "left_tilted": [0.6, 0.4, -0.2, 0.5, 1.2, 0.3],
     "right_low": [-0.6, 0.8, -0.6, -0.8, 0.9, 1.0],
     "sideways": [-0.3, -0.2, 0.3, 1.5, -1.0, -1.0],
+    # elbow and wrist wound so that the straight tool path drives joints 3 and 5 into their limits
+    "wound": [0.8, 1.0, -1.5, 2.0, 1.5, -2.0],
 }
 ENDS = {"from_minus_y": ((0.9, -0.85, 0.5), (0.0, 0.1, 0.0)), "from_plus_y": ((0.9, 0.85, 0.5), (0.0, -0.1, 0.0))}
 
@@ -74,13 +78,13 @@ def run_over_link(q0, p0, v, seconds=10.0, follow_s=1.2, p_far=None):
 
 # Home with the part entering from either end; each other start with one end (alternating).
 CASES = [("home", "from_minus_y"), ("home", "from_plus_y"), ("left_tilted", "from_minus_y"),
-         ("right_low", "from_plus_y"), ("sideways", "from_minus_y")]
+         ("right_low", "from_plus_y"), ("sideways", "from_minus_y"), ("wound", "from_minus_y")]
 
 
 @pytest.mark.parametrize("start,end", CASES)
 def test_approach_from_anywhere_then_follow_without_a_stop(start, end):
     p0, v = ENDS[end]
-    state, speeds, errors = run_over_link(np.array(STARTS[start]), p0, v)
+    state, speeds, errors = run_over_link(np.array(STARTS[start]), p0, v, seconds=14.0)
     v_lin = state.cfg.limits.v_lin
     assert state.planner.phase == Phase.FOLLOW, "the arm did not reach the stand-off"
     assert state.status == Status.TRACKING
@@ -90,6 +94,9 @@ def test_approach_from_anywhere_then_follow_without_a_stop(start, end):
     # The tool never moves faster than the planner's limit (a norm), far below the safety limit.
     assert speeds.max() <= v_lin * 1.01, speeds.max()  # (1 %: FK vs the CLIK's linearised cap)
     assert errors.size > 100 and errors.max() < 2e-3, errors.max()
+    if start == "wound":  # the Cartesian approach was blocked: it went through joint space
+        planned = [e for e in state.record.recent() if e["kind"] == "joint_approach" and e["value"] is not None]
+        assert planned and planned[0]["value"] > 0.5
 
 
 def test_pose_far_outside_the_workspace_is_clamped_and_reported_not_a_stop():
