@@ -34,7 +34,6 @@ import json
 import os
 import re
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -49,14 +48,6 @@ ROOT = Path(__file__).resolve().parents[1]
 WATCHDOG_S = 3 / 26  # the servo's default watchdog
 TICK_S = 0.002
 LINE = re.compile(r"servo run: t=(?P<t>[0-9.]+) (?P<rest>.*)")
-
-
-def free_port() -> int:
-    s = socket.socket()
-    s.bind(("127.0.0.1", 0))
-    port = s.getsockname()[1]
-    s.close()
-    return port
 
 
 def rss_mb(pid: int) -> float | None:
@@ -116,6 +107,7 @@ def main() -> int:
     p.add_argument("--restart-delay", type=float, default=1.0, help="restart the server this long after the kill, s")
     p.add_argument("--recording", type=Path, default=ROOT.parent.parent / "shared" / "data" / "example_box2",
                    help="recording the server replays in a loop")
+    p.add_argument("--port", type=int, default=5587, help="TCP port of the server on 127.0.0.1")
     p.add_argument("--rss-period", type=float, default=5.0, help="memory sampling period, s")
     p.add_argument("--out", type=Path, default=ROOT / "out" / "soak", help="logs and the servo's stats")
     p.add_argument("--servo-arg", action="append", default=[],
@@ -125,7 +117,7 @@ def main() -> int:
         print(f"soak: {args.recording}: not a recording (no meta.yaml); give one with --recording", file=sys.stderr)
         return 2
     args.out.mkdir(parents=True, exist_ok=True)
-    port = free_port()
+    port = args.port
     server_log, servo_log = args.out / "server.log", args.out / "servo.log"
     for f in (server_log, servo_log):
         f.write_text("")

@@ -111,7 +111,8 @@ def write_stats_json(path: Path, stats, receiver, poses_used: int, period_ns: in
     }
     if state is not None:
         info["safety"] = {**state.record.to_dict(), "poses_rejected_by_loop": state.n_rejected,
-                          "planner_held_back_ticks": state.planner.n_held_back}
+                          "planner_held_back_ticks": state.planner.n_held_back,
+                          "latched_at_end": bool(state.latched), "status_at_end": Status(state.status).name}
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(info, indent=2))
