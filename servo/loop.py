@@ -273,6 +273,7 @@ class LoopState:
     def set_task(self, task: FollowTask | None) -> None:
         """Change the follow task (starts with the approach phase); ends a finished motion."""
         self.planner.set_task(task)
+        self.joint_approach = None
         if self.status == Status.FINISHED:
             self.motion = None
             self.status = Status.HOLD
@@ -315,7 +316,11 @@ def _joint_motion_step(state: LoopState, m, t: float, ref: Reference) -> None:
 
 
 def _maybe_plan_joint_approach(state: LoopState, t_ns: int) -> None:
-    """After the Cartesian approach has been held at a joint limit for ``stall_ticks``, plan in joint space."""
+    """After the Cartesian approach has been held at a joint limit for ``joint_approach_after_ticks``
+    ticks, plan a joint-space approach (see :mod:`servo.joint_approach`); recorded either way.
+
+    The joint motion starts from rest: the arm held at a joint limit is (nearly) at rest there.
+    """
     planner = state.planner
     if planner.phase != Phase.APPROACH or not state.clik.at_limit:
         state.stall_ticks = 0

@@ -32,6 +32,13 @@ the current tick with the sample's velocity (constant-velocity model, capped at
 Workspace: the TCP target is clamped to a box and a reach sphere; a clamped
 target gets zero velocity, so the reference waits at the boundary and comes
 back when the target does.
+
+Time-scaling: the reference is a plan for the tool, but the joints have their
+own limits. When the CLIK could not follow a step (tool speed cap, joint
+velocity scaling, a joint limit), the loop calls :meth:`TrackingPlanner.hold_back`
+and the reference goes on from the arm's real pose and speed: the plan is
+slowed to what the arm does instead of running ahead and being caught up later
+above the limits.
 """
 
 from __future__ import annotations
@@ -80,7 +87,13 @@ def _vec(a, n, name) -> np.ndarray:
 
 @dataclass(frozen=True)
 class CartesianLimits:
-    """Per-axis TCP limits, world frame (m/s, m/s^2, m/s^3; rad/s, rad/s^2, rad/s^3)."""
+    """Per-axis TCP limits, world frame (m/s, m/s^2, m/s^3; rad/s, rad/s^2, rad/s^3).
+
+    ``v_lin`` is also the limit of the tool's speed as a norm: the loop's CLIK
+    caps the commanded tool speed there (reference velocity plus error
+    feedback), so the arm never moves its tool faster than ``v_lin`` in any
+    direction, however far behind it is.
+    """
 
     v_lin: float = 0.5
     a_lin: float = 2.0
