@@ -206,9 +206,16 @@ def run(args) -> int:
             print(f"servo run: t={t_ns * 1e-9:.6f} status {st.name}", flush=True)
             logged["status"] = st
 
+    t_end = [None]
+
     def on_tick(t_ns, out):
         st = Status(state.status)
         log_changes(t_ns, st)
+        if args.duration:  # wall time: late ticks are skipped, so the tick count alone would run longer
+            if t_end[0] is None:
+                t_end[0] = t_ns + int(args.duration * 1e9)
+            elif t_ns >= t_end[0]:
+                sched.request_stop()
         if not getattr(robot, "plant_alive", True):
             sched.request_stop()  # the plant (the arm's controller) has gone
         if stopping["sigint"]:
