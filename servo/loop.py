@@ -771,6 +771,8 @@ class Scheduler:
         late = np.zeros(cap, dtype=np.int64)
         per = np.zeros(cap, dtype=np.int64)
         stat = np.zeros(cap, dtype=np.int8)
+        for a in (compute, tick, late, per, stat):
+            a.fill(0)  # touch every page now: the resident memory stays flat while the ring fills
         overruns = 0
         rt_msg = None
         saved_aff = saved_pol = None
