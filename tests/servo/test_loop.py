@@ -135,6 +135,13 @@ def test_a_very_late_tick_is_a_controlled_stop_that_resumes():
     assert a.record.count(EventKind.STOP) == 1  # one stop, recorded once
 
 
+@pytest.mark.parametrize("bad", [{"stop_dt_ticks": 0}, {"late_tick_ticks": 0.5}, {"max_late_ticks": -1},
+                                 {"late_window_s": 0.0}, {"max_dt_ticks": 0}])
+def test_a_timing_policy_that_makes_no_sense_is_refused(bad):
+    with pytest.raises(ValueError, match="timing policy"):
+        LoopConfig(**bad)
+
+
 def test_too_many_late_ticks_in_the_window_stop():
     a, out_a, _, _, stream, t = _tracking_pair()
     sts = []
