@@ -3,6 +3,7 @@
 Run from the repository root::
 
     python3 bench/soak.py --duration 1800 --period 300 [--recording DIR] [--servo-arg=--max-late-ticks=100]
+                          [--server-arg=--init-pose=x,y,z,qw,qx,qy,qz]
 
 ``vespro serve --source replay --loop`` publishes over TCP on 127.0.0.1 and
 ``servo run`` follows the poses with the simulated MuJoCo arm on the wall
@@ -24,7 +25,9 @@ Reported:
   rejections).
 
 Timings depend on the machine's load: the servo's late ticks and the time to
-stop are only meaningful on a machine that keeps the servo's 2 ms tick.
+stop are only meaningful on a machine that keeps the servo's 2 ms tick, and
+the stop and resume times only where the server tracks the replayed part (a
+kill while the servo is not tracking has nothing to stop: its row says so).
 """
 
 from __future__ import annotations
@@ -62,7 +65,7 @@ def rss_mb(pid: int) -> float | None:
 
 def start_server(args, port: int, log_path: Path) -> subprocess.Popen:
     cmd = [sys.executable, "-m", "vespro", "serve", "--source", "replay", "--recording", str(args.recording),
-           "--loop", "--tcp", str(port), "--quiet"]
+           "--loop", "--tcp", str(port), "--quiet", *args.server_arg]
     return subprocess.Popen(cmd, stdout=open(log_path, "a"), stderr=subprocess.STDOUT, cwd=ROOT,
                             env={**os.environ, "PYTHONPATH": str(ROOT)}, start_new_session=True)
 
@@ -112,6 +115,8 @@ def main() -> int:
     p.add_argument("--out", type=Path, default=ROOT / "out" / "soak", help="logs and the servo's stats")
     p.add_argument("--servo-arg", action="append", default=[],
                    help="extra argument for servo run (repeatable), e.g. --servo-arg=--max-late-ticks=100")
+    p.add_argument("--server-arg", action="append", default=[],
+                   help="extra argument for vespro serve (repeatable), e.g. --server-arg=--init-pose=x,y,z,qw,qx,qy,qz")
     args = p.parse_args()
     if not (args.recording / "meta.yaml").exists():
         print(f"soak: {args.recording}: not a recording (no meta.yaml); give one with --recording", file=sys.stderr)
