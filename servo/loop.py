@@ -42,6 +42,7 @@ from .planner import (
 from .rotation import matrix_from_quat, quat_from_matrix_into
 from .events import EventKind, SafetyRecord
 from .safety import Check, Safety, SafetyConfig, Status, StopPolicy
+from .timing import TimingPolicy
 from .target import TargetSample
 
 __all__ = [
@@ -63,14 +64,15 @@ class LoopConfig:
     model_path : MJCF of the arm; site : the TCP site
     period_ns : nominal tick, ns
     late_tick_ticks, max_late_ticks, late_window_s, stop_dt_ticks, max_dt_ticks :
-        the timing policy. A tick whose dt exceeds ``late_tick_ticks`` periods
-        is late: counted, and integrated with its real dt. More than
-        ``max_late_ticks`` late ticks within ``late_window_s``, or one tick
-        longer than ``stop_dt_ticks`` periods, make a controlled stop (cause
-        TIMING; ``safety.policy_timing`` IMMEDIATE makes it a stop with drives
-        off instead); tracking resumes once ``late_window_s`` has passed without
-        another such trip. A tick longer than ``max_dt_ticks`` periods, or a
-        clock that does not advance, is a FAULT: drives off, latched.
+        the timing policy (:mod:`servo.timing`). A tick whose dt exceeds
+        ``late_tick_ticks`` periods is late: counted, and integrated with its
+        real dt. More than ``max_late_ticks`` late ticks within
+        ``late_window_s``, or one tick longer than ``stop_dt_ticks`` periods,
+        make a controlled stop (cause TIMING; ``safety.policy_timing``
+        IMMEDIATE makes it a stop with drives off instead); tracking resumes
+        once ``late_window_s`` has passed without another such trip. A tick
+        longer than ``max_dt_ticks`` periods, or a clock that does not
+        advance, is a FAULT: drives off, latched.
     limits, workspace : planner limits and reachable target region
     clik : CLIK gains
     safety : overrides of :class:`SafetyConfig` fields (joint limits come from the model)
@@ -198,12 +200,8 @@ class LoopState:
             max_prediction_s=config.max_prediction_s,
         )
         self.safety = Safety(SafetyConfig.from_kinematics(self.kin, **config.safety))
-        self.max_dt_ns = config.max_dt_ticks * config.period_ns
-        self.stop_dt_ns = config.stop_dt_ticks * config.period_ns
-        self.late_ns = int(config.late_tick_ticks * config.period_ns)
-        self.late_window_ns = int(round(config.late_window_s * 1e9))
-        self.max_late = int(config.max_late_ticks)
-        self._late_ring = np.zeros(self.max_late + 1, np.int64)  # times of the last late ticks
+        self.timing = TimingPolicy(config.period_ns, config.late_tick_ticks, config.max_late_ticks,
+                                   config.late_window_s, config.stop_dt_ticks, config.max_dt_ticks)
         self.record = SafetyRecord()
         self.q_cmd = np.zeros(self.n)
         self.q_new = np.zeros(self.n)
@@ -225,8 +223,6 @@ class LoopState:
         self.last_capture_ns: int | None = None
         self.n_rejected = 0
         self.n_used = 0  # poses taken by the planner
-        self.n_late = 0
-        self.timing_hold_until_ns = 0
         self.stop_requested = False
         self.was_clamped = False
         self.joint_approach = None  # a joint-space approach in progress (servo.joint_approach)
@@ -253,8 +249,7 @@ class LoopState:
         self.flags_seen = 0
         self.last_capture_ns = None
         self.motion = None
-        self.n_late = 0
-        self.timing_hold_until_ns = 0
+        self.timing.reset()
         self.stop_requested = False
         self.joint_approach = None
         self.stall_ticks = 0
@@ -434,25 +429,6 @@ def _trip(state: LoopState, out: Command, t_ns: int, kind: EventKind, flags: int
                 out.trip_value, out.trip_limit, first = v, lim, False
 
 
-def _timing(state: LoopState, t_ns: int, dt_ns: int) -> tuple[bool, float, float]:
-    """Late-tick bookkeeping; returns (trip, value, limit) under the timing policy."""
-    if dt_ns <= state.late_ns:
-        return False, 0.0, 0.0
-    state.record.add(t_ns, EventKind.LATE_TICK, 0, dt_ns * 1e-9, state.late_ns * 1e-9)
-    ring = state._late_ring
-    ring[state.n_late % len(ring)] = t_ns
-    state.n_late += 1
-    if dt_ns > state.stop_dt_ns:
-        trip, value, limit = True, dt_ns * 1e-9, state.stop_dt_ns * 1e-9
-    elif state.n_late >= len(ring) and t_ns - ring[state.n_late % len(ring)] <= state.late_window_ns:
-        # max_late + 1 late ticks within the window (value and limit are counts)
-        trip, value, limit = True, float(len(ring)), float(state.max_late)
-    else:
-        return False, 0.0, 0.0
-    state.timing_hold_until_ns = t_ns + state.late_window_ns
-    return trip, value, limit
-
-
 def _step(state: LoopState, sample, t_ns: int, out: Command) -> Status:
     if state.t_prev_ns is None:
         return _hold(state, out, Status.FAULT, int(Check.TIMING), False)
@@ -462,9 +438,10 @@ def _step(state: LoopState, sample, t_ns: int, out: Command) -> Status:
         return _hold(state, out, st, 0, False)
     dt_ns = t_ns - state.t_prev_ns
     safety = state.safety
-    if dt_ns <= 0 or dt_ns > state.max_dt_ns:
+    timing = state.timing
+    if timing.broken(dt_ns):
         state.flags_seen |= Check.TIMING
-        _trip(state, out, t_ns, EventKind.FAULT, Check.TIMING, dt_ns * 1e-9, state.max_dt_ns * 1e-9)
+        _trip(state, out, t_ns, EventKind.FAULT, Check.TIMING, dt_ns * 1e-9, timing.max_dt_ns * 1e-9)
         return _hold(state, out, Status.FAULT, int(Check.TIMING), False)
     state.t_prev_ns = t_ns
     dt = dt_ns * 1e-9
@@ -473,8 +450,11 @@ def _step(state: LoopState, sample, t_ns: int, out: Command) -> Status:
     state.ref_prev.copy_from(ref)  # the reference at t (last tick's output)
     flags = 0
 
-    # 1. timing policy
-    late_trip, late_value, late_limit = _timing(state, t_ns, dt_ns)
+    # 1. timing policy (servo.timing)
+    late_trip = False
+    if timing.late(dt_ns):
+        late_trip, late_value, late_limit = timing.observe_late(t_ns, dt_ns)
+        state.record.add(t_ns, EventKind.LATE_TICK, 0, dt_ns * 1e-9, timing.late_ns * 1e-9)
     if late_trip:
         flags |= Check.TIMING
         state.flags_seen |= Check.TIMING
@@ -539,7 +519,7 @@ def _step(state: LoopState, sample, t_ns: int, out: Command) -> Status:
             st = Status.STOPPING
         if st == Status.HOLD or st == Status.FINISHED:
             if (not state.latched and planner.task is not None and safety.resume_ok(t_ns)
-                    and t_ns >= state.timing_hold_until_ns):
+                    and timing.resume_ok(t_ns)):
                 st = Status.TRACKING
                 if planner.phase == Phase.IDLE:
                     planner.phase = Phase.APPROACH
