@@ -18,8 +18,10 @@ def add_parser(sub) -> None:
             "Connect to a pose server through a pyserial URL (socket://HOST:PORT, /dev/ttyUSB0, ...), "
             "then run the 500 Hz visual-servoing loop on the wall clock: approach a stand-off above the "
             "object, then follow it. The arm is the simulated MuJoCo arm (models/arm.xml) stepped in real "
-            "time; a real arm is another Robot class. Prints one status line a second; SIGINT makes a "
-            "controlled stop and exits."
+            "time; a real arm is another Robot class. Prints one status line a second (status, poses used, "
+            "their age, the link, and every stop, fault, late tick and rejected pose so far by cause), and a "
+            "line for each stop, fault and status change with its time on the monotonic clock (s) and what "
+            "tripped it; SIGINT or SIGTERM makes a controlled stop and exits."
         ),
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
@@ -40,7 +42,16 @@ def add_parser(sub) -> None:
                    help="mujoco: the MuJoCo arm in this process; shm:NAME: a plant process on a shared-memory fieldbus")
     p.add_argument("--stats-json", type=Path, help="write tick, status and link statistics here at the end")
     p.add_argument("--max-dt-ticks", type=int,
-                   help="a tick later than this many periods is a timing FAULT (default from the loop config: 5)")
+                   help="a tick longer than this many periods is a timing FAULT, drives off (loop config default: 50)")
+    p.add_argument("--stop-dt-ticks", type=int,
+                   help="a tick longer than this many periods makes a controlled stop (loop config default: 10)")
+    p.add_argument("--max-late-ticks", type=int,
+                   help="more late ticks (over 1.5 periods) than this within --late-window make a controlled stop "
+                        "(loop config default: 10)")
+    p.add_argument("--late-window", type=float, help="window of the late-tick count, s (loop config default: 1.0)")
+    p.add_argument("--clock-tolerance", type=float,
+                   help="a pose captured after it was sent, or stamped after the tick, by more than this is "
+                        "rejected (future_stamp / future), s (loop config safety.max_future_s, default 0.005)")
     p.set_defaults(func=run)
 
 
@@ -62,16 +73,28 @@ def follow_task(standoff: float, upright: bool = True):
                       approach_tol_mps=0.02, upright=upright)
 
 
-def write_stats_json(path: Path, stats, receiver, poses_used: int, period_ns: int, sigint: bool) -> dict:
-    """Tick, status and link statistics of a run (JSON), plus a 1 us histogram of |period error|."""
+def write_stats_json(path: Path, stats, receiver, poses_used: int, period_ns: int, sigint: bool, state=None) -> dict:
+    """Tick, status, safety and link statistics of a run (JSON), plus a 1 us histogram of |period error|.
+
+    With the loop's ``state`` (:class:`servo.loop.LoopState`), ``safety`` holds
+    its record (every stop, fault, late tick and rejected pose by cause, and
+    the recent events with their values), ``controlled_stops`` counts the
+    stops it recorded and ``poses_used`` the poses the loop took (``poses_used``
+    as given otherwise).
+    """
     import json
 
+    from .events import EventKind
     from .safety import Status
 
     st = stats.status.astype(int)
     per = stats.period_ns[1:] - period_ns
     rs = receiver.stats()
-    stops = int(np.sum((st[1:] == int(Status.STOPPING)) & (st[:-1] != int(Status.STOPPING))))
+    if state is not None:
+        stops = state.record.count(EventKind.STOP)
+        poses_used = state.n_used
+    else:
+        stops = int(np.sum((st[1:] == int(Status.STOPPING)) & (st[:-1] != int(Status.STOPPING))))
     info = {
         "ticks": int(stats.n_ticks), "overruns": int(stats.overruns),
         "compute_us_median": float(np.median(stats.compute_ns) * 1e-3) if stats.n_ticks else None,
@@ -81,15 +104,34 @@ def write_stats_json(path: Path, stats, receiver, poses_used: int, period_ns: in
         "status_ticks": {s.name: int(np.sum(st == int(s))) for s in Status},
         "controlled_stops": stops, "sigint_stop": sigint, "poses_used": poses_used,
         "link": {"poses": rs.poses, "frames_ok": rs.frames_ok, "rejected": dict(rs.rejected),
-                 "seq_gaps": rs.seq_gaps, "connects": rs.connects, "disconnects": rs.disconnects},
+                 "poses_rejected": dict(rs.pose_rejected), "seq_gaps": rs.seq_gaps,
+                 "seq_restarts": rs.seq_restarts, "hellos": rs.hellos,
+                 "connects": rs.connects, "disconnects": rs.disconnects},
         "rt_warning": stats.rt_warning,
     }
+    if state is not None:
+        info["safety"] = {**state.record.to_dict(), "poses_rejected_by_loop": state.n_rejected,
+                          "planner_held_back_ticks": state.planner.n_held_back,
+                          "latched_at_end": bool(state.latched), "status_at_end": Status(state.status).name}
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(info, indent=2))
     hist = np.bincount(np.clip(np.abs(per) // 1000, 0, 2000).astype(int)) if per.size else np.zeros(1)
     np.save(path.with_suffix(".period_hist_us.npy"), hist)
     return info
+
+
+def status_line(state, receiver, t_ns: int) -> str:
+    """The once-a-second line: status, poses, age, link, and the safety record's counters."""
+    from .safety import Status
+
+    rs = receiver.stats()
+    _, age = receiver.latest(t_ns)
+    age_ms = "-" if age >= 2**62 else f"{age * 1e-6:.1f}"
+    link_rej = {**{k: v for k, v in rs.rejected.items() if v}, **{k: v for k, v in rs.pose_rejected.items() if v}}
+    link = ",".join(f"{k}:{v}" for k, v in link_rej.items()) or "0"
+    return (f"{Status(state.status).name:9s} | poses used {state.n_used} | age {age_ms} ms | "
+            f"link {rs.state.name} rejected {link} | {state.record.summary()}")
 
 
 def run(args) -> int:
@@ -110,12 +152,24 @@ def run(args) -> int:
         return 2
     if cfg.task is None:
         cfg = LoopConfig(**{**cfg.__dict__, "task": follow_task(args.standoff, upright=args.standoff_frame == "world")})
-    if args.max_dt_ticks:
-        cfg = LoopConfig(**{**cfg.__dict__, "max_dt_ticks": args.max_dt_ticks})
+    for opt, key in (("max_dt_ticks", "max_dt_ticks"), ("stop_dt_ticks", "stop_dt_ticks"),
+                     ("max_late_ticks", "max_late_ticks"), ("late_window", "late_window_s")):
+        if getattr(args, opt) is not None:
+            try:
+                cfg = LoopConfig(**{**cfg.__dict__, key: getattr(args, opt)})
+            except ValueError as e:
+                print(f"servo run: --{opt.replace('_', '-')}: {e}", file=sys.stderr)
+                return 2
     if args.no_latency_compensation:
         cfg = LoopConfig(**{**cfg.__dict__, "latency_compensation": False})
+    if args.clock_tolerance is not None:
+        if not args.clock_tolerance >= 0:
+            print("servo run: --clock-tolerance: expected a time >= 0 in seconds", file=sys.stderr)
+            return 2
+        cfg = LoopConfig(**{**cfg.__dict__, "safety": {**cfg.safety, "max_future_s": args.clock_tolerance}})
     clock = WallClock()
-    receiver = PoseReceiver(args.connect, baudrate=args.baud)
+    receiver = PoseReceiver(args.connect, baudrate=args.baud,
+                            future_tolerance_s=cfg.safety.get("max_future_s", 0.005))
     source = LinkSource(receiver)
     if args.robot.startswith("shm:"):
         from .shm_robot import ShmArm
@@ -138,9 +192,30 @@ def run(args) -> int:
     stopping = {"sigint": False, "t": None}
     sched = None
     last_line = [time.monotonic()]
+    logged = {"events": 0, "status": None}
+
+    def log_changes(t_ns, st):
+        """One line per stop, fault or clamp (cause, value, limit) and per status change, on the loop clock."""
+        rec = state.record
+        if rec.stops.n != logged["events"]:
+            for e in rec.stops_since(logged["events"]):
+                print(f"servo run: t={e['t_s']:.6f} {e['kind']} {e['cause']} value {e['value']} "
+                      f"limit {e['limit']}", flush=True)
+            logged["events"] = rec.stops.n
+        if st != logged["status"]:
+            print(f"servo run: t={t_ns * 1e-9:.6f} status {st.name}", flush=True)
+            logged["status"] = st
+
+    t_end = [None]
 
     def on_tick(t_ns, out):
-        st = Status(state.status) if hasattr(state, "status") else None
+        st = Status(state.status)
+        log_changes(t_ns, st)
+        if args.duration:  # wall time: late ticks are skipped, so the tick count alone would run longer
+            if t_end[0] is None:
+                t_end[0] = t_ns + int(args.duration * 1e9)
+            elif t_ns >= t_end[0]:
+                sched.request_stop()
         if not getattr(robot, "plant_alive", True):
             sched.request_stop()  # the plant (the arm's controller) has gone
         if stopping["sigint"]:
@@ -152,25 +227,14 @@ def run(args) -> int:
         now = time.monotonic()
         if now - last_line[0] >= 1.0:
             last_line[0] = now
-            rs = receiver.stats()
-            _, age = receiver.latest(t_ns)
-            age_ms = "-" if age >= 2**62 else f"{age * 1e-6:.1f}"
-            print(f"{st.name if st is not None else '?':9s} | poses {source.samples} | age {age_ms} ms | "
-                  f"rejected {rs.rejected_total} | link {rs.state.name}", flush=True)
+            print(status_line(state, receiver, t_ns), flush=True)
 
-    class _Gate:
-        """The source, silenced after SIGINT so the watchdog brings the arm to rest."""
-
-        def latest(self, now_ns):
-            if stopping["sigint"]:
-                return None, 2**63 - 1
-            return source.latest(now_ns)
-
-    sched = Scheduler(clock, robot, state, _Gate(), recorder=recorder, realtime=True, cpu=args.cpu,
+    sched = Scheduler(clock, robot, state, source, recorder=recorder, realtime=True, cpu=args.cpu,
                       rt_setup=args.cpu is not None, on_tick=on_tick)
 
     def _sigint(signum, frame):
         stopping["sigint"] = True
+        state.request_stop()
 
     old = {s: signal.signal(s, _sigint) for s in (signal.SIGINT, signal.SIGTERM)}
     n = int(args.duration * ticks_per_s) if args.duration else 2**62  # statistics are kept in a ring
@@ -187,7 +251,8 @@ def run(args) -> int:
         print(f"servo run: wrote {npz} and {csv}")
     per = stats.period_ns[1:] - cfg.period_ns
     if args.stats_json:
-        write_stats_json(args.stats_json, stats, receiver, source.samples, cfg.period_ns, bool(stopping["sigint"]))
+        write_stats_json(args.stats_json, stats, receiver, source.samples, cfg.period_ns, bool(stopping["sigint"]),
+                         state=state)
     print(f"servo run: {stats.n_ticks} ticks, {stats.overruns} overruns, compute median "
           f"{np.median(stats.compute_ns) * 1e-3:.0f} us, period error p99 {np.percentile(np.abs(per), 99) * 1e-3:.1f} us"
           if stats.n_ticks > 2 else "servo run: stopped", flush=True)

@@ -21,7 +21,11 @@ least-squares inverse whose damping grows smoothly as the smallest singular
 value falls below ``eps`` (Nakamura & Hanafusa 1986, Maciejewski & Klein 1988):
 ``lambda^2 = (1 - (s_min/eps)^2) lambda_max^2`` inside the singular region,
 0 outside. Joint rates are scaled (direction kept) to the velocity limits,
-then each joint is slowed so it can brake before its position limit.
+then each joint is slowed so it can brake before its position limit. The
+commanded TCP speed ``|v_ref + K e_p|`` is capped at ``tcp_speed_max`` (the
+planner's limit) first, so a tracking error is closed at the planner's speed at
+most, never by a faster catch-up. :attr:`Clik.limited` tells the caller when a
+cap or limit changed the motion (the reference then has to wait for the arm).
 """
 
 from __future__ import annotations
@@ -267,7 +271,7 @@ def dls_solve_into(J: np.ndarray, x: np.ndarray, eps: float, lambda_max: float, 
         return 0.0
     s_min = float(s[-1])
     lam2 = damping_squared(s_min, eps, lambda_max)
-    y = U.T @ x
+    y = (U.T if len(s) == U.shape[0] else U[:, : len(s)].T) @ x  # J may have fewer columns than rows
     y *= s / (s * s + lam2)
     np.dot(Vt.T, y, out=out)
     return s_min
@@ -306,14 +310,24 @@ class Clik:
     kin : ArmKinematics
     config : ClikConfig
 
+    tcp_speed_max : float, m/s
+        Cap on the commanded TCP linear speed (reference velocity plus error
+        feedback).
+
     Attributes after :meth:`step`: ``s_min`` (smallest singular value),
     ``qd_raw`` (n,) the DLS rates before the limits (diagnostics, tests),
-    ``p``, ``quat`` the TCP pose at the input joints.
+    ``p``, ``quat`` the TCP pose at the input joints, ``limited`` (True when
+    the speed cap, the joint velocity scaling or a joint limit brake cut the
+    motion the reference asked for).
     """
 
-    def __init__(self, kin: ArmKinematics, config: ClikConfig = ClikConfig()):
+    def __init__(self, kin: ArmKinematics, config: ClikConfig = ClikConfig(), tcp_speed_max: float = math.inf):
         self.kin = kin
         self.cfg = config
+        self.tcp_speed_max = float(tcp_speed_max)
+        self.limited = False  # the last step's motion was cut by a cap or a joint limit
+        self.at_limit = False  # ... by a joint position limit (its brake or its clamp)
+        self._blocked = [False] * kin.n  # joints braked at a limit in the last pass
         n = kin.n
         self.lo = kin.q_min + config.joint_margin_rad
         self.hi = kin.q_max - config.joint_margin_rad
@@ -326,6 +340,7 @@ class Clik:
         self.quat_inv = np.zeros(4)
         self.quat_err = np.zeros(4)
         self.qd_raw = np.zeros(n)
+        self._v3 = np.zeros(3)
         self._t = np.zeros(n)
         self.s_min = 0.0
 
@@ -370,8 +385,54 @@ class Clik:
         x[3:] *= cfg.gain_rot
         x[:3] += v_ref
         x[3:] += w_ref
+        sp = math.sqrt(x[0] * x[0] + x[1] * x[1] + x[2] * x[2])
+        capped = sp > self.tcp_speed_max
+        if capped:
+            x[:3] *= self.tcp_speed_max / sp
         self.s_min = dls_solve_into(kin.J, x, cfg.eps, cfg.lambda_max, self.qd_raw)
-        return self._limit_and_integrate(q, self.qd_raw, dt, q_out, qd_out)
+        s_min = self._limit_and_integrate(q, self.qd_raw, dt, q_out, qd_out)
+        if self.at_limit:
+            self._without_blocked_joints(q, x, dt, q_out, qd_out)
+        # The damped inverse trades linear against angular error, so the linear
+        # speed it realises may exceed what was asked: check J qd.
+        v = self._v3
+        np.dot(kin.J[:3], qd_out, out=v)
+        sp = math.sqrt(float(v @ v))
+        if sp > self.tcp_speed_max:
+            k = self.tcp_speed_max / sp
+            q_out -= qd_out * (dt * (1.0 - k))  # q_out may alias q: shrink the step in place
+            qd_out *= k
+            capped = True
+        self.limited = self.limited or capped
+        return s_min
+
+    def _without_blocked_joints(self, q, x, dt, q_out, qd_out) -> None:
+        """Solve again with the joints braked at a limit held still (their Jacobian columns removed).
+
+        A braked joint does not do its share of the motion; merely clipping it
+        would leave the others moving the tool in another direction than asked
+        (a drift of the reference that waits for the arm). Without it, the free
+        joints do the least-squares best for the whole twist. Repeated while
+        another joint reaches its limit; allocates (only on this path).
+        """
+        cfg = self.cfg
+        n = self.kin.n
+        blocked = list(self._blocked)
+        for _ in range(n):
+            free = [i for i in range(n) if not blocked[i]]
+            qd = np.zeros(n)
+            if free:
+                qf = np.zeros(len(free))
+                dls_solve_into(np.ascontiguousarray(self.kin.J[:, free]), x, cfg.eps, cfg.lambda_max, qf)
+                qd[free] = qf
+            self._limit_and_integrate(q, qd, dt, q_out, qd_out)
+            new = [i for i in free if self._blocked[i]]
+            if not new:
+                break
+            for i in new:
+                blocked[i] = True
+        self.at_limit = True
+        self.limited = True
 
     def _limit_and_integrate(self, q, qd, dt, q_out, qd_out) -> float:
         # Plain floats: six-element NumPy calls cost more than the arithmetic.
@@ -386,30 +447,38 @@ class Clik:
             if not r <= worst:  # also takes a NaN, which then propagates to a FAULT
                 worst = r
         s = 1.0 / worst if worst > 1.0 else 1.0
+        limited = s < 1.0
+        at_limit = False
         a2 = 2.0 * self.cfg.joint_brake_acc
         inv_dt = 1.0 / dt
         qn_l = [0.0] * n
         qd_l = [0.0] * n
+        blocked = self._blocked
         for i in range(n):
             x = v[i] * s
             # braking distance to each limit: |qd| <= sqrt(2 a d)
             up = hi[i] - qv[i]
             up = math.sqrt(a2 * up) if up > 0.0 else 0.0
+            b = False
             if x > up:
-                x = up
+                x, b = up, True
             dn = qv[i] - lo[i]
             dn = math.sqrt(a2 * dn) if dn > 0.0 else 0.0
             if x < -dn:
-                x = -dn
+                x, b = -dn, True
             qn = qv[i] + x * dt
             if qn > hi[i]:
-                qn = hi[i]
+                qn, b = hi[i], True
             elif qn < lo[i]:
-                qn = lo[i]
+                qn, b = lo[i], True
+            blocked[i] = b
+            at_limit = at_limit or b
             qn_l[i] = qn
             qd_l[i] = (qn - qv[i]) * inv_dt
         q_out[:] = qn_l
         qd_out[:] = qd_l
+        self.limited = limited or at_limit
+        self.at_limit = at_limit
         return self.s_min
 
 

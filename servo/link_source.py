@@ -32,17 +32,17 @@ class LinkSource:
     def __init__(self, receiver: PoseReceiver, object_id: int | None = None):
         self.receiver = receiver
         self.object_id = object_id
-        self._seq = None
+        self._msg = None
         self._sample: TargetSample | None = None
-        self.samples = 0
+        self.samples = 0  # poses handed to the loop (the loop counts those it used)
 
     def latest(self, now_ns: int) -> tuple[TargetSample | None, int]:
         self.receiver.poll(now_ns)
         msg, age = self.receiver.latest(now_ns, self.object_id)
         if msg is None:
             return None, NO_SAMPLE_AGE
-        if msg.seq != self._seq or self._sample is None:
-            self._seq = msg.seq
+        if msg is not self._msg:  # a new pose (the receiver has checked its order)
+            self._msg = msg
             self.samples += 1
             self._sample = TargetSample(
                 t_capture_ns=int(now_ns - age), p_world_object=msg.p_world_object,

@@ -20,6 +20,7 @@ from __future__ import annotations
 import ctypes
 import ctypes.util
 import gc
+import math
 import os
 import time
 import warnings
@@ -38,8 +39,10 @@ from .planner import (
     TrackingPlanner,
     Workspace,
 )
-from .rotation import quat_from_matrix_into
+from .rotation import matrix_from_quat, quat_from_matrix_into
+from .events import EventKind, SafetyRecord
 from .safety import Check, Safety, SafetyConfig, Status, StopPolicy
+from .timing import TimingPolicy
 from .target import TargetSample
 
 __all__ = [
@@ -60,18 +63,34 @@ class LoopConfig:
 
     model_path : MJCF of the arm; site : the TCP site
     period_ns : nominal tick, ns
-    max_dt_ticks : a dt longer than this many periods is a timing FAULT
+    late_tick_ticks, max_late_ticks, late_window_s, stop_dt_ticks, max_dt_ticks :
+        the timing policy (:mod:`servo.timing`). A tick whose dt exceeds
+        ``late_tick_ticks`` periods is late: counted, and integrated with its
+        real dt. More than ``max_late_ticks`` late ticks within
+        ``late_window_s``, or one tick longer than ``stop_dt_ticks`` periods,
+        make a controlled stop (cause TIMING; ``safety.policy_timing``
+        IMMEDIATE makes it a stop with drives off instead); tracking resumes
+        once ``late_window_s`` has passed without another such trip. A tick
+        longer than ``max_dt_ticks`` periods, or a clock that does not
+        advance, is a FAULT: drives off, latched.
     limits, workspace : planner limits and reachable target region
     clik : CLIK gains
     safety : overrides of :class:`SafetyConfig` fields (joint limits come from the model)
     task : the follow task, or None (hold until a task or motion is given)
     latency_compensation : predict the object pose to the tick time
+    joint_approach_after_ticks : when the Cartesian approach has been held at a
+        joint limit for this many ticks, approach in joint space
+        (:mod:`servo.joint_approach`); 0 never does
     """
 
     model_path: Path | str = DEFAULT_ARM_XML
     site: str = "tool"
     period_ns: int = 2_000_000
-    max_dt_ticks: int = 5
+    late_tick_ticks: float = 1.5
+    max_late_ticks: int = 10
+    late_window_s: float = 1.0
+    stop_dt_ticks: int = 10
+    max_dt_ticks: int = 50
     limits: CartesianLimits = CartesianLimits()
     workspace: Workspace = field(default_factory=Workspace)
     clik: ClikConfig = ClikConfig()
@@ -79,12 +98,14 @@ class LoopConfig:
     task: FollowTask | None = None
     latency_compensation: bool = True
     max_prediction_s: float = 0.3
+    joint_approach_after_ticks: int = 100
 
     @classmethod
     def from_dict(cls, d: dict) -> "LoopConfig":
         """Build from plain data (a parsed YAML/JSON file), SI units.
 
-        Keys: model_path, site, period_ns, max_dt_ticks, latency_compensation,
+        Keys: model_path, site, period_ns, late_tick_ticks, max_late_ticks,
+        late_window_s, stop_dt_ticks, max_dt_ticks, latency_compensation,
         max_prediction_s; ``limits`` / ``workspace`` / ``clik``: the fields of
         :class:`CartesianLimits` / :class:`Workspace` / :class:`ClikConfig`;
         ``safety``: fields of :class:`SafetyConfig` (policies as
@@ -96,7 +117,9 @@ class LoopConfig:
 
         d = dict(d)
         kw = {}
-        for k in ("model_path", "site", "period_ns", "max_dt_ticks", "latency_compensation", "max_prediction_s"):
+        for k in ("model_path", "site", "period_ns", "late_tick_ticks", "max_late_ticks", "late_window_s",
+                  "stop_dt_ticks", "max_dt_ticks", "latency_compensation", "max_prediction_s",
+                  "joint_approach_after_ticks"):
             if k in d:
                 kw[k] = d.pop(k)
         if "limits" in d:
@@ -124,6 +147,12 @@ class LoopConfig:
             raise ValueError(f"LoopConfig: unknown keys {sorted(d)}")
         return cls(**kw)
 
+    def __post_init__(self):
+        if not (self.late_tick_ticks >= 1.0 and self.stop_dt_ticks >= self.late_tick_ticks
+                and self.max_dt_ticks >= 1 and self.max_late_ticks >= 0 and self.late_window_s > 0):
+            raise ValueError("LoopConfig timing policy: need 1 <= late_tick_ticks <= stop_dt_ticks, max_dt_ticks >= 1, "
+                             "max_late_ticks >= 0, late_window_s > 0")
+
 
 class Command:
     """Output of one tick (preallocated, overwritten each tick).
@@ -131,7 +160,10 @@ class Command:
     q (n,) rad, qd (n,) rad/s: joint command and velocity feedforward;
     drives_on: False after an immediate stop or a fault (the scheduler then
     calls ``robot.stop()``); status; flags: ``Check`` bits fired this tick;
-    ref: the TCP reference (world frame); s_min: smallest Jacobian singular value.
+    ref: the TCP reference (world frame); s_min: smallest Jacobian singular value;
+    reject: why a pose that arrived this tick was not used (``servo.safety.Reject``,
+    0 when used or none arrived); trip_value, trip_limit: what tripped the first
+    of ``flags`` and its limit (SI units, see ``servo.events``; NaN when nothing).
     """
 
     def __init__(self, n: int):
@@ -142,6 +174,9 @@ class Command:
         self.flags = 0
         self.ref = Reference()
         self.s_min = 0.0
+        self.reject = 0
+        self.trip_value = math.nan
+        self.trip_limit = math.nan
 
 
 class LoopState:
@@ -155,7 +190,8 @@ class LoopState:
         self.cfg = config
         self.kin = ArmKinematics(config.model_path, config.site)
         self.n = self.kin.n
-        self.clik = Clik(self.kin, config.clik)
+        # The tool speed cap of the CLIK is the planner's linear limit (as a norm).
+        self.clik = Clik(self.kin, config.clik, tcp_speed_max=config.limits.v_lin)
         self.planner = TrackingPlanner(
             config.limits,
             config.workspace,
@@ -164,7 +200,9 @@ class LoopState:
             max_prediction_s=config.max_prediction_s,
         )
         self.safety = Safety(SafetyConfig.from_kinematics(self.kin, **config.safety))
-        self.max_dt_ns = config.max_dt_ticks * config.period_ns
+        self.timing = TimingPolicy(config.period_ns, config.late_tick_ticks, config.max_late_ticks,
+                                   config.late_window_s, config.stop_dt_ticks, config.max_dt_ticks)
+        self.record = SafetyRecord()
         self.q_cmd = np.zeros(self.n)
         self.q_new = np.zeros(self.n)
         self.qd = np.zeros(self.n)
@@ -184,6 +222,12 @@ class LoopState:
         self.latched = False  # a controlled stop by a limit check: no auto-resume
         self.last_capture_ns: int | None = None
         self.n_rejected = 0
+        self.n_used = 0  # poses taken by the planner
+        self.stop_requested = False
+        self.was_clamped = False
+        self.joint_approach = None  # a joint-space approach in progress (servo.joint_approach)
+        self.joint_approach_t0_ns = 0
+        self.stall_ticks = 0
         self.flags_seen = 0
         self.motion = None
         self.motion_t0_ns = 0
@@ -205,6 +249,17 @@ class LoopState:
         self.flags_seen = 0
         self.last_capture_ns = None
         self.motion = None
+        self.timing.reset()
+        self.stop_requested = False
+        self.joint_approach = None
+        self.stall_ticks = 0
+
+    def request_stop(self) -> None:
+        """Ask for a controlled stop at the next tick (cause OPERATOR, latched until reset).
+
+        Safe to call from a signal handler or another thread (sets a flag).
+        """
+        self.stop_requested = True
 
     def reset(self, q_measured: np.ndarray, t_ns: int) -> None:
         """Clear a latched stop or fault (explicit operator action); restart from rest."""
@@ -213,6 +268,7 @@ class LoopState:
     def set_task(self, task: FollowTask | None) -> None:
         """Change the follow task (starts with the approach phase); ends a finished motion."""
         self.planner.set_task(task)
+        self.joint_approach = None
         if self.status == Status.FINISHED:
             self.motion = None
             self.status = Status.HOLD
@@ -236,25 +292,67 @@ def _hold(state: LoopState, out: Command, status: Status, flags: int, drives_on:
     return status
 
 
+def _joint_motion_step(state: LoopState, m, t: float, ref: Reference) -> None:
+    """Joints from a joint-space motion at time ``t`` (s into it), the TCP reference from them."""
+    m.sample(t, state.q_new, state.qd, state.qdd)
+    np.clip(state.q_new, state.clik.lo, state.clik.hi, out=state.q_new)
+    # Keep the TCP reference on the joint motion (pose, J qd, J qdd without
+    # the Jd qd term), so that a controlled stop decelerates from where the
+    # arm really is and how fast it really moves.
+    kin = state.kin
+    kin.update(state.q_new)
+    ref.p[:] = kin.p
+    quat_from_matrix_into(kin.R, ref.quat)
+    J = kin.J
+    np.dot(J[:3], state.qd, out=ref.v)
+    np.dot(J[3:], state.qd, out=ref.w)
+    np.dot(J[:3], state.qdd, out=ref.a)
+    np.dot(J[3:], state.qdd, out=ref.alpha)
+
+
+def _maybe_plan_joint_approach(state: LoopState, t_ns: int) -> None:
+    """After the Cartesian approach has been held at a joint limit for ``joint_approach_after_ticks``
+    ticks, plan a joint-space approach (see :mod:`servo.joint_approach`); recorded either way.
+
+    The joint motion starts from rest: the arm held at a joint limit is (nearly) at rest there.
+    """
+    planner = state.planner
+    if planner.phase != Phase.APPROACH or not state.clik.at_limit:
+        state.stall_ticks = 0
+        return
+    state.stall_ticks += 1
+    if state.stall_ticks < state.cfg.joint_approach_after_ticks:
+        return
+    state.stall_ticks = 0
+    from .joint_approach import plan_joint_approach
+
+    kin, saf = state.kin, state.safety.cfg
+    qdd = np.full(state.n, state.cfg.clik.joint_brake_acc / 3.0)
+    args = (kin.qd_max, qdd, state.cfg.limits.v_lin, saf.box_min, saf.box_max)
+    T = np.eye(4)
+    m = None
+    for _ in range(2):  # aim where the part will be when the motion ends
+        T[:3, :3] = matrix_from_quat(planner.tgt_q)
+        T[:3, 3] = planner.tgt_p
+        m = plan_joint_approach(kin, state.q_cmd, T, *args)
+        if m is None:
+            break
+        planner.update_target(t_ns + int(m.duration * 1e9))
+    planner.update_target(t_ns)
+    state.record.add(t_ns, EventKind.JOINT_APPROACH, 0, math.nan if m is None else m.duration, math.nan)
+    if m is None:  # nothing safe from here: the arm waits; try again in 1 s (the part moves)
+        state.stall_ticks = -4 * state.cfg.joint_approach_after_ticks
+    else:
+        state.joint_approach = m
+        state.joint_approach_t0_ns = t_ns
+
+
 def _run_motion(state: LoopState, t_ns: int, dt: float, ref: Reference) -> bool:
     """Sample the classic motion; returns True when it has ended."""
     m = state.motion
     t = (t_ns - state.motion_t0_ns) * 1e-9
     if m.space == "joint":
-        m.sample(t, state.q_new, state.qd, state.qdd)
-        np.clip(state.q_new, state.clik.lo, state.clik.hi, out=state.q_new)
-        # Keep the TCP reference on the joint motion (pose, J qd, J qdd without
-        # the Jd qd term), so that a controlled stop decelerates from where the
-        # arm really is and how fast it really moves.
-        kin = state.kin
-        kin.update(state.q_new)
-        ref.p[:] = kin.p
-        quat_from_matrix_into(kin.R, ref.quat)
-        J = kin.J
-        np.dot(J[:3], state.qd, out=ref.v)
-        np.dot(J[3:], state.qd, out=ref.w)
-        np.dot(J[:3], state.qdd, out=ref.a)
-        np.dot(J[3:], state.qdd, out=ref.alpha)
+        _joint_motion_step(state, m, t, ref)
     elif m.space == "task":
         m.sample(t, ref)
         _clik(state, dt)
@@ -264,14 +362,29 @@ def _run_motion(state: LoopState, t_ns: int, dt: float, ref: Reference) -> bool:
     return t >= m.duration
 
 
-def _clik(state: LoopState, dt: float) -> None:
-    """Joints for t + dt from the reference at t (``ref_prev``) and the mean velocity."""
+def _clik(state: LoopState, dt: float, hold_back: bool = False) -> None:
+    """Joints for t + dt from the reference at t (``ref_prev``) and the mean velocity.
+
+    ``hold_back``: when the CLIK had to cut the motion (speed cap, joint
+    velocity or joint limit), the planner's reference is moved to the arm
+    (:meth:`TrackingPlanner.hold_back`), i.e. the plan is time-scaled to what
+    the joints can do instead of running ahead of them.
+    """
     rp, r = state.ref_prev, state.planner.ref
     np.add(rp.v, r.v, out=state.v_ff)
     state.v_ff *= 0.5
     np.add(rp.w, r.w, out=state.w_ff)
     state.w_ff *= 0.5
-    state.clik.step(state.q_cmd, rp.p, rp.quat, state.v_ff, state.w_ff, dt, state.q_new, state.qd)
+    clik = state.clik
+    clik.step(state.q_cmd, rp.p, rp.quat, state.v_ff, state.w_ff, dt, state.q_new, state.qd)
+    if hold_back and clik.limited:
+        kin = state.kin
+        kin.update(state.q_new)
+        quat_from_matrix_into(kin.R, state._quat)
+        J = kin.J
+        np.dot(J[:3], state.qd, out=state.v_ff)
+        np.dot(J[3:], state.qd, out=state.w_ff)
+        state.planner.hold_back(kin.p, state._quat, state.v_ff, state.w_ff)
 
 
 def step(state: LoopState, sample: TargetSample | None, t_ns: int, out: Command) -> Status:
@@ -288,12 +401,32 @@ def step(state: LoopState, sample: TargetSample | None, t_ns: int, out: Command)
         Time of this tick, ns (dt is taken from the previous tick's stamp).
     out : Command
         Written in place.
+
+    Every stop, fault, late tick and rejected pose is counted by cause in
+    ``state.record`` (:class:`~servo.events.SafetyRecord`).
     """
+    out.reject = 0
+    out.trip_value = math.nan
+    out.trip_limit = math.nan
     try:
         return _step(state, sample, t_ns, out)
     except Exception:  # noqa: BLE001 -- the loop must not raise; a bug becomes a FAULT
         state.flags_seen |= Check.PLANNER
+        state.record.add(t_ns, EventKind.FAULT, Check.PLANNER, math.nan, math.nan)
         return _hold(state, out, Status.FAULT, int(Check.PLANNER), False)
+
+
+def _trip(state: LoopState, out: Command, t_ns: int, kind: EventKind, flags: int, value: float, limit: float) -> None:
+    """Record an event for each fired check (the first one's value goes into ``out``)."""
+    tv, tl = state.safety.trip_value, state.safety.trip_limit
+    first = True
+    for bit in range(len(tv)):
+        c = 1 << bit
+        if flags & c:
+            v, lim = (value, limit) if c in (Check.WATCHDOG, Check.TIMING, Check.OPERATOR) else (tv[bit], tl[bit])
+            state.record.add(t_ns, kind, Check(c), v, lim)
+            if first:
+                out.trip_value, out.trip_limit, first = v, lim, False
 
 
 def _step(state: LoopState, sample, t_ns: int, out: Command) -> Status:
@@ -304,27 +437,59 @@ def _step(state: LoopState, sample, t_ns: int, out: Command) -> Status:
         state.t_prev_ns = t_ns
         return _hold(state, out, st, 0, False)
     dt_ns = t_ns - state.t_prev_ns
-    if dt_ns <= 0 or dt_ns > state.max_dt_ns:
+    safety = state.safety
+    timing = state.timing
+    if timing.broken(dt_ns):
         state.flags_seen |= Check.TIMING
+        _trip(state, out, t_ns, EventKind.FAULT, Check.TIMING, dt_ns * 1e-9, timing.max_dt_ns * 1e-9)
         return _hold(state, out, Status.FAULT, int(Check.TIMING), False)
     state.t_prev_ns = t_ns
     dt = dt_ns * 1e-9
     planner = state.planner
-    safety = state.safety
     ref = planner.ref
     state.ref_prev.copy_from(ref)  # the reference at t (last tick's output)
-
-    # 1. pose stream
-    if sample is not None and sample.t_capture_ns != state.last_capture_ns:
-        state.last_capture_ns = sample.t_capture_ns
-        if safety.sample_valid(sample, t_ns):
-            safety.feed(t_ns)
-            planner.set_sample(sample)
-        else:
-            state.n_rejected += 1
     flags = 0
 
-    # 2. mode and reference
+    # 1. timing policy (servo.timing)
+    late_trip = False
+    if timing.late(dt_ns):
+        late_trip, late_value, late_limit = timing.observe_late(t_ns, dt_ns)
+        state.record.add(t_ns, EventKind.LATE_TICK, 0, dt_ns * 1e-9, timing.late_ns * 1e-9)
+    if late_trip:
+        flags |= Check.TIMING
+        state.flags_seen |= Check.TIMING
+        if safety.cfg.policy_timing == StopPolicy.IMMEDIATE:
+            _trip(state, out, t_ns, EventKind.IMMEDIATE_STOP, Check.TIMING, late_value, late_limit)
+            return _hold(state, out, Status.STOPPED, flags, False)
+        if st == Status.TRACKING or st == Status.FINISHED:
+            _trip(state, out, t_ns, EventKind.STOP, Check.TIMING, late_value, late_limit)
+            st = Status.STOPPING
+        state.motion = None
+
+    if state.stop_requested:  # the operator's stop: controlled, latched until reset
+        state.stop_requested = False
+        state.latched = True
+        state.motion = None
+        flags |= Check.OPERATOR
+        if st == Status.TRACKING or st == Status.FINISHED:
+            _trip(state, out, t_ns, EventKind.STOP, Check.OPERATOR, math.nan, math.nan)
+            st = Status.STOPPING
+
+    # 2. pose stream
+    if sample is not None and sample.t_capture_ns != state.last_capture_ns:
+        state.last_capture_ns = sample.t_capture_ns
+        why = safety.sample_reject(sample, t_ns)
+        if why == 0:
+            safety.feed(t_ns)
+            planner.set_sample(sample)
+            state.n_used += 1
+        else:
+            state.n_rejected += 1
+            out.reject = int(why)
+            state.record.add(t_ns, EventKind.REJECT, int(why), safety.reject_value, safety.reject_limit)
+            safety.reject_value = safety.reject_limit = math.nan
+
+    # 3. mode and reference
     if state.motion is not None and st in (Status.TRACKING, Status.FINISHED):
         done = _run_motion(state, t_ns, dt, ref)
         st = Status.FINISHED if done else Status.TRACKING
@@ -344,43 +509,70 @@ def _step(state: LoopState, sample, t_ns: int, out: Command) -> Status:
             state.motion = None
         if st == Status.TRACKING and planner.task is not None and not safety.stream_ok(t_ns):
             flags |= Check.WATCHDOG
-            if safety.cfg.policy_watchdog == StopPolicy.IMMEDIATE:
-                state.flags_seen |= flags
+            state.flags_seen |= Check.WATCHDOG
+            since = (t_ns - safety.t_last_valid_ns) * 1e-9 if safety.have_valid else math.inf
+            immediate = safety.cfg.policy_watchdog == StopPolicy.IMMEDIATE
+            _trip(state, out, t_ns, EventKind.IMMEDIATE_STOP if immediate else EventKind.STOP, Check.WATCHDOG,
+                  since, safety.cfg.watchdog_timeout_s)
+            if immediate:
                 return _hold(state, out, Status.STOPPED, flags, False)
             st = Status.STOPPING
         if st == Status.HOLD or st == Status.FINISHED:
-            if not state.latched and planner.task is not None and safety.resume_ok(t_ns):
+            if (not state.latched and planner.task is not None and safety.resume_ok(t_ns)
+                    and timing.resume_ok(t_ns)):
                 st = Status.TRACKING
                 if planner.phase == Phase.IDLE:
                     planner.phase = Phase.APPROACH
-        if st == Status.TRACKING:
+        if st == Status.TRACKING and state.joint_approach is not None:
+            m = state.joint_approach
+            t_m = (t_ns - state.joint_approach_t0_ns) * 1e-9
+            _joint_motion_step(state, m, t_m, ref)
+            if t_m >= m.duration:  # at rest where the Cartesian approach can reach: it takes over
+                state.joint_approach = None
+                state.kin.update(state.q_new, jacobian=False)
+                quat_from_matrix_into(state.kin.R, state._quat)
+                ref.set_rest(state.kin.p, state._quat)
+                planner.otg.reset()
+        elif st == Status.TRACKING:
             res = planner.step(t_ns, dt)
             if res < 0:
                 state.flags_seen |= Check.PLANNER
+                _trip(state, out, t_ns, EventKind.FAULT, Check.PLANNER, float(res), 0.0)
                 return _hold(state, out, Status.FAULT, int(Check.PLANNER), False)
+            if planner.clamped and not state.was_clamped:
+                state.record.add(t_ns, EventKind.CLAMP, 0, planner.clamp_distance, 0.0)
+            state.was_clamped = planner.clamped
+            _clik(state, dt, hold_back=True)
+            if state.cfg.joint_approach_after_ticks > 0:
+                _maybe_plan_joint_approach(state, t_ns)
         else:
+            state.joint_approach = None
             at_rest = planner.stop_step(dt)
             if st == Status.STOPPING and at_rest:
                 st = Status.HOLD
-        _clik(state, dt)
+            _clik(state, dt, hold_back=True)
 
-    # 3. check the command
+    # 4. check the command
     kin = state.kin
     kin.update(state.q_new, jacobian=False)
-    flags |= safety.check_command(state.q_new, state.q_cmd, dt, kin.p, state.p_prev)
-    if flags:
-        state.flags_seen |= flags
-        if flags & Check.NONFINITE:
+    checks = safety.check_command(state.q_new, state.q_cmd, dt, kin.p, state.p_prev)
+    if checks:
+        flags |= checks
+        state.flags_seen |= checks
+        if checks & Check.NONFINITE:
+            _trip(state, out, t_ns, EventKind.FAULT, Check.NONFINITE, math.nan, math.nan)
             return _hold(state, out, Status.FAULT, flags, False)
-        if safety.policy(flags & ~Check.WATCHDOG) == StopPolicy.IMMEDIATE:
+        if safety.policy(checks) == StopPolicy.IMMEDIATE:
+            _trip(state, out, t_ns, EventKind.IMMEDIATE_STOP, checks, math.nan, math.nan)
             return _hold(state, out, Status.STOPPED, flags, False)
-        if flags & ~Check.WATCHDOG:  # a controlled stop by a limit check: latched
-            state.latched = True
-            state.motion = None
-            if st == Status.TRACKING or st == Status.FINISHED:
-                st = Status.STOPPING
+        # a controlled stop by a limit check: latched
+        state.latched = True
+        state.motion = None
+        if st == Status.TRACKING or st == Status.FINISHED:
+            _trip(state, out, t_ns, EventKind.STOP, checks, math.nan, math.nan)
+            st = Status.STOPPING
 
-    # 4. commit
+    # 5. commit
     state.q_cmd[:] = state.q_new
     state.p_prev[:] = kin.p
     out.q[:] = state.q_cmd
@@ -443,7 +635,8 @@ class Scheduler:
         Polled each tick (``latest(now_ns)``).
     recorder : servo.recorder.Recorder or None
         Channels recorded when the recorder has them: t_ns, q_cmd, qd_cmd,
-        q_meas, p_ref, quat_ref, v_ref, status, flags, compute_ns.
+        q_meas, p_ref, quat_ref, v_ref, status, flags, compute_ns, reject,
+        trip_value, trip_limit (see ``servo.recorder.LOOP_CHANNELS``).
     realtime : bool
         Real-time mode: the tick time is the actual wake-up time (so a late
         tick yields a longer dt) and overruns are counted. In lockstep
@@ -558,6 +751,8 @@ class Scheduler:
         late = np.zeros(cap, dtype=np.int64)
         per = np.zeros(cap, dtype=np.int64)
         stat = np.zeros(cap, dtype=np.int8)
+        for a in (compute, tick, late, per, stat):
+            a.fill(0)  # touch every page now: the resident memory stays flat while the ring fills
         overruns = 0
         rt_msg = None
         saved_aff = saved_pol = None
@@ -664,3 +859,9 @@ class Scheduler:
             rec.data["flags"][row] = out.flags
         if "compute_ns" in ch:
             rec.data["compute_ns"][row] = compute_ns
+        if "reject" in ch:
+            rec.data["reject"][row] = out.reject
+        if "trip_value" in ch:
+            rec.data["trip_value"][row] = out.trip_value
+        if "trip_limit" in ch:
+            rec.data["trip_limit"][row] = out.trip_limit

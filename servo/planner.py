@@ -32,6 +32,13 @@ the current tick with the sample's velocity (constant-velocity model, capped at
 Workspace: the TCP target is clamped to a box and a reach sphere; a clamped
 target gets zero velocity, so the reference waits at the boundary and comes
 back when the target does.
+
+Time-scaling: the reference is a plan for the tool, but the joints have their
+own limits. When the CLIK could not follow a step (tool speed cap, joint
+velocity scaling, a joint limit), the loop calls :meth:`TrackingPlanner.hold_back`
+and the reference goes on from the arm's real pose and speed: the plan is
+slowed to what the arm does instead of running ahead and being caught up later
+above the limits.
 """
 
 from __future__ import annotations
@@ -80,7 +87,13 @@ def _vec(a, n, name) -> np.ndarray:
 
 @dataclass(frozen=True)
 class CartesianLimits:
-    """Per-axis TCP limits, world frame (m/s, m/s^2, m/s^3; rad/s, rad/s^2, rad/s^3)."""
+    """Per-axis TCP limits, world frame (m/s, m/s^2, m/s^3; rad/s, rad/s^2, rad/s^3).
+
+    ``v_lin`` is also the limit of the tool's speed as a norm: the loop's CLIK
+    caps the commanded tool speed there (reference velocity plus error
+    feedback), so the arm never moves its tool faster than ``v_lin`` in any
+    direction, however far behind it is.
+    """
 
     v_lin: float = 0.5
     a_lin: float = 2.0
@@ -281,8 +294,10 @@ class TrackingPlanner:
         self.tgt_v = np.zeros(3)
         self.tgt_w = np.zeros(3)
         self.clamped = False
+        self.clamp_distance = 0.0  # how far the last clamped target was moved, m
         self.last_result = 0
         self.n_fallbacks = 0  # Ruckig retries without time synchronisation (diagnostics)
+        self.n_held_back = 0  # ticks the reference waited for the arm (diagnostics)
         # work buffers
         self._cur_p = np.zeros(6)
         self._cur_v = np.zeros(6)
@@ -364,7 +379,10 @@ class TrackingPlanner:
         self.tgt_w[:] = sw
         if self.phase == Phase.APPROACH and self.task is not None:
             self.tgt_p[2] += self.task.standoff_m
+        self._p3[:] = self.tgt_p
         self.clamped = self.workspace.clamp_into(self.tgt_p, self.tgt_p)
+        if self.clamped:
+            self.clamp_distance = math.dist(self._p3, self.tgt_p)
         if self.clamped or stale:
             # Wait at the boundary; a stale target is no longer predicted to move.
             tv[:] = 0.0
@@ -524,6 +542,23 @@ class TrackingPlanner:
         if math.sqrt(float(self._r3 @ self._r3)) > t.approach_tol_rad:
             return
         self.phase = Phase.FOLLOW
+
+    def hold_back(self, p, quat, v, w) -> None:
+        """Time-scale the reference to the arm: take its pose and velocity as the reference's.
+
+        Called when the arm could not follow the last step (the CLIK's speed
+        cap, a joint velocity limit or a joint limit brake cut the motion). The
+        reference then goes on from where the arm really is, at the speed it
+        really has, so no tracking error builds up to be caught up later; the
+        acceleration is kept (it is within the limits, and Ruckig re-plans from
+        this state at the next tick).
+        """
+        ref = self.ref
+        ref.p[:] = p
+        ref.quat[:] = quat
+        ref.v[:] = v
+        ref.w[:] = w
+        self.n_held_back += 1
 
     def stop_step(self, dt: float) -> bool:
         """Decelerate to rest within the limits (Ruckig velocity interface).

@@ -30,6 +30,24 @@ age since capture as ``(now_ns - t_receive_ns) + (t_send_ns - t_capture_ns)``:
 time since arrival on this clock plus the vision-side latency on that one. The
 transport delay (about 17 ms for a POSE frame at 115200 baud, well under 1 ms
 on TCP loopback or a LAN) is not included.
+
+Which poses are used
+--------------------
+A decoded POSE becomes the latest pose only if it passes these checks, else
+it is counted in ``ReceiverStats.pose_rejected`` under its reason
+(``POSE_REJECT_REASONS``) and dropped:
+
+- ``no_hello``: no HELLO yet on this connection (the objects are unknown);
+- ``unknown_object``: ``object_id`` beyond the objects the HELLO announced;
+- ``future_stamp``: ``t_capture_ns`` after ``t_send_ns`` (both on the
+  sender's clock) by more than ``future_tolerance_s``;
+- ``duplicate``: the same ``seq`` as the last pose used;
+- ``out_of_order``: a ``seq`` behind the last pose used (modulo 2**32).
+
+A server that restarts sends a HELLO first and starts its ``seq`` over: after
+a HELLO the next pose may have any ``seq`` but the last one (counted in
+``ReceiverStats.seq_restarts`` when it goes back). A new connection starts a
+new stream too.
 """
 
 from __future__ import annotations
@@ -45,10 +63,15 @@ from urllib.parse import urlsplit
 
 from vespro.wire import Decoder, HelloMsg, PoseMsg
 
-__all__ = ["PoseReceiver", "LinkState", "ReceiverStats", "NO_POSE_AGE_NS"]
+__all__ = ["PoseReceiver", "LinkState", "ReceiverStats", "NO_POSE_AGE_NS", "POSE_REJECT_REASONS"]
 
 # Age reported when there is no pose at all: larger than any staleness limit.
 NO_POSE_AGE_NS = 2**63 - 1
+
+#: Why a well-formed POSE was not used (see the module docstring).
+POSE_REJECT_REASONS = ("no_hello", "unknown_object", "future_stamp", "duplicate", "out_of_order")
+
+_U32 = 2**32
 
 
 class LinkState(enum.IntEnum):
@@ -72,10 +95,17 @@ class ReceiverStats:
     seq_gaps: int
     seq_duplicates: int
     seq_resets: int
+    pose_rejected: dict  # well-formed poses not used, by reason (POSE_REJECT_REASONS)
+    hellos: int          # HELLO messages received
+    seq_restarts: int    # sequences started over after a HELLO (a restarted server)
 
     @property
     def rejected_total(self) -> int:
         return sum(self.rejected.values())
+
+    @property
+    def pose_rejected_total(self) -> int:
+        return sum(self.pose_rejected.values())
 
 
 class _TcpTransport:
@@ -188,6 +218,9 @@ class PoseReceiver:
         Upper bound on bytes consumed per ``poll`` (bounds its run time).
     clock_ns : callable
         Monotonic clock, ns, used when ``poll``/``latest`` get no ``now_ns``.
+    future_tolerance_s : float
+        A pose captured after it was sent (sender's clock) by more than this
+        is rejected (``future_stamp``).
 
     Raises
     ------
@@ -197,7 +230,8 @@ class PoseReceiver:
 
     def __init__(self, url: str, *, baudrate: int = 115200, backoff_min_s: float = 0.05,
                  backoff_max_s: float = 1.0, idle_timeout_s: float = 3.0, connect_timeout_s: float = 2.0,
-                 max_read_bytes: int = 65536, clock_ns: Callable[[], int] = time.monotonic_ns):
+                 max_read_bytes: int = 65536, clock_ns: Callable[[], int] = time.monotonic_ns,
+                 future_tolerance_s: float = 0.005):
         self.url = url
         if url.startswith("socket://"):
             parts = urlsplit(url)
@@ -227,6 +261,12 @@ class PoseReceiver:
         self._disconnects = 0
         self._open_failures = 0
         self._poses = 0
+        self._future_ns = int(round(future_tolerance_s * 1e9))
+        self._pose_rejected = {r: 0 for r in POSE_REJECT_REASONS}
+        self._hellos = 0
+        self._seq_restarts = 0
+        self._last_seq: int | None = None
+        self._seq_open = True  # the next pose may start a new sequence
 
     # --- the loop's API -----------------------------------------------------------
 
@@ -241,7 +281,8 @@ class PoseReceiver:
             Current time, ns (this PC's monotonic clock); ``clock_ns()`` if None.
         out : list, optional
             If given, every message decoded in this call (HELLO, POSE,
-            HEARTBEAT) is appended to it, in arrival order.
+            HEARTBEAT) is appended to it, in arrival order, rejected poses
+            included.
         """
         now = self._clock_ns() if now_ns is None else int(now_ns)
         newest = None
@@ -293,7 +334,8 @@ class PoseReceiver:
         d = self._decoder.stats()
         return ReceiverStats(self.state, self._connects, self._disconnects, self._open_failures,
                              d.bytes_in, d.frames_ok, self._poses, d.rejected, d.seq_gaps,
-                             d.seq_duplicates, d.seq_resets)
+                             d.seq_duplicates, d.seq_resets, dict(self._pose_rejected), self._hellos,
+                             self._seq_restarts)
 
     def close(self) -> None:
         self._transport.close()
@@ -312,6 +354,9 @@ class PoseReceiver:
         self._connects += 1
         self._last_rx_ns = now
         self._decoder.reset_stream()
+        self.hello = None  # the peer announces its objects again
+        self._last_seq = None
+        self._seq_open = True
 
     def _lost(self, now: int, connected: bool) -> None:
         self._transport.close()
@@ -336,15 +381,42 @@ class PoseReceiver:
                 out.extend(msgs)
             for msg in msgs:
                 if isinstance(msg, PoseMsg):
+                    why = self._reject_reason(msg)
+                    if why is not None:
+                        self._pose_rejected[why] += 1
+                        continue
                     newest = msg
                     self._poses += 1
                     self._by_object[msg.object_id] = (msg, now)
                     self._latest, self._latest_rx_ns = msg, now
                 elif isinstance(msg, HelloMsg):
                     self.hello = msg
+                    self._hellos += 1
+                    self._seq_open = True
                 self._backoff_ns = self._backoff_min_ns
         if total:
             self._last_rx_ns = now
         elif self._idle_ns and now - self._last_rx_ns > self._idle_ns:
             raise TimeoutError("link idle")
         return newest
+
+    def _reject_reason(self, msg: PoseMsg) -> str | None:
+        """Why a decoded pose is not used (``POSE_REJECT_REASONS``), None if it is; updates the sequence."""
+        if self.hello is None:
+            return "no_hello"
+        if msg.object_id >= len(self.hello.object_names):
+            return "unknown_object"
+        if msg.t_capture_ns - msg.t_send_ns > self._future_ns:
+            return "future_stamp"
+        last = self._last_seq
+        if last is not None:
+            d = (msg.seq - last) % _U32
+            if d == 0:
+                return "duplicate"
+            if d >= _U32 // 2:
+                if not self._seq_open:
+                    return "out_of_order"
+                self._seq_restarts += 1
+        self._last_seq = msg.seq
+        self._seq_open = False
+        return None

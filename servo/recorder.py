@@ -24,7 +24,10 @@ LOOP_CHANNELS = {
     "quat_ref": ((4,), np.float64),
     "v_ref": ((3,), np.float64),
     "status": ((), np.int8),
-    "flags": ((), np.int32),
+    "flags": ((), np.int32),  # servo.safety.Check bits fired this tick
+    "reject": ((), np.int8),  # servo.safety.Reject code of a pose not used this tick (0: none)
+    "trip_value": ((), np.float64),  # what tripped the first check in flags (NaN: nothing), SI
+    "trip_limit": ((), np.float64),  # its limit
     "compute_ns": ((), np.int64),
 }
 
@@ -47,6 +50,8 @@ class Recorder:
         self.data = {
             name: np.zeros((self.capacity, *tuple(shape)), dtype=dtype) for name, (shape, dtype) in self.channels.items()
         }
+        for a in self.data.values():
+            a.fill(0)  # touch every page now: no page faults in the loop, flat resident memory
         self.n = 0
         self.dropped = 0
 

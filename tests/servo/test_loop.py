@@ -7,13 +7,14 @@ import pytest
 
 from servo.clock import SimClock, WallClock
 from servo.kinematics import ArmKinematics
+from servo.events import EventKind
 from servo.loop import Command, LoopConfig, LoopState, Scheduler, step
 from servo.planner import CartesianTrapezoid, FollowTask, JointTrapezoid, ViaPath
 from servo.robot import MujocoArm, Robot
 from servo.safety import Check, Status
 from servo.virtual_target import ConveyorTarget
 
-from servo_helpers import DT_NS, T_DOWN, ScriptedStream, make_loop, obj_sample, q_above
+from servo_helpers import DT_NS, T_DOWN, MockRobot, ScriptedStream, make_loop, obj_sample, q_above
 
 
 def test_step_before_start_is_a_fault():
@@ -97,7 +98,7 @@ def test_nan_sample_is_ignored_not_a_fault():
     np.testing.assert_array_equal(out_a.q, out_b.q)
 
 
-@pytest.mark.parametrize("dt_ns", [0, -DT_NS, 6 * DT_NS])
+@pytest.mark.parametrize("dt_ns", [0, -DT_NS, 51 * DT_NS])
 def test_broken_timing_is_a_fault(dt_ns):
     a, out_a, _, _, stream, t = _tracking_pair()
     q = out_a.q.copy()
@@ -105,39 +106,59 @@ def test_broken_timing_is_a_fault(dt_ns):
     assert out_a.flags & Check.TIMING
     assert not out_a.drives_on
     np.testing.assert_array_equal(out_a.q, q)
+    assert a.record.count(EventKind.FAULT, Check.TIMING) == 1
+    assert out_a.trip_limit == pytest.approx(0.1)  # max_dt_ticks = 50 periods
+
+
+def test_one_late_tick_is_counted_not_a_stop():
+    """The default policy: a 10.4 ms tick is late (counted), integrated with its dt, no stop."""
+    a, out_a, _, _, stream, t = _tracking_pair()
+    t += 10_400_000
+    assert step(a, stream.at(t), t, out_a) == Status.TRACKING
+    assert out_a.drives_on and out_a.flags == 0
+    assert a.record.count(EventKind.LATE_TICK) == 1
+    assert a.record.count(EventKind.STOP) == 0
+
+
+def test_a_very_late_tick_is_a_controlled_stop_that_resumes():
+    a, out_a, _, _, stream, t = _tracking_pair()
+    t += 11 * DT_NS  # over stop_dt_ticks = 10 periods, under max_dt_ticks = 50
+    assert step(a, stream.at(t), t, out_a) == Status.STOPPING
+    assert out_a.drives_on and out_a.flags & Check.TIMING
+    assert out_a.trip_value == pytest.approx(0.022) and out_a.trip_limit == pytest.approx(0.020)
+    assert a.record.by_cause(EventKind.STOP) == {"TIMING": 1}
+    seen = []
+    for _ in range(800):  # 1.6 s on time: the stop ends, tracking resumes after the 1 s window
+        t += DT_NS
+        seen.append(step(a, stream.at(t), t, out_a))
+    assert Status.HOLD in seen and seen[-1] == Status.TRACKING
+    assert a.record.count(EventKind.STOP) == 1  # one stop, recorded once
+
+
+@pytest.mark.parametrize("bad", [{"stop_dt_ticks": 0}, {"late_tick_ticks": 0.5}, {"max_late_ticks": -1},
+                                 {"late_window_s": 0.0}, {"max_dt_ticks": 0}])
+def test_a_timing_policy_that_makes_no_sense_is_refused(bad):
+    with pytest.raises(ValueError, match="timing policy"):
+        LoopConfig(**bad)
+
+
+def test_too_many_late_ticks_in_the_window_stop():
+    a, out_a, _, _, stream, t = _tracking_pair()
+    sts = []
+    for k in range(11):  # 11 late ticks (4 ms) in 11 x 20 ms: more than max_late_ticks = 10 in 1 s
+        t += 2 * DT_NS
+        sts.append(step(a, stream.at(t), t, out_a))
+        for _ in range(8):
+            t += DT_NS
+            step(a, stream.at(t), t, out_a)
+    assert sts[:10] == [Status.TRACKING] * 10 and sts[10] == Status.STOPPING
+    assert a.record.count(EventKind.LATE_TICK) == 11
+    assert a.record.by_cause(EventKind.STOP) == {"TIMING": 1}
 
 
 def test_step_never_raises():
     a, out_a, _, _, _, t = _tracking_pair()
     assert step(a, "not a sample", t + DT_NS, out_a) == Status.FAULT
-
-
-class MockRobot:
-    """Records what the scheduler sends; a perfect plant (measured = commanded)."""
-
-    def __init__(self, q0):
-        self.n = 6
-        self.q = np.array(q0, float)
-        self.commands = 0
-        self.stops = 0
-        self.steps = 0
-        self.enables = 0
-
-    def read(self, q_out):
-        q_out[:] = self.q
-
-    def command(self, q, qd):
-        self.q[:] = q
-        self.commands += 1
-
-    def stop(self):
-        self.stops += 1
-
-    def enable(self):
-        self.enables += 1
-
-    def plant_step(self):
-        self.steps += 1
 
 
 class StreamSource:

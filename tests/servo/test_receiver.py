@@ -253,7 +253,7 @@ def test_latest_age_combines_local_and_remote_clocks(pty_pair):
     rx.poll(now_ns=0)
     a = PoseMsg(0, 1_000, 1_500, 0, PoseStatus.TRACKING, np.zeros(3), [1, 0, 0, 0])
     b = PoseMsg(1, 2_000, 2_800, 1, PoseStatus.LOST, np.ones(3), [1, 0, 0, 0])
-    os.write(master, wire.encode(a) + wire.encode(b))
+    os.write(master, wire.encode(HelloMsg(26.0, ("box", "lid"))) + wire.encode(a) + wire.encode(b))
     newest = None
     for _ in range(10000):
         newest = rx.poll(now_ns=10_000) or newest
