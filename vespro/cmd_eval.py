@@ -9,7 +9,7 @@ from pathlib import Path
 
 
 def add_parser(sub) -> None:
-    from .cmd_track import add_tracker_options
+    from .cmd_track import INPUT_HELP, add_tracker_options
 
     p = sub.add_parser(
         "eval", help="track a recording and score it against ground truth",
@@ -17,6 +17,8 @@ def add_parser(sub) -> None:
                     "position/orientation RMSE and max, ADD, tracked fraction, time to first track, "
                     "per-frame time, NEES; the same for a per-frame solvePnP baseline on the same "
                     "detections. Writes poses.csv, summary.json, errors.png and overlay.mp4.",
+        epilog=INPUT_HELP + " Frames whose ground-truth pose is not finite (nan in groundtruth.csv) are left "
+                            "out of the scores and a warning names them.",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
     p.add_argument("recording", type=Path, nargs="?", help="recording folder (not with --suite)")
@@ -62,20 +64,19 @@ def run(args) -> int:
     if args.recording is None:
         print("vespro eval: give a recording folder or --suite SUITE.yaml", file=sys.stderr)
         return 2
-    from .cmd_track import initializer_for, tracker_config
+    from .cmd_track import initializer_for, open_recording, report_images, tracker_config
     from .evaluate import overlay_video, plot_errors, pnp_baseline, score
-    from .groundtruth import read_groundtruth
-    from .recording import Recording, RecordingError
     from .track import make_tracker, parse_pose, track_recording, write_track
 
+    from .errors import warn
+    from .groundtruth import truth_per_frame
+
+    rec = open_recording(args.recording, "eval")
     try:
-        rec = Recording(args.recording)
-        _, _, T_true = read_groundtruth(args.recording)
-    except (RecordingError, FileNotFoundError, ValueError) as e:
+        T_true = truth_per_frame(rec.path, len(rec), lambda w: warn("eval", f"warning: {w}"),
+                                 need_first="--gt-init" if args.gt_init and not args.init_pose else None)
+    except FileNotFoundError as e:
         print(f"vespro eval: {e}", file=sys.stderr)
-        return 2
-    if len(T_true) != len(rec):
-        print(f"vespro eval: groundtruth.csv has {len(T_true)} rows for {len(rec)} frames", file=sys.stderr)
         return 2
     out = args.out or (args.recording / "eval")
     out.mkdir(parents=True, exist_ok=True)
@@ -88,6 +89,7 @@ def run(args) -> int:
             return 2
     outs = track_recording(rec, tracker, init_pose, progress=not args.no_progress)
     write_track(out / "poses.csv", rec, outs)
+    report_images(rec, "eval")  # before the overlay video reads the images again
     model = tracker.model
     T_f = [o.T_world_object for o in outs]
     st = [o.status for o in outs]

@@ -19,7 +19,10 @@ def add_parser(sub) -> None:
             "own rate, or live cameras) and publish every estimate (pose, velocity, covariance, status, "
             "capture and send stamps) with the vespro wire protocol over TCP (clients connect with "
             "socket://HOST:PORT) or a serial line. Logs one status line a second; SIGINT/SIGTERM stop it "
-            "cleanly."
+            "cleanly. A malformed input file stops it at start with one line naming the file and field, exit "
+            "status 2. Replayed images that cannot be used (missing, truncated, unreadable, not 8-bit, of another "
+            "size than the rig's) are skipped and counted per camera and reason, in the status line and in the "
+            "summary at the end, where a camera that gave no usable image is named in a warning (exit status 0)."
         ),
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
@@ -61,7 +64,7 @@ def run(args) -> int:
     from .clock import SimClock, WallClock
     from .link import PosePublisher
     from .model import load_model
-    from .recording import Recording, RecordingError
+    from .recording import RecordingError
     from .server import PoseServer
     from .sources import CameraSource, ReplaySource, SimSource
     from .track import parse_pose
@@ -79,7 +82,9 @@ def run(args) -> int:
         if args.source == "replay":
             if not args.recording:
                 raise ValueError("--source replay needs --recording PATH")
-            rec = Recording(args.recording)
+            from .cmd_track import open_recording
+
+            rec = open_recording(args.recording, "serve")
             source = ReplaySource(rec, clock, loop=args.loop)
             model = load_model(rec.model_path, name=rec.object_name)
         elif args.source == "sim":
@@ -190,6 +195,8 @@ def run(args) -> int:
             signal.signal(s, h)
     print(f"vespro serve: stopped after {stats.frames} frames ({stats.tracking} tracking, "
           f"{stats.init_successes} initialisations)", flush=True)
+    for line in (source.images.report() if getattr(source, "images", None) is not None else []):
+        print(f"vespro serve: {line}", file=sys.stderr, flush=True)
     return 0
 
 
@@ -215,6 +222,7 @@ def _save_run(folder: Path, writer, outputs, stats, link_stats, source) -> None:
         "frames": stats.frames, "tracking": stats.tracking, "init_attempts": stats.init_attempts,
         "init_successes": stats.init_successes, "recording_dropped": writer.dropped,
         "missed_captures": getattr(source, "missed", 0),
+        "images": source.images.as_dict() if getattr(source, "images", None) is not None else None,
         "tracker_ms_median": float(np.median(tm)), "tracker_ms_p99": float(np.percentile(tm, 99)),
         "latency_ms_median": float(np.median(lat)), "latency_ms_p99": float(np.percentile(lat, 99)),
         "link": {"frames_published": link_stats.frames_published, "frames_sent": link_stats.frames_sent,
