@@ -65,11 +65,10 @@ def run(args) -> int:
         print("vespro eval: give a recording folder or --suite SUITE.yaml", file=sys.stderr)
         return 2
     from .cmd_track import initializer_for, open_recording, report_images, tracker_config
-    from .evaluate import overlay_video, plot_errors, pnp_baseline, score
-    from .track import make_tracker, parse_pose, track_recording, write_track
-
     from .errors import warn
+    from .evaluate import overlay_video, plot_errors, pnp_baseline, score
     from .groundtruth import truth_per_frame
+    from .track import make_tracker, parse_pose, track_recording, write_track
 
     rec = open_recording(args.recording, "eval")
     try:
@@ -80,7 +79,11 @@ def run(args) -> int:
         return 2
     out = args.out or (args.recording / "eval")
     out.mkdir(parents=True, exist_ok=True)
-    init_pose = parse_pose(args.init_pose) if args.init_pose else (T_true[0] if args.gt_init else None)
+    try:
+        init_pose = parse_pose(args.init_pose) if args.init_pose else (T_true[0] if args.gt_init else None)
+    except ValueError as e:
+        print(f"vespro eval: {e}", file=sys.stderr)
+        return 2
     tracker = make_tracker(rec, tracker_config(args))
     if init_pose is None:
         tracker.initializer = initializer_for(args, rec, tracker.model)

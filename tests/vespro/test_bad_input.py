@@ -159,18 +159,14 @@ def _one_line(err, command):
     return lines[0]
 
 
-@pytest.mark.parametrize("command", RIG_COMMANDS)
-@pytest.mark.parametrize("name, damage, file, text", RIG, ids=[r[0] for r in RIG])
-def test_malformed_rig(base, tmp_path, capfd, command, name, damage, file, text):
+MALFORMED = [(case, command) for case in RIG for command in RIG_COMMANDS] + \
+            [(case, command) for case in RECORDING for command in COMMANDS]
+
+
+@pytest.mark.parametrize("case, command", MALFORMED, ids=[f"{c[0]}-{cmd}" for c, cmd in MALFORMED])
+def test_malformed_file_is_one_line_and_exit_2(base, tmp_path, capfd, case, command):
+    _, damage, file, text = case
     rc, _, err = _run(base, tmp_path, damage, RIG_COMMANDS[command], capfd)
-    line = _one_line(err, command)
-    assert rc == 2 and file in line and text in line, line
-
-
-@pytest.mark.parametrize("command", COMMANDS)
-@pytest.mark.parametrize("name, damage, file, text", RECORDING, ids=[r[0] for r in RECORDING])
-def test_malformed_recording(base, tmp_path, capfd, command, name, damage, file, text):
-    rc, _, err = _run(base, tmp_path, damage, COMMANDS[command], capfd)
     line = _one_line(err, command)
     assert rc == 2 and file in line and text in line, line
 
