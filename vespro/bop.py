@@ -222,6 +222,13 @@ def _image_file(sdir: Path, im_id: int) -> Path | None:
     return None
 
 
+def _imread(path: Path) -> np.ndarray:
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise ValueError(f"{path}: cannot read this image (damaged, or not an image file); replace or remove it")
+    return img
+
+
 def import_bop(bop_dir: str | Path, out: str | Path, results: str | Path | None = None, obj_id: int | None = None,
                rate_hz: float = 26.0, overwrite: bool = False) -> dict:
     """Turn BOP scenes (one per camera, images synchronised by ``im_id``) into a recording.
@@ -284,7 +291,7 @@ def import_bop(bop_dir: str | Path, out: str | Path, results: str | Path | None 
         if "width" in first:
             w, h = int(first["width"]), int(first["height"])
         elif img0 is not None:
-            h, w = cv2.imread(str(img0), cv2.IMREAD_UNCHANGED).shape[:2]
+            h, w = _imread(img0).shape[:2]
         else:
             cj = json.loads((root / "camera.json").read_text())
             w, h = int(cj["width"]), int(cj["height"])
@@ -339,7 +346,7 @@ def import_bop(bop_dir: str | Path, out: str | Path, results: str | Path | None 
             if src.suffix == ".png":
                 shutil.copyfile(src, d / f"{j:06d}.png")
             else:
-                cv2.imwrite(str(d / f"{j:06d}.png"), cv2.imread(str(src), cv2.IMREAD_UNCHANGED))
+                cv2.imwrite(str(d / f"{j:06d}.png"), _imread(src))
 
     # Ground truth: from the first scene that has the object in that image.
     T_true = None
