@@ -81,30 +81,36 @@ def _models_info(model) -> dict:
     return {str(OBJ_ID): info}
 
 
-def export_bop(recording: str | Path, out: str | Path, poses: str | Path | None = None,
-               overwrite: bool = False) -> Path:
+def export_bop(recording, out: str | Path, poses: str | Path | None = None,
+               overwrite: bool = False, warn=None) -> Path:
     """Write a recording (and optionally its tracker output ``poses.csv``) as a BOP dataset.
 
     Parameters
     ----------
-    recording : path
+    recording : path or Recording
         Recording folder (shared/spec/recording.md); its ``groundtruth.csv``,
-        when present, becomes ``scene_gt.json``.
+        when present, becomes ``scene_gt.json`` (frames whose true pose is
+        not finite are left out of it). Images that cannot be used (see
+        :mod:`vespro.imagecheck`) are not copied; they are counted in the
+        recording's ``images``.
     out : path
         Dataset folder to create.
     poses : path, optional
         ``poses.csv``: its ``tracking`` rows become the BOP19 results CSV.
+    warn : callable, optional
+        Receives a line for each thing about the input that does not stop the
+        export (gaps in the ground truth, rows past the end of frames.csv).
 
     Returns
     -------
     Path
         ``out``.
     """
-    from .groundtruth import read_groundtruth
+    from .groundtruth import truth_per_frame
     from .poses import read_poses
     from .recording import Recording
 
-    rec = Recording(recording)
+    rec = recording if isinstance(recording, Recording) else Recording(recording)
     model = load_model(rec.model_path, name=rec.object_name)
     out = Path(out)
     if out.exists() and any(out.iterdir()):
@@ -119,7 +125,7 @@ def export_bop(recording: str | Path, out: str | Path, poses: str | Path | None 
                                                  "fy": c0.fy, "height": c0.height, "width": c0.width}, indent=2))
     T_true = None
     if (rec.path / "groundtruth.csv").is_file():
-        _, _, T_true = read_groundtruth(rec.path)
+        T_true = truth_per_frame(rec.path, len(rec), warn)
     rows = read_poses(poses) if poses is not None else None
     results = []
     cams_meta = []
@@ -135,17 +141,16 @@ def export_bop(recording: str | Path, out: str | Path, poses: str | Path | None 
             scene_camera[str(i)] = {"cam_K": _fl(intr.K), "depth_scale": 1.0, "cam_R_w2c": _fl(T_cw[:3, :3]),
                                     "cam_t_w2c": _fl(T_cw[:3, 3] * MM), "width": intr.width,
                                     "height": intr.height, "dist_coeffs": _fl(intr.dist)}
-            if T_true is not None:
+            if T_true is not None and np.all(np.isfinite(T_true[i])):
                 T_co = T_cw @ T_true[i]
                 scene_gt[str(i)] = [{"obj_id": OBJ_ID, "cam_R_m2c": _fl(T_co[:3, :3]),
                                      "cam_t_m2c": _fl(T_co[:3, 3] * MM)}]
-            src = rec.image_path(cam.name, i)
-            if src.is_file():
+            src = rec.check_image(cam.name, i)
+            if src.reason is None:
                 if kind is None:
-                    img = cv2.imread(str(src), cv2.IMREAD_UNCHANGED)
-                    kind = "gray" if img is not None and img.ndim == 2 else "rgb"
+                    kind = "gray" if src.grey else "rgb"
                     (sdir / kind).mkdir()
-                shutil.copyfile(src, sdir / kind / f"{i:06d}.png")
+                shutil.copyfile(src.path, sdir / kind / f"{i:06d}.png")
             if rows is not None and i < len(rows) and rows[i].status == "tracking" and rows[i].T_world_object is not None:
                 T_co = T_cw @ rows[i].T_world_object
                 tm = rows[i].time_ms
@@ -217,6 +222,13 @@ def _image_file(sdir: Path, im_id: int) -> Path | None:
     return None
 
 
+def _imread(path: Path) -> np.ndarray:
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise ValueError(f"{path}: cannot read this image (damaged, or not an image file); replace or remove it")
+    return img
+
+
 def import_bop(bop_dir: str | Path, out: str | Path, results: str | Path | None = None, obj_id: int | None = None,
                rate_hz: float = 26.0, overwrite: bool = False) -> dict:
     """Turn BOP scenes (one per camera, images synchronised by ``im_id``) into a recording.
@@ -279,7 +291,7 @@ def import_bop(bop_dir: str | Path, out: str | Path, results: str | Path | None 
         if "width" in first:
             w, h = int(first["width"]), int(first["height"])
         elif img0 is not None:
-            h, w = cv2.imread(str(img0), cv2.IMREAD_UNCHANGED).shape[:2]
+            h, w = _imread(img0).shape[:2]
         else:
             cj = json.loads((root / "camera.json").read_text())
             w, h = int(cj["width"]), int(cj["height"])
@@ -334,7 +346,7 @@ def import_bop(bop_dir: str | Path, out: str | Path, results: str | Path | None 
             if src.suffix == ".png":
                 shutil.copyfile(src, d / f"{j:06d}.png")
             else:
-                cv2.imwrite(str(d / f"{j:06d}.png"), cv2.imread(str(src), cv2.IMREAD_UNCHANGED))
+                cv2.imwrite(str(d / f"{j:06d}.png"), _imread(src))
 
     # Ground truth: from the first scene that has the object in that image.
     T_true = None

@@ -14,7 +14,14 @@ def add_parser(sub) -> None:
                     "tracker estimates as a BOP19 results CSV.",
     )
     bs = p.add_subparsers(dest="bop_command", metavar="ACTION")
-    e = bs.add_parser("export", help="recording (+ poses.csv) -> BOP dataset folder")
+    e = bs.add_parser("export", help="recording (+ poses.csv) -> BOP dataset folder",
+                      description="Write a recording as a BOP dataset: one scene per camera.",
+                      epilog="Bad input: a malformed recording file stops the export with one line naming the "
+                             "file and field, exit status 2. Images that cannot be used (missing, truncated, "
+                             "unreadable, not 8-bit, of another size than cameras.yaml gives) are not copied; one "
+                             "line per camera at the end counts them, a camera without any usable image is named "
+                             "in a warning, and when no camera has one the exit status is 2. Frames whose "
+                             "ground-truth pose is not finite are left out of scene_gt.json (a warning names them).")
     e.add_argument("recording", type=Path)
     e.add_argument("out", type=Path, help="BOP dataset folder to create")
     e.add_argument("--poses", type=Path, help="tracker output poses.csv -> vespro_<object>-test.csv")
@@ -33,14 +40,18 @@ def add_parser(sub) -> None:
 
 def run_export(args) -> int:
     from .bop import export_bop
-    from .recording import RecordingError
+    from .cmd_track import open_recording, report_images
+    from .errors import warn
 
-    try:
-        out = export_bop(args.recording, args.out, args.poses, overwrite=args.overwrite)
-    except (RecordingError, FileExistsError, FileNotFoundError, ValueError) as e:
+    try:  # bad input (InputError is a ValueError) in one line
+        rec = open_recording(args.recording, "bop export")
+        out = export_bop(rec, args.out, args.poses, overwrite=args.overwrite,
+                         warn=lambda w: warn("bop export", f"warning: {w}"))
+        print(f"wrote BOP dataset {out}", flush=True)
+        report_images(rec, "bop export")
+    except (FileExistsError, FileNotFoundError, ValueError) as e:
         print(f"vespro bop export: {e}", file=sys.stderr)
         return 2
-    print(f"wrote BOP dataset {out}")
     return 0
 
 

@@ -193,7 +193,10 @@ def _guard(fn):
 
         try:
             return fn(args)
-        except (CalibrationError, RigError) as e:
+        except RigError as e:  # a malformed rig file: the user's to fix, as every bad input file
+            print(f"vespro calibrate: error: {e}", file=sys.stderr)
+            return 2
+        except CalibrationError as e:  # the images cannot give a calibration
             print(f"vespro calibrate: error: {e}", file=sys.stderr)
             return 1
     return run

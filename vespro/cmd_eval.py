@@ -10,7 +10,7 @@ from pathlib import Path
 
 def add_parser(sub) -> None:
     from .cmd_record import add_model_unit_option
-    from .cmd_track import add_tracker_options
+    from .cmd_track import INPUT_HELP, add_tracker_options
 
     p = sub.add_parser(
         "eval", help="track a recording and score it against ground truth",
@@ -18,6 +18,8 @@ def add_parser(sub) -> None:
                     "position/orientation RMSE and max, ADD, tracked fraction, time to first track, "
                     "per-frame time, NEES; the same for a per-frame solvePnP baseline on the same "
                     "detections. Writes poses.csv, summary.json, errors.png and overlay.mp4.",
+        epilog=INPUT_HELP + " Frames whose ground-truth pose is not finite (nan in groundtruth.csv) are left "
+                            "out of the scores and a warning names them.",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
     p.add_argument("recording", type=Path, nargs="?", help="recording folder (not with --suite)")
@@ -64,23 +66,25 @@ def run(args) -> int:
     if args.recording is None:
         print("vespro eval: give a recording folder or --suite SUITE.yaml", file=sys.stderr)
         return 2
-    from .cmd_track import initializer_for, tracker_config
+    from .cmd_track import initializer_for, open_recording, report_images, tracker_config
+    from .errors import warn
     from .evaluate import overlay_video, plot_errors, pnp_baseline, score
-    from .groundtruth import read_groundtruth
-    from .recording import Recording, RecordingError
+    from .groundtruth import truth_per_frame
     from .track import make_tracker, parse_pose, track_recording, write_track
 
+    rec = open_recording(args.recording, "eval")
     try:
-        rec = Recording(args.recording)
-        _, _, T_true = read_groundtruth(args.recording)
-    except (RecordingError, FileNotFoundError, ValueError) as e:
+        T_true = truth_per_frame(rec.path, len(rec), lambda w: warn("eval", f"warning: {w}"),
+                                 need_first="--gt-init" if args.gt_init and not args.init_pose else None)
+    except FileNotFoundError as e:
         print(f"vespro eval: {e}", file=sys.stderr)
         return 2
-    if len(T_true) != len(rec):
-        print(f"vespro eval: groundtruth.csv has {len(T_true)} rows for {len(rec)} frames", file=sys.stderr)
-        return 2
     out = args.out or (args.recording / "eval")
-    init_pose = parse_pose(args.init_pose) if args.init_pose else (T_true[0] if args.gt_init else None)
+    try:
+        init_pose = parse_pose(args.init_pose) if args.init_pose else (T_true[0] if args.gt_init else None)
+    except ValueError as e:
+        print(f"vespro eval: {e}", file=sys.stderr)
+        return 2
     tracker = make_tracker(rec, tracker_config(args), unit=args.model_unit)
     if init_pose is None:
         tracker.initializer = initializer_for(args, rec, tracker.model)
@@ -90,6 +94,7 @@ def run(args) -> int:
     out.mkdir(parents=True, exist_ok=True)  # after the inputs are checked: bad input leaves nothing behind
     outs = track_recording(rec, tracker, init_pose, progress=not args.no_progress)
     write_track(out / "poses.csv", rec, outs)
+    report_images(rec, "eval")  # before the overlay video reads the images again
     model = tracker.model
     T_f = [o.T_world_object for o in outs]
     st = [o.status for o in outs]

@@ -21,7 +21,10 @@ def add_parser(sub) -> None:
             "own rate, or live cameras) and publish every estimate (pose, velocity, covariance, status, "
             "capture and send stamps) with the vespro wire protocol over TCP (clients connect with "
             "socket://HOST:PORT) or a serial line. Logs one status line a second; SIGINT/SIGTERM stop it "
-            "cleanly."
+            "cleanly. A malformed input file stops it at start with one line naming the file and field, exit "
+            "status 2. Replayed images that cannot be used (missing, truncated, unreadable, not 8-bit, of another "
+            "size than the rig's) are skipped and counted per camera and reason, in the status line and in the "
+            "summary at the end, where a camera that gave no usable image is named in a warning (exit status 0)."
         ),
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
@@ -75,7 +78,7 @@ def run(args) -> int:
     from .clock import SimClock, WallClock
     from .link import PosePublisher
     from .model import load_model, model_file_in_metres
-    from .recording import Recording, RecordingError
+    from .recording import RecordingError
     from .server import PoseServer
     from .sources import CameraSource, ReplaySource, SimSource
     from .track import parse_pose
@@ -101,7 +104,9 @@ def run(args) -> int:
         if args.source == "replay":
             if not args.recording:
                 raise ValueError("--source replay needs --recording PATH")
-            rec = Recording(args.recording)
+            from .cmd_track import open_recording
+
+            rec = open_recording(args.recording, "serve")
             source = ReplaySource(rec, clock, loop=args.loop)
             model_file = model_file_in_metres(rec.model_path, args.model_unit)
             model = load_model(model_file, name=rec.object_name)
@@ -222,6 +227,8 @@ def run(args) -> int:
           f"{summ['latency_ms_median']:.1f} ms median, {summ['latency_ms_p99']:.1f} ms p99"
           + (f"; {stats.source_gaps} source gap reports" if stats.source_gaps else "")
           + (f"; {source.missed} frames dropped behind" if getattr(source, "missed", 0) else ""), flush=True)
+    for line in (source.images.report() if getattr(source, "images", None) is not None else []):
+        print(f"vespro serve: {line}", file=sys.stderr, flush=True)
     return 0
 
 
@@ -248,6 +255,7 @@ def _save_run(folder: Path, writer, outputs, stats, link_stats, source) -> None:
         "init_successes": stats.init_successes, "recording_dropped": writer.dropped,
         "missed_captures": getattr(source, "missed", 0),
         **stats.summary(),
+        "images": source.images.as_dict() if getattr(source, "images", None) is not None else None,
         "link": {"frames_published": link_stats.frames_published, "frames_sent": link_stats.frames_sent,
                  "drops": link_stats.drops, "clients_accepted": link_stats.clients_accepted,
                  "errors": link_stats.errors},

@@ -7,6 +7,43 @@ import sys
 from pathlib import Path
 
 
+#: The --help text on bad input, shared by the commands that read recordings.
+INPUT_HELP = (
+    "Bad input: a malformed recording file (meta.yaml, cameras.yaml, frames.csv, groundtruth.csv, the model) "
+    "stops the command before any work with one line naming the file, the field and what to do, exit status 2. "
+    "An image that cannot be used (missing, truncated, unreadable, not 8-bit, or of another size than "
+    "cameras.yaml gives) is skipped for that frame (the tracker does without that camera) and counted: one "
+    "line per camera on stderr at the end gives the counts per reason and the first file of each. A camera "
+    "that gave no usable image in the whole run is named in a warning line; the exit status stays 0 since "
+    "the poses come from the other cameras, but when no camera gave a usable image it is 2. Images past the "
+    "last row of frames.csv (a frames.csv cut short) are not used and a warning gives their number.")
+
+
+def open_recording(path, command: str):
+    """Open a recording for a command, printing its warnings (stderr); raises RecordingError."""
+    from .errors import warn
+    from .recording import Recording
+
+    rec = Recording(path)
+    for w in rec.warnings:
+        warn(command, f"warning: {w}")
+    return rec
+
+
+def report_images(rec, command: str) -> None:
+    """End of a run: the image report on stderr; RecordingError when no camera gave a usable image."""
+    from .errors import warn
+    from .recording import RecordingError
+
+    tally = rec.images
+    for line in tally.report():
+        warn(command, line)
+    dead = tally.dead()
+    if dead and len(dead) == len(tally.cameras):
+        raise RecordingError(f"{rec.path / 'frames'}: no camera gave a usable image in the whole run "
+                             "(see the lines above)")
+
+
 def add_tracker_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--init-pose", metavar="x,y,z,qw,qx,qy,qz|FILE",
                    help="object pose T_world_object at the first frame (overrides automatic initialisation), "
@@ -49,6 +86,7 @@ def add_parser(sub) -> None:
         description="Track the object through a recording (any recording in the format of "
                     "shared/spec/recording.md; its ground truth is never read) and write the tracker "
                     "output (index,t,pose,status,time_ms,velocity,covariance).",
+        epilog=INPUT_HELP,
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
     from .cmd_record import add_model_unit_option
@@ -64,14 +102,9 @@ def add_parser(sub) -> None:
 def run(args) -> int:
     import numpy as np
 
-    from .recording import Recording, RecordingError
     from .track import make_tracker, parse_pose, track_recording, write_track
 
-    try:
-        rec = Recording(args.recording)
-    except RecordingError as e:
-        print(f"vespro track: {e}", file=sys.stderr)
-        return 2
+    rec = open_recording(args.recording, "track")
     init_pose = None
     if args.init_pose:
         try:
@@ -89,5 +122,6 @@ def run(args) -> int:
     write_track(args.output, rec, outs)
     n = sum(o.status == "tracking" for o in outs)
     tm = np.median([o.time_ms for o in outs])
-    print(f"wrote {args.output}: {n}/{len(outs)} frames tracking, median {tm:.2f} ms per frame")
+    print(f"wrote {args.output}: {n}/{len(outs)} frames tracking, median {tm:.2f} ms per frame", flush=True)
+    report_images(rec, "track")
     return 0

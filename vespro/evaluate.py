@@ -34,6 +34,8 @@ def score(T_est: list, status: list[str], T_true: np.ndarray, t: np.ndarray, mod
         Estimated poses per frame (None where not tracking).
     status : list of str
     T_true : ndarray (N, 4, 4)
+        True poses; a frame whose true pose is not finite (a gap in the ground
+        truth) is left out of every figure.
     t : ndarray (N,)
         Capture times, s.
     model : Model
@@ -47,21 +49,25 @@ def score(T_est: list, status: list[str], T_true: np.ndarray, t: np.ndarray, mod
     dict
         ``position_rmse_mm``, ``position_max_mm``, ``orientation_rmse_deg``,
         ``orientation_max_deg``, ``add_mm`` (mean over tracked frames),
-        ``adds_mm``, ``tracked_fraction``, ``time_to_first_track_s``,
+        ``adds_mm``, ``tracked_fraction`` (of the frames with ground truth),
+        ``frames_without_truth``, ``time_to_first_track_s``,
         ``wrong_lock_frames`` (tracking with ADD > 10% of the diameter),
         ``time_ms_median``, ``time_ms_p99``, ``nees_mean``, ``nees_in_band``
         (fraction of frames in the two-sided 95% chi-square band, 6 dof).
     """
     n = len(T_true)
     P = model.vertices
-    idx = [i for i in range(n) if status[i] == "tracking" and T_est[i] is not None]
+    known = np.all(np.isfinite(np.asarray(T_true).reshape(n, -1)), axis=1)
+    tracked = [i for i in range(n) if status[i] == "tracking" and T_est[i] is not None]
+    idx = [i for i in tracked if known[i]]
     pos = np.array([np.linalg.norm(T_est[i][:3, 3] - T_true[i][:3, 3]) for i in idx])
     rot = np.array([np.linalg.norm(pose_error_vector(T_est[i], T_true[i])[3:]) for i in idx])
     adds = np.array([add(T_est[i], T_true[i], P) for i in idx])
     out = {
         "frames": n,
-        "tracked_fraction": len(idx) / n if n else 0.0,
-        "time_to_first_track_s": float(t[idx[0]] - t[0]) if idx else None,
+        "frames_without_truth": int(n - known.sum()),
+        "tracked_fraction": float(len(idx) / known.sum()) if known.any() else 0.0,
+        "time_to_first_track_s": float(t[tracked[0]] - t[0]) if tracked else None,
         "position_rmse_mm": rmse(pos) * 1e3 if idx else None,
         "position_max_mm": float(pos.max() * 1e3) if idx else None,
         "orientation_rmse_deg": float(np.rad2deg(rmse(rot))) if idx else None,

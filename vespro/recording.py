@@ -15,8 +15,12 @@ never opens ``groundtruth.csv`` (see :mod:`vespro.groundtruth`, for evaluators).
 :class:`RecordingWriter` writes the same layout.
 
 Errors name the file and the field (:class:`RecordingError`). A missing or
-unreadable image is not an error: :meth:`Recording.image` returns None and
-counts it, and the tracker does without that camera for that instant.
+unusable image (truncated, unreadable, of another size than the rig's, not
+8-bit) is not an error: :meth:`Recording.image` returns None and counts it
+per camera and reason in :attr:`Recording.images` (see
+:mod:`vespro.imagecheck`), and the tracker does without that camera for that
+instant. Images on disk past the last row of ``frames.csv`` (a frames.csv cut
+short) are not read; :attr:`Recording.warnings` says how many there are.
 """
 
 from __future__ import annotations
@@ -31,7 +35,9 @@ import cv2
 import numpy as np
 import yaml
 
+from .errors import yaml_problem
 from .frames import FrameSet
+from .imagecheck import ImageRead, ImageTally, check_image, read_image
 from .rig import Rig, RigError, load_rig, save_rig
 from .se3 import pq_from_transform, transform_from_pq
 
@@ -77,8 +83,14 @@ class Recording:
     index : ndarray, shape (N,), int
     t : ndarray, shape (N,), float
         Capture times, s.
+    images : ImageTally
+        Per camera, how many images read so far were usable, and how many
+        not, per reason.
     missing : dict[str, int]
-        Per camera, how many images were missing or unreadable so far.
+        Per camera, how many images were missing or not usable so far.
+    warnings : list of str
+        Things a user should know that do not stop a run (one line each,
+        naming the file): images past the end of ``frames.csv``.
 
     Raises
     ------
@@ -97,7 +109,12 @@ class Recording:
             raise RecordingError(str(e)) from None
         self.model_path = self._model_path()
         self.index, self.t, self._eih = self._read_frames()
-        self.missing = {c.name: 0 for c in self.rig}
+        self.images = ImageTally(self.rig.names)
+        self.warnings: list[str] = self._images_past_end()
+
+    @property
+    def missing(self) -> dict[str, int]:
+        return {c: self.images.n_rejected(c) for c in self.rig.names}
 
     # -- parsing -----------------------------------------------------------
     def _read_meta(self) -> dict:
@@ -107,7 +124,7 @@ class Recording:
         try:
             meta = yaml.safe_load(p.read_text())
         except yaml.YAMLError as e:
-            raise RecordingError(f"{p}: not valid YAML: {e}") from None
+            raise RecordingError(f"{p}: not valid YAML: {yaml_problem(e)}; fix the syntax there") from None
         if not isinstance(meta, dict):
             raise RecordingError(f"{p}: expected a mapping of fields, got {type(meta).__name__}")
         for key in ("format", "version", "rate_hz", "model"):
@@ -170,20 +187,32 @@ class Recording:
             except ValueError:
                 raise RecordingError(f"{p}: line {line}: field 'index' is not an integer: {r[0]!r}") from None
             if index[k] != k:
-                raise RecordingError(f"{p}: line {line}: field 'index' must be {k} (indices start at 0 and increase by one), got {index[k]}")
+                what = (f"the row of index {k} is missing" if index[k] == k + 1 else
+                        f"the rows of indices {k}-{index[k] - 1} are missing" if index[k] > k else
+                        f"index {index[k]} comes again or out of order")
+                raise RecordingError(f"{p}: line {line}: field 'index' is {index[k]} where {k} was due: {what} "
+                                     "(indices start at 0 and increase by one, one row per capture instant; "
+                                     "an instant without images still has its row)")
             try:
                 t[k] = float(r[1])
             except ValueError:
                 raise RecordingError(f"{p}: line {line}: field 't' is not a number: {r[1]!r}") from None
             if not np.isfinite(t[k]) or (k > 0 and t[k] < t[k - 1]):
-                raise RecordingError(f"{p}: line {line}: field 't' must be finite and non-decreasing, got {r[1]!r}")
+                raise RecordingError(f"{p}: line {line}: field 't' must be finite and non-decreasing, got {r[1]!r}"
+                                     + (f" after {t[k - 1]:.9g}" if k > 0 else "")
+                                     + ": times are seconds since the first capture, in capture order")
             for name, cols in eih_cols.items():
                 try:
                     pq = np.array([float(r[c]) for c in cols])
                 except ValueError:
                     raise RecordingError(f"{p}: line {line}: pose of camera '{name}' has a non-number") from None
-                if not np.all(np.isfinite(pq)) or abs(np.linalg.norm(pq[3:]) - 1.0) > 1e-3:
-                    raise RecordingError(f"{p}: line {line}: pose of camera '{name}' must be finite with a unit quaternion")
+                if not np.all(np.isfinite(pq)):
+                    bad = [header[c] for c, v in zip(cols, pq) if not np.isfinite(v)]
+                    raise RecordingError(f"{p}: line {line}: field(s) {', '.join(bad)} not finite: the eye_in_hand "
+                                         f"camera '{name}' needs the arm's measured pose at every row")
+                if abs(np.linalg.norm(pq[3:]) - 1.0) > 1e-3:
+                    raise RecordingError(f"{p}: line {line}: pose of camera '{name}': quaternion "
+                                         f"{name}.qw..{name}.qz must have unit norm, got {np.linalg.norm(pq[3:]):.6f}")
                 eih[name][k] = transform_from_pq(pq)
         for a in eih.values():
             a.setflags(write=False)
@@ -205,19 +234,41 @@ class Recording:
         return self.path / "frames" / camera / f"{index:06d}.png"
 
     def image(self, camera: str, index: int) -> np.ndarray | None:
-        """The image of ``camera`` at ``index`` (grey or BGR uint8), or None if missing/unreadable."""
-        p = self.image_path(camera, index)
-        img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED) if p.is_file() else None
-        if img is not None and img.dtype != np.uint8:
-            img = None  # the spec allows 8-bit only
-        if img is not None and img.ndim == 3 and img.shape[2] == 4:
-            img = cv2.cvtColor(img, cv2.COLOR_BGRA2BGR)
+        """The image of ``camera`` at ``index`` (grey or BGR uint8), or None if missing or unusable.
+
+        Unusable: truncated, unreadable, not 8-bit, or of another size than
+        the rig's (never rescaled silently). Every read is counted in
+        :attr:`images`.
+        """
         intr = self.rig[camera].intrinsics
-        if img is not None and img.shape[:2] != (intr.height, intr.width):
-            img = None  # wrong size for the rig: unusable, never rescaled silently
-        if img is None:
-            self.missing[camera] += 1
-        return img
+        res = read_image(self.image_path(camera, index), intr.width, intr.height)
+        self.images.note(camera, res)
+        return res.image
+
+    def check_image(self, camera: str, index: int) -> ImageRead:
+        """:meth:`image`'s checks without decoding (for copying files); counted in :attr:`images`."""
+        intr = self.rig[camera].intrinsics
+        res = check_image(self.image_path(camera, index), intr.width, intr.height)
+        self.images.note(camera, res)
+        return res
+
+    def _images_past_end(self) -> list[str]:
+        """A warning when the image folders hold indices past the last row of frames.csv."""
+        n = len(self.index)
+        extra = {}
+        for c in self.rig.names:
+            d = self.path / "frames" / c
+            if not d.is_dir():
+                continue
+            past = [int(f.stem) for f in d.iterdir() if f.suffix == ".png" and f.stem.isdigit() and int(f.stem) >= n]
+            if past:
+                extra[c] = (len(past), max(past))
+        if not extra:
+            return []
+        counts = ", ".join(f"frames/{c} {k} (up to index {m})" for c, (k, m) in extra.items())
+        return [f"{self.path / 'frames.csv'}: lists {n} frames (indices 0-{n - 1}) but the image folders hold "
+                f"images past its end: {counts}; only the {n} listed frames are used (a frames.csv cut short?): "
+                "add their rows to frames.csv to use them"]
 
     def T_world_camera(self, camera: str, index: int) -> np.ndarray:
         """Camera pose at ``index``: the rig's for fixed cameras, frames.csv's for eye-in-hand."""

@@ -7,7 +7,7 @@ pose at each instant comes from the measured arm kinematics (``frames.csv``).
 
 from __future__ import annotations
 
-from .errors import InputError
+from .errors import InputError, yaml_problem
 
 from dataclasses import dataclass
 from pathlib import Path
@@ -114,7 +114,9 @@ class Rig:
 
 def _field(d: dict, key: str, where: str) -> Any:
     if not isinstance(d, dict) or key not in d:
-        raise RigError(f"{where}: missing field '{key}'")
+        raise RigError(f"{where}: missing field '{key}' (a camera needs name, image_width, image_height, "
+                       "camera_matrix, mount and T_world_camera, or link and T_link_camera when eye_in_hand)"
+                       if key != "cameras" else f"{where}: missing field 'cameras' (the list of the rig's cameras)")
     return d[key]
 
 
@@ -126,7 +128,8 @@ def _numbers(value, n: int, where: str) -> np.ndarray:
     if a.shape != (n,):
         raise RigError(f"{where}: expected {n} numbers, got {a.size}")
     if not np.all(np.isfinite(a)):
-        raise RigError(f"{where}: contains non-finite values")
+        bad = ", ".join(f"element {i} is {v}" for i, v in enumerate(a) if not np.isfinite(v))
+        raise RigError(f"{where}: {bad}; every value must be a finite number")
     return a
 
 
@@ -134,7 +137,8 @@ def _pose(value, where: str) -> np.ndarray:
     pq = _numbers(value, 7, where)
     n = np.linalg.norm(pq[3:])
     if abs(n - 1.0) > 1e-3:
-        raise RigError(f"{where}: quaternion (qw qx qy qz) must have unit norm, got norm {n:.6f}")
+        raise RigError(f"{where}: quaternion (elements 3-6, qw qx qy qz) must have unit norm, got norm {n:.6f}; "
+                       "give the pose as x y z qw qx qy qz with a normalised quaternion")
     return transform_from_pq(pq)
 
 
@@ -153,6 +157,10 @@ def rig_from_dict(data: dict, source: str = "cameras.yaml") -> Rig:
         if not isinstance(w, int) or not isinstance(h, int) or w <= 0 or h <= 0:
             raise RigError(f"{where}: image_width/image_height must be positive integers, got {w!r}x{h!r}")
         K = _numbers(_field(c, "camera_matrix", where), 9, f"{where}: camera_matrix").reshape(3, 3)
+        if K[0, 0] <= 0 or K[1, 1] <= 0:
+            raise RigError(f"{where}: camera_matrix: focal lengths fx (element 0) and fy (element 4) must be positive, "
+                           f"got fx={K[0, 0]:g}, fy={K[1, 1]:g} (pixels); copy the matrix K of the camera's "
+                           "calibration, row-major")
         model = c.get("distortion_model", "plumb_bob")
         if model != "plumb_bob":
             raise RigError(f"{where}: distortion_model {model!r} is not supported (only plumb_bob)")
@@ -170,7 +178,8 @@ def rig_from_dict(data: dict, source: str = "cameras.yaml") -> Rig:
             T = _pose(_field(c, "T_link_camera", where), f"{where}: T_link_camera")
             out.append(RigCamera(name, intr, "eye_in_hand", link=link, T_link_camera=T))
         else:
-            raise RigError(f"{where}: mount must be 'fixed' or 'eye_in_hand', got {mount!r}")
+            raise RigError(f"{where}: mount must be 'fixed' (a camera standing in the cell, with T_world_camera) "
+                           f"or 'eye_in_hand' (on the robot, with link and T_link_camera), got {mount!r}")
     try:
         return Rig(tuple(out))
     except RigError as e:
@@ -192,7 +201,7 @@ def load_rig(path: str | Path) -> Rig:
     try:
         data = yaml.safe_load(path.read_text())
     except yaml.YAMLError as e:
-        raise RigError(f"{path}: not valid YAML: {e}") from None
+        raise RigError(f"{path}: not valid YAML: {yaml_problem(e)}; fix the syntax there") from None
     return rig_from_dict(data, str(path))
 
 

@@ -394,9 +394,11 @@ class PoseServer:
             st = self.publisher.stats()
             link = f" | link clients {st.clients_connected} sent {st.frames_sent} drops {st.drops} errors {st.errors}"
             link += f" refused {st.clients_refused}" if st.clients_refused else ""
+        images = getattr(self.source, "images", None)  # an ImageTally: images not used, per camera and reason
+        rejected = f" | {images.status()}" if images is not None and images.status() else ""
         self.log(f"{len(w) / dt:5.1f} Hz | {w[-1].status:12s} | tracker {np.median(tm):5.2f} ms "
                  f"(max {tm.max():5.2f}) | latency {np.median(lat):6.2f} ms | features {w[-1].n_accepted:2d}"
-                 f"{f' (a camera blind in {blind} frames)' if blind else ''}{link}")
+                 f"{f' (a camera blind in {blind} frames)' if blind else ''}{link}{rejected}")
 
     def gap(self, g: SourceGap) -> None:
         """No frame set came when one was due: publish ``lost`` (said once a gap)."""

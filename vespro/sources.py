@@ -50,11 +50,13 @@ class ReplaySource:
     """Replay a recording at its own capture times on ``clock``.
 
     Frame sets are re-stamped ``t_start + t[i]`` on the clock; ``loop`` starts
-    over at the end (indices keep increasing).
+    over at the end (indices keep increasing). ``images`` counts the images
+    read, usable or not (:class:`~vespro.imagecheck.ImageTally`).
     """
 
     def __init__(self, recording: Recording, clock: Clock, loop: bool = False):
         self.recording = recording
+        self.images = recording.images
         self.rig = recording.rig
         self.rate_hz = recording.rate_hz
         self.clock = clock

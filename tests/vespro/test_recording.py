@@ -97,9 +97,9 @@ def test_reads_the_example_recording_made_outside(example_box2):
         (lambda p: _edit(p / "meta.yaml", "rate_hz", "  rate_hz: [\n"), r"meta\.yaml: not valid YAML"),
         (lambda p: _edit(p / "frames.csv", "index,t", "idx,t"), r"frames\.csv: header must start"),
         (lambda p: _edit(p / "frames.csv", "h.qz", "h.qq"), r"frames\.csv: eye_in_hand camera 'h' needs column\(s\) h\.qz"),
-        (lambda p: _edit(p / "frames.csv", "\n2,", "\n7,"), r"frames\.csv: line 4: field 'index' must be 2"),
+        (lambda p: _edit(p / "frames.csv", "\n2,", "\n7,"), r"frames\.csv: line 4: field 'index' is 7 where 2 was due: the rows of indices 2-6 are missing"),
         (lambda p: _edit_line(p / "frames.csv", 3, 1, "soon"), r"frames\.csv: line 3: field 't' is not a number"),
-        (lambda p: _edit_line(p / "frames.csv", 3, 5, "nan"), r"frames\.csv: line 3: pose of camera 'h'"),
+        (lambda p: _edit_line(p / "frames.csv", 3, 5, "nan"), r"frames\.csv: line 3: field\(s\) h\.qw not finite: the eye_in_hand camera 'h'"),
         (lambda p: _edit(p / "cameras.yaml", "image_width: 320", "image_width: wide"), r"cameras\.yaml: camera 'a': image_width"),
     ],
 )

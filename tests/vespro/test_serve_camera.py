@@ -87,7 +87,9 @@ def test_a_video_is_paced_at_its_rate_and_the_server_stops_at_its_end(video):
     assert code == 0 and "Traceback" not in out, out
     assert out.count("stream ended after 45 frames") == 1 and "stopping" in out, out
     assert "stopped after" in out
-    frames = [m for m in msgs if m.t_capture_ns != msgs[-1].t_capture_ns]
+    # Frames' own poses; a stall report (published lost at the instant the stall is noticed, as on a
+    # heavily loaded machine) is stamped off the stream's grid.
+    frames = [m for m in msgs if m.t_capture_ns != msgs[-1].t_capture_ns and m.status != PoseStatus.LOST]
     assert len(frames) >= 20, out  # the client joined within the first half of the clip
     assert _paced([m.t_capture_ns for m in frames], 1e9 / FPS)  # the file's 30 Hz
     assert msgs[-1].status == PoseStatus.LOST  # at the end: nothing tracks the part any more
