@@ -20,6 +20,7 @@ _COMMANDS = [
     ("vespro.cmd_demo", "demo"),
     ("vespro.cmd_calibrate", "calibrate"),
     ("vespro.cmd_bop", "bop"),
+    ("vespro.cmd_export", "export"),
 ]
 
 

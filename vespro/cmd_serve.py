@@ -212,6 +212,8 @@ def _save_run(folder: Path, writer, outputs, stats, link_stats, source) -> None:
     lat = np.array(stats.latency_ms) if stats.latency_ms else np.zeros(1)
     tm = np.array(stats.tracker_ms) if stats.tracker_ms else np.zeros(1)
     info = {
+        # The capture stamp of frame set 0 (the recording's t = 0) on the clock the servo shares.
+        "t0_ns": writer.t0_ns,
         "frames": stats.frames, "tracking": stats.tracking, "init_attempts": stats.init_attempts,
         "init_successes": stats.init_successes, "recording_dropped": writer.dropped,
         "missed_captures": getattr(source, "missed", 0),
