@@ -42,6 +42,7 @@ def add_parser(sub) -> None:
     link.add_argument("--serial", metavar="URL", help="write to a serial device or pyserial URL instead")
     p.add_argument("--host", default="127.0.0.1", help="TCP: address to bind (localhost unless told otherwise)")
     p.add_argument("--baud", type=int, default=115200, help="serial: baud rate")
+    add_zenoh_options(p)
     p.add_argument("--frames", type=int, help="stop after this many frames")
     p.add_argument("--quiet", action="store_true", help="no once-a-second status line")
     p.add_argument("--cpu", type=int, metavar="N",
@@ -55,6 +56,35 @@ def add_parser(sub) -> None:
     add_scenario_options(p)
     add_tracker_options(p)
     p.set_defaults(func=run)
+
+
+def add_zenoh_options(p: argparse.ArgumentParser) -> None:
+    from .wire import ZENOH_ENDPOINT
+
+    z = p.add_argument_group("Zenoh (pip install 'vespro[interop]')")
+    z.add_argument("--zenoh", metavar="KEY",
+                   help="also publish every pose (wire frames) on this Zenoh key expression, for any number of "
+                        "subscribers (servo run --connect zenoh/KEY)")
+    z.add_argument("--zenoh-listen", action="append", metavar="ENDPOINT",
+                   help=f"Zenoh endpoint to listen on (repeatable; default {ZENOH_ENDPOINT}: this machine only)")
+    z.add_argument("--zenoh-connect", action="append", default=[], metavar="ENDPOINT",
+                   help="Zenoh endpoint to connect to, e.g. a router tcp/HOST:7447 (repeatable)")
+    z.add_argument("--zenoh-config", metavar="FILE", help="a Zenoh JSON5 configuration file instead of the above")
+    z.add_argument("--zenoh-ros2", metavar="TOPIC",
+                   help="also publish tracked poses as ROS 2 geometry_msgs/PoseWithCovarianceStamped on TOPIC, "
+                        "keyed as rmw_zenoh does (domain 0)")
+
+
+def zenoh_publisher(args, hello, clock_ns):
+    """The Zenoh publisher the options ask for, or None."""
+    if not args.zenoh:
+        return None
+    from .wire import ZENOH_ENDPOINT
+    from .zenoh_link import ZenohPublisher, ros2_key
+
+    return ZenohPublisher(args.zenoh, hello, listen=args.zenoh_listen or [ZENOH_ENDPOINT],
+                          connect=args.zenoh_connect, config_file=args.zenoh_config,
+                          ros2_key=ros2_key(args.zenoh_ros2) if args.zenoh_ros2 else None, clock_ns=clock_ns)
 
 
 def run(args) -> int:
@@ -148,6 +178,12 @@ def run(args) -> int:
         publisher = PosePublisher.tcp(hello, port=args.tcp, host=args.host, clock_ns=clock_ns)
         host, port = publisher.address
         where = f"tcp: connect to socket://{host}:{port}"
+    zpub = zenoh_publisher(args, hello, clock_ns)
+    if zpub is not None:
+        from .link import PublisherGroup
+
+        publisher = PublisherGroup(publisher, zpub)
+        where += f"; zenoh key {args.zenoh}"
     log = None if args.quiet else (lambda line: print(line, flush=True))
     outputs, writer = [], None
     if args.record:

@@ -30,6 +30,7 @@ from functools import lru_cache
 
 import numpy as np
 
+from .errors import InputError
 from .se3 import quat_from_matrix
 
 __all__ = ["WORLD", "typestore", "msgdef", "type_hash", "serialize", "deserialize", "time_msg", "header",
@@ -40,8 +41,9 @@ __all__ = ["WORLD", "typestore", "msgdef", "type_hash", "serialize", "deserializ
 WORLD = "world"
 
 
-class MissingInteropError(ImportError):
-    """A ROS 2 / MCAP / Zenoh feature was asked for without its optional packages."""
+class MissingInteropError(InputError, ImportError):
+    """A ROS 2 / MCAP / Zenoh feature was asked for without its optional packages (the command line
+    prints the one line saying what to install)."""
 
 
 @lru_cache(maxsize=1)
