@@ -55,6 +55,9 @@ def add_parser(sub) -> None:
                         "dedicated vision PC: other work on its core waits; the initialisation worker is not")
     add_scenario_options(p)
     add_tracker_options(p)
+    from .viewer import add_view_options
+
+    add_view_options(p)
     p.set_defaults(func=run)
 
 
@@ -195,10 +198,16 @@ def run(args) -> int:
         writer = AsyncRecordingWriter(args.record / "recording", source.rig, mesh, source.rate_hz, model.name,
                                       overwrite=True, defer_png=args.record_defer_png)
 
+    from .viewer import view_from_args
+
+    view = view_from_args(args, source.rig, model, block=args.lockstep, name="vespro serve")
+
     def on_output(fs, out):
         if writer is not None:
             writer.write(fs)
             outputs.append(out)
+        if view is not None:
+            view.observe(fs, out, series={"latency_ms": server.stats.latency_ms[-1]})
 
     mode = False if args.lockstep else ("process" if factory is not None else "thread")
     server = PoseServer(source, tracker, publisher, clock, initializer, background_init=mode, log=log,
@@ -218,6 +227,8 @@ def run(args) -> int:
         link_stats = publisher.stats()
         publisher.close()
         source.close()
+        if view is not None and (line := view.close()):
+            print(line, file=sys.stderr)
         if writer is not None:
             if args.cpu is not None or args.fifo:  # the saving (PNG encoding) is not live work
                 leave_realtime()

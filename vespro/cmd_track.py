@@ -91,8 +91,8 @@ def run(args) -> int:
         outs = track_recording(rec, tracker, init_pose, progress=not args.no_progress,
                                on_output=None if view is None else view.observe)
     finally:
-        if view is not None:
-            view.close()
+        if view is not None and (line := view.close()):
+            print(line, file=sys.stderr)
     write_track(args.output, rec, outs)
     n = sum(o.status == "tracking" for o in outs)
     tm = np.median([o.time_ms for o in outs])

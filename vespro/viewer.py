@@ -137,12 +137,18 @@ class RerunView:
         except queue.Full:
             self.dropped += 1
 
-    def close(self) -> None:
-        """Log what is queued, then flush and close the stream."""
+    def close(self) -> str:
+        """Log what is queued, then flush and close the stream; returns a line on what was not shown, or ""."""
         self._q.put(None)
         self._thread.join()
         self.rec.flush()
         self.rec.disconnect()
+        lost = []
+        if self.dropped:
+            lost.append(f"{self.dropped} frames not shown (the viewer fell behind)")
+        if self.errors:
+            lost.append(f"{self.errors} frames failed to log (last: {self.last_error})")
+        return "view: " + "; ".join(lost) if lost else ""
 
     def __enter__(self) -> "RerunView":
         return self

@@ -79,3 +79,32 @@ def test_view_save_of_a_track_holds_images_pose_and_series_for_every_frame(rec_p
     for name in ("features_used", "tracker_ms"):
         assert set(rows[f"/series/{name}"]) >= frames
     assert "/world/truth" not in rows  # tracking never shows ground truth
+
+
+def test_view_save_of_a_lockstep_demo_shows_estimate_truth_and_servo(tmp_path):
+    """The demo (an evaluator) adds the true pose, the arm and the servo's series to the view."""
+    from vespro.demo import DemoConfig, run_demo
+    from vespro.poses import read_poses
+    from vespro.recording import Recording
+
+    rrd = tmp_path / "demo.rrd"
+    run_demo(DemoConfig(out=tmp_path / "demo", object="box", cameras="fixed", duration=0.4, lockstep=True,
+                        video=False, view_save=rrd), log=lambda m: None)
+    rows = rrd_rows(rrd)
+    rec = Recording(tmp_path / "demo" / "vision" / "recording")
+    poses = read_poses(tmp_path / "demo" / "vision" / "poses.csv")
+    frames = set(range(len(rec)))
+    assert len(frames) >= 10 and len(poses) == len(frames)
+    for cam in rec.rig.names:
+        assert set(rows[f"/world/cameras/{cam}/image"]) >= frames
+    assert set(rows["/world/truth"]) == frames and set(rows["/series/status"]) >= frames
+    tracked = [r for r in poses if r.status == "tracking"]
+    assert len(tracked) >= len(frames) - 2
+    for r in tracked:
+        t = np.asarray(_col(rows["/world/estimate"][r.index], "Transform3D:translation"), dtype=float).ravel()
+        np.testing.assert_allclose(t, r.T_world_object[:3, 3], atol=1e-6)  # float32 in Rerun
+        err = _col(rows["/series/error_mm"][r.index], "Scalars:scalars")[0]
+        assert 0.0 < err < 5.0  # the estimate beside the truth, a millimetre or so apart
+    # The servo's series and the arm, at 50 Hz of cell time (on the capture_time timeline only).
+    assert len(_col(rows["/series/servo_status"][None], "Scalars:scalars")) >= 1
+    assert "/world/arm/tcp" in rows and "/world/arm/target" in rows
