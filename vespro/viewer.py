@@ -17,7 +17,7 @@ run.rrd`` writes the same stream to a file (``rerun run.rrd`` opens it). What it
 Timelines: ``frame`` (capture index) and ``capture_time`` (s from the first frame set).
 
 The viewer only observes: :meth:`RerunView.observe` takes the frame set and the
-tracker's output (both immutable) and queues them; a thread of its own does all
+tracker's output (both immutable) and queues them; a process of its own does all
 the work (projection, JPEG encoding, logging). Live (``block=False``) a full
 queue drops the frame for the viewer, counted in ``dropped``, and the tracker
 never waits; offline (``block=True``: ``vespro track``, the lockstep demo)
@@ -27,7 +27,6 @@ every frame is logged.
 from __future__ import annotations
 
 import queue
-import threading
 from pathlib import Path
 
 import numpy as np
@@ -74,7 +73,7 @@ def _xyzw(R: np.ndarray) -> list:
 
 
 class RerunView:
-    """Logs frame sets and tracker outputs to a Rerun recording from a background thread.
+    """Logs frame sets and tracker outputs to a Rerun recording from a process of its own.
 
     Parameters
     ----------
@@ -92,32 +91,42 @@ class RerunView:
         False: a frame that finds the queue full is not logged (``dropped``).
     image_every : int
         Log every n-th camera image.
+
+    The logging (Rerun's archetypes, JPEG encoding, projections) costs about as
+    much as tracking a frame; in a thread it would hold the interpreter lock
+    the tracker needs, so it runs in a child process (started with "spawn": the
+    caller may run threads) fed through a bounded queue; what the caller pays
+    per frame is handing its references to the queue's feeder thread.
     """
 
     def __init__(self, rig, model, *, spawn: bool = False, connect: str | None = None, save=None,
                  block: bool = False, image_every: int = 1, max_queue: int = 16, name: str = "vespro"):
-        rr = _rr()
-        self.rr = rr
-        self.rig = rig
-        self.model = model
+        import multiprocessing as mp
+
+        _rr()  # a missing package is the caller's one-line error, not the child's
         self.block = block
-        self.image_every = max(1, int(image_every))
         self.dropped = 0
-        self.rec = rr.RecordingStream(name)
-        if save is not None:
-            self.rec.save(str(save))
-        if connect:
-            self.rec.connect_grpc(connect)
-        elif spawn:
-            self.rec.spawn(connect=True)
-        self._t0_ns = None
-        self._mesh_shown = self._truth_shown = False
         self.errors = 0
         self.last_error = ""
-        self._q: queue.Queue = queue.Queue(maxsize=max_queue)
-        self._static()
-        self._thread = threading.Thread(target=self._run, name="vespro-view", daemon=True)
-        self._thread.start()
+        ctx = mp.get_context("spawn")
+        self._q = ctx.Queue(maxsize=max_queue)
+        self._result, child = ctx.Pipe(duplex=False)
+        opts = dict(spawn=spawn, connect=connect, save=None if save is None else str(save),
+                    image_every=max(1, int(image_every)), name=name)
+        self._proc = ctx.Process(target=_view_process, args=(rig, model, opts, self._q, child), daemon=True,
+                                 name="vespro-view")
+        self._proc.start()
+        child.close()
+        self._closed = False
+        # Wait for the process to be set up (imports, viewer connection: a second or more), so the
+        # first frames are not dropped for a queue nobody reads yet.
+        try:
+            ready = self._result.poll(120) and self._result.recv() == "ready"
+        except EOFError:  # the process died on start
+            ready = False
+        if not ready:
+            self._proc.terminate()
+            raise InputError("--view: the view process did not start (is the Rerun viewer reachable?)")
 
     # -- the caller's side (cheap, never touches its arguments) ---------------------
     def observe(self, fs, out, T_true: np.ndarray | None = None, series: dict | None = None) -> None:
@@ -129,20 +138,33 @@ class RerunView:
         self._put(("series", t_ns, series, points))
 
     def _put(self, item) -> None:
-        if self.block:
-            self._q.put(item)
+        if self._closed:
             return
         try:
-            self._q.put_nowait(item)
+            if self.block:
+                self._q.put(item)
+            else:
+                self._q.put_nowait(item)
         except queue.Full:
             self.dropped += 1
 
     def close(self) -> str:
         """Log what is queued, then flush and close the stream; returns a line on what was not shown, or ""."""
-        self._q.put(None)
-        self._thread.join()
-        self.rec.flush()
-        self.rec.disconnect()
+        if self._closed:
+            return ""
+        self._closed = True
+        try:
+            self._q.put(None, timeout=60)
+        except queue.Full:
+            pass
+        if self._result.poll(120):
+            try:
+                self.errors, self.last_error = self._result.recv()
+            except EOFError:
+                self.errors, self.last_error = -1, "the view process ended early"
+        self._proc.join(timeout=10)
+        if self._proc.is_alive():
+            self._proc.terminate()
         lost = []
         if self.dropped:
             lost.append(f"{self.dropped} frames not shown (the viewer fell behind)")
@@ -156,7 +178,54 @@ class RerunView:
     def __exit__(self, *exc) -> None:
         self.close()
 
-    # -- the logging thread ---------------------------------------------------------
+
+def _view_process(rig, model, opts: dict, q, result) -> None:
+    """The view's process: log what arrives until None, then report (errors, last error)."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle; it then closes us
+    logger = _Logger(rig, model, **opts)
+    result.send("ready")
+    while True:
+        item = q.get()
+        if item is None:
+            break
+        try:
+            if item[0] == "frame":
+                logger.log_frame(*item[1:])
+            else:
+                logger.log_series(*item[1:])
+        except Exception as e:  # a viewer problem must never stop the logging
+            logger.errors += 1
+            logger.last_error = repr(e)
+    logger.rec.flush()
+    logger.rec.disconnect()
+    result.send((logger.errors, logger.last_error))
+
+
+class _Logger:
+    """The Rerun logging itself (in the view's process)."""
+
+    def __init__(self, rig, model, *, spawn: bool, connect: str | None, save: str | None, image_every: int,
+                 name: str):
+        rr = _rr()
+        self.rr = rr
+        self.rig = rig
+        self.model = model
+        self.image_every = image_every
+        self.rec = rr.RecordingStream(name)
+        if save is not None:
+            self.rec.save(save)
+        if connect:
+            self.rec.connect_grpc(connect)
+        elif spawn:
+            self.rec.spawn(connect=True)
+        self._t0_ns = None
+        self._mesh_shown = self._truth_shown = False
+        self.errors = 0
+        self.last_error = ""
+        self._static()
+
     def _static(self) -> None:
         rr, rec = self.rr, self.rec
         rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
@@ -172,20 +241,6 @@ class RerunView:
                         static=True)
         rec.log("series/status", rr.SeriesLines(names="status (2 tracking, 1 initialising, 0 lost)"), static=True)
 
-    def _run(self) -> None:
-        while True:
-            item = self._q.get()
-            if item is None:
-                return
-            try:
-                if item[0] == "frame":
-                    self._log_frame(*item[1:])
-                else:
-                    self._log_series(*item[1:])
-            except Exception as e:  # a viewer problem must never stop the logging (or anything else)
-                self.errors += 1
-                self.last_error = repr(e)
-
     def _time(self, t_ns: int, index: int | None = None) -> None:
         if self._t0_ns is None:
             self._t0_ns = int(t_ns)
@@ -193,7 +248,7 @@ class RerunView:
             self.rec.set_time("frame", sequence=int(index))
         self.rec.set_time("capture_time", duration=(int(t_ns) - self._t0_ns) * 1e-9)
 
-    def _log_series(self, t_ns, series, points) -> None:
+    def log_series(self, t_ns, series, points) -> None:
         rr, rec = self.rr, self.rec
         rec.reset_time()
         self._time(t_ns)
@@ -202,7 +257,7 @@ class RerunView:
         for name, p in (points or {}).items():
             rec.log(f"world/{name}", rr.Points3D([p], radii=0.006, colors=[_BLUE]))
 
-    def _log_frame(self, fs, out, T_true, series) -> None:
+    def log_frame(self, fs, out, T_true, series) -> None:
         import cv2
 
         rr, rec = self.rr, self.rec
