@@ -422,7 +422,7 @@ def run_demo_lockstep(cfg: DemoConfig, log=print) -> dict:
     outputs = []
     view = None
     if cfg.view or cfg.view_connect or cfg.view_save:
-        from .viewer import RerunView
+        from .viewer import COLORS, RerunView
 
         view = RerunView(rig, model, spawn=cfg.view, connect=cfg.view_connect, save=cfg.view_save, block=True,
                          image_every=cfg.view_image_every, name="vespro demo")
@@ -461,8 +461,10 @@ def run_demo_lockstep(cfg: DemoConfig, log=print) -> dict:
             k = min(plant.k, len(plant.log["t_ns"])) - 1
             tcp = plant.log["tcp"][k, :3]
             goal = plant.log["object"][k, :3] + [0.0, 0.0, STANDOFF]
-            view.log_series(t_ns, {"servo_status": int(out_cmd.status), "servo_error_mm": 1e3 * np.linalg.norm(tcp - goal)},
-                            {"arm/tcp": tcp, "arm/target": np.array(out_cmd.ref.p)})
+            view.log_series(t_ns, {"servo_status": int(out_cmd.status),
+                                   "servo_error_mm": 1e3 * np.linalg.norm(tcp - goal)},
+                            {"arm/tcp": (tcp, COLORS["orange"]),
+                             "arm/target": (np.array(out_cmd.ref.p), COLORS["blue"])})
         if kill_ns is not None and t_ns >= kill_ns:
             if not events:  # the pose server dies: no more poses, its link closes
                 pub.close()

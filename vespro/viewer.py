@@ -35,10 +35,12 @@ from .camera import project_points
 from .errors import InputError
 from .se3 import invert_transform, quat_from_matrix
 
-__all__ = ["RerunView", "STATUS_CODE", "add_view_options", "view_from_args"]
+__all__ = ["RerunView", "STATUS_CODE", "add_view_options", "view_from_args", "COLORS"]
 
 STATUS_CODE = {"tracking": 2.0, "initializing": 1.0, "lost": 0.0}
 _GREEN, _ORANGE, _BLUE, _GREY = (40, 200, 60), (255, 140, 0), (60, 140, 255), (170, 170, 170)
+#: Colours for callers' points (``RerunView.log_series``).
+COLORS = {"green": _GREEN, "orange": _ORANGE, "blue": _BLUE, "grey": _GREY}
 
 
 def add_view_options(p) -> None:
@@ -46,7 +48,8 @@ def add_view_options(p) -> None:
     g.add_argument("--view", action="store_true", help="stream to a Rerun viewer (spawned unless one is running)")
     g.add_argument("--view-connect", metavar="URL",
                    help="stream to the Rerun viewer at URL instead (rerun+http://HOST:9876/proxy)")
-    g.add_argument("--view-save", type=Path, metavar="RUN.rrd", help="write the view to this file (open with: rerun RUN.rrd)")
+    g.add_argument("--view-save", type=Path, metavar="RUN.rrd",
+                   help="write the view to this file (open with: rerun RUN.rrd)")
     g.add_argument("--view-image-every", type=int, default=1, metavar="N",
                    help="log every N-th camera image (overlays and 3D every frame)")
 
@@ -134,7 +137,7 @@ class RerunView:
         self._put(("frame", fs, out, T_true, series))
 
     def log_series(self, t_ns: int, series: dict, points: dict | None = None) -> None:
-        """Queue scalar series (``name -> value``) and 3D points (``entity -> (3,)``) at capture stamp ``t_ns``."""
+        """Queue scalar series (``name -> value``) and 3D points (``entity -> ((3,), RGB)``) at capture stamp ``t_ns``."""
         self._put(("series", t_ns, series, points))
 
     def _put(self, item) -> None:
@@ -224,7 +227,25 @@ class _Logger:
         self._mesh_shown = self._truth_shown = False
         self.errors = 0
         self.last_error = ""
+        self.rec.send_blueprint(self._blueprint())
         self._static()
+
+    def _blueprint(self):
+        """The cell in 3D beside the cameras' images, the series below, on the capture-time line
+        (the servo's series, at its own ticks, line up with the frames there)."""
+        import rerun.blueprint as rrb
+
+        cams = [rrb.Spatial2DView(origin=f"world/cameras/{c.name}/image", name=c.name) for c in self.rig]
+        series = [("tracking", ["series/status", "series/features_used"]),
+                  ("time, ms", ["series/tracker_ms", "series/latency_ms"]),
+                  ("error against the truth (mm, deg)", ["series/error_mm", "series/error_deg"]),
+                  ("servo", ["series/servo_status", "series/servo_error_mm"])]
+        return rrb.Blueprint(
+            rrb.Vertical(
+                rrb.Horizontal(rrb.Spatial3DView(origin="world", name="cell"), rrb.Grid(*cams), column_shares=[2, 3]),
+                rrb.Horizontal(*[rrb.TimeSeriesView(origin="series", contents=c, name=n) for n, c in series]),
+                row_shares=[3, 2]),
+            rrb.TimePanel(timeline="capture_time"), collapse_panels=True)
 
     def _static(self) -> None:
         rr, rec = self.rr, self.rec
@@ -254,8 +275,8 @@ class _Logger:
         self._time(t_ns)
         for name, v in (series or {}).items():
             rec.log(f"series/{name}", rr.Scalars(float(v)))
-        for name, p in (points or {}).items():
-            rec.log(f"world/{name}", rr.Points3D([p], radii=0.006, colors=[_BLUE]))
+        for name, (p, color) in (points or {}).items():
+            rec.log(f"world/{name}", rr.Points3D([p], radii=0.006, colors=[color]))
 
     def log_frame(self, fs, out, T_true, series) -> None:
         import cv2
@@ -279,8 +300,8 @@ class _Logger:
                     rec.log(f"{path}/image", rr.EncodedImage(contents=jpg.tobytes(), media_type="image/jpeg"))
             o = obs.get(cam.name)
             if o is not None and len(o.uv_pred):
-                rec.log(f"{path}/image/windows", rr.Boxes2D(centers=o.uv_pred, half_sizes=np.repeat(o.half_size[:, None], 2, 1),
-                                                            colors=[_BLUE]))
+                half = np.repeat(o.half_size[:, None], 2, 1)
+                rec.log(f"{path}/image/windows", rr.Boxes2D(centers=o.uv_pred, half_sizes=half, colors=[_BLUE]))
                 found = np.all(np.isfinite(o.uv_meas), axis=1)
                 colors = np.where(o.accepted[found, None], _GREEN, _ORANGE)
                 rec.log(f"{path}/image/corners", rr.Points2D(o.uv_meas[found], colors=colors, radii=2.0))

@@ -148,7 +148,8 @@ def test_tracked_poses_also_go_out_as_ros2_cdr_with_the_rmw_zenoh_key():
         assert _until(ready)
         for m in msgs:
             pub.publish(m)
-        decode = DecoderFactory().decoder_for("cdr", Schema(id=1, name=POSE_TYPE, encoding="ros2msg", data=msgdef(POSE_TYPE).encode()))
+        schema = Schema(id=1, name=POSE_TYPE, encoding="ros2msg", data=msgdef(POSE_TYPE).encode())
+        decode = DecoderFactory().decoder_for("cdr", schema)
         poses = lambda: [(decode(p), a) for p, a in got if decode(p).pose.pose.position.x != 9.0]  # noqa: E731
         assert _until(lambda: len(poses()) == 2)
     finally:
