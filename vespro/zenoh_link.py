@@ -27,19 +27,18 @@ header stamp is the capture stamp moved to the system clock (ROS time).
 from __future__ import annotations
 
 import os
-import threading
 import time
+from dataclasses import replace
 from typing import Callable
 
 from .errors import InputError
-from .link import LinkStats, PublishStatus
+from .link import LinkStats, PosePublisher, PublishStatus
 from .ros2 import MissingInteropError
-from .wire import ZENOH_ENDPOINT, HeartbeatMsg, HelloMsg, PoseMsg, PoseStatus, encode, zenoh_config_json5
+from .wire import ZENOH_ENDPOINT, HelloMsg, PoseMsg, PoseStatus, zenoh_config_json5
 
 __all__ = ["ZenohPublisher", "ZenohSetupError", "ros2_key", "open_session", "POSE_TYPE"]
 
 POSE_TYPE = "geometry_msgs/msg/PoseWithCovarianceStamped"
-_U32 = 2**32
 
 
 class ZenohSetupError(InputError):
@@ -72,9 +71,29 @@ def ros2_key(topic: str, typename: str = POSE_TYPE, domain_id: int = 0) -> str:
     return f"{int(domain_id)}/{topic.strip('/')}/{pkg}::msg::dds_::{name}_/{type_hash(typename)}"
 
 
+class _ZenohPort:
+    """A Zenoh publisher as the port of :meth:`vespro.link.PosePublisher.serial` (``write(bytes)``)."""
+
+    def __init__(self, pub, key: str):
+        self._pub = pub
+        self._key = key
+
+    def __str__(self) -> str:
+        return f"zenoh {self._key}"
+
+    def write(self, data: bytes) -> int:
+        self._pub.put(bytes(data))
+        return len(data)
+
+
 class ZenohPublisher:
     """Wire frames (and optionally ROS 2 CDR poses) on Zenoh; the interface of
     :class:`vespro.link.PosePublisher` (``publish``, ``heartbeat``, ``stats``, ``close``).
+
+    The link's own publisher does the work (encoding, send stamps, HELLO
+    repeats, heartbeats, counters), writing each frame as one sample as it
+    writes a serial line; the very first sample opens with a lone delimiter,
+    as a serial stream does.
 
     Parameters
     ----------
@@ -90,26 +109,17 @@ class ZenohPublisher:
         Also publish each tracked pose as ROS 2 CDR on this key (:func:`ros2_key`).
     frame_id : str
         ROS 2 header frame.
-    hello_period_s, heartbeat_period_s : float
-        HELLO repeat period; HEARTBEAT after this long without a publish (0: never).
-    stamp_send_time : bool
-        Replace ``t_send_ns`` of each message with ``clock_ns()`` at publish.
-    clock_ns : callable
-        The clock of the capture stamps (``SimClock.now_ns`` in simulation).
+    hello_period_s, heartbeat_period_s, stamp_send_time, clock_ns
+        As for :class:`vespro.link.PosePublisher`.
     """
 
     def __init__(self, key: str, hello: HelloMsg, *, listen=(ZENOH_ENDPOINT,), connect=(),
                  config_file: str | None = None, ros2_key: str | None = None, frame_id: str = "world",
                  hello_period_s: float = 1.0, heartbeat_period_s: float = 1.0, stamp_send_time: bool = True,
                  clock_ns: Callable[[], int] = time.monotonic_ns):
-        if not isinstance(hello, HelloMsg):
-            raise ValueError(f"hello: expected a HelloMsg, got {type(hello).__name__}")
         zenoh = _zenoh()
         self.key = key
         self.hello = hello
-        self._hello_frame = encode(hello)
-        self._clock_ns = clock_ns
-        self._stamp = stamp_send_time
         self._frame_id = frame_id
         # ROS time is the system clock: capture stamps are moved onto it by this offset.
         self._ros_offset_ns = time.time_ns() - clock_ns()
@@ -127,26 +137,11 @@ class ZenohPublisher:
             self._session.close()
             raise ZenohSetupError(f"Zenoh key expression {key!r}: {e}") from None
         self._gid = os.urandom(16)   # rmw_zenoh's publisher id in the attachment
-        self._lock = threading.Lock()
-        self._closed = False
-        self._published = self._sent = self._bytes = self._errors = self._ros_seq = 0
-        self._hb_seq = 0
-        self._last_publish_ns = clock_ns()
-        self._put(self._hello_frame)
-        self._stop = threading.Event()
-        self._hello_s, self._hb_ns = float(hello_period_s), int(heartbeat_period_s * 1e9)
-        self._thread = threading.Thread(target=self._run, name="vespro-zenoh", daemon=True)
-        self._thread.start()
-
-    def _put(self, frame: bytes) -> bool:
-        try:
-            self._pub.put(frame)
-        except Exception:
-            self._errors += 1
-            return False
-        self._sent += 1
-        self._bytes += len(frame)
-        return True
+        self._ros_seq = 0
+        self._ros_errors = 0
+        self._link = PosePublisher.serial(hello, _ZenohPort(self._pub, key), hello_period_s=hello_period_s,
+                                          heartbeat_period_s=heartbeat_period_s, stamp_send_time=stamp_send_time,
+                                          clock_ns=clock_ns)
 
     def _put_ros2(self, msg: PoseMsg) -> None:
         from zenoh.ext import Int64, z_serialize
@@ -162,30 +157,17 @@ class ZenohPublisher:
 
     def publish(self, msg) -> PublishStatus:
         """Send one message to every subscriber; never blocks or raises."""
-        if self._closed:
-            return PublishStatus.CLOSED
-        try:
-            frame = encode(msg, self._clock_ns() if self._stamp else None)
-        except Exception:
-            with self._lock:
-                self._errors += 1
-            return PublishStatus.INVALID
-        with self._lock:
-            self._published += 1
-            self._last_publish_ns = self._clock_ns()
-            ok = self._put(frame)
-            if ok and self._ros is not None and isinstance(msg, PoseMsg) and msg.status == PoseStatus.TRACKING:
-                try:
-                    self._put_ros2(msg)
-                except Exception:
-                    self._errors += 1
-        return PublishStatus.OK if ok else PublishStatus.NO_SINK
+        status = self._link.publish(msg)
+        if status == PublishStatus.OK and self._ros is not None and isinstance(msg, PoseMsg) \
+                and msg.status == PoseStatus.TRACKING:
+            try:
+                self._put_ros2(msg)
+            except Exception:
+                self._ros_errors += 1
+        return status
 
     def heartbeat(self) -> PublishStatus:
-        with self._lock:
-            seq = self._hb_seq
-            self._hb_seq = (seq + 1) % _U32
-        return self.publish(HeartbeatMsg(seq, self._clock_ns()))
+        return self._link.heartbeat()
 
     def subscribers_matched(self) -> bool:
         """True when at least one subscriber matches the key."""
@@ -195,29 +177,13 @@ class ZenohPublisher:
             return False
 
     def stats(self) -> LinkStats:
-        with self._lock:
-            return LinkStats(frames_published=self._published, frames_sent=self._sent, bytes_sent=self._bytes,
-                             drops=0, clients_connected=int(self.subscribers_matched()), clients_accepted=0,
-                             clients_refused=0, errors=self._errors, sinks=())
-
-    def _run(self) -> None:
-        next_hello = time.monotonic() + self._hello_s
-        while not self._stop.wait(0.1):
-            with self._lock:
-                if self._hello_s > 0 and time.monotonic() >= next_hello:
-                    self._put(self._hello_frame)
-                    next_hello = time.monotonic() + self._hello_s
-                idle = self._hb_ns > 0 and self._clock_ns() - self._last_publish_ns >= self._hb_ns
-            if idle:
-                self.heartbeat()
+        """The link's counters; ``clients_connected`` is 1 while a subscriber matches the key."""
+        st = self._link.stats()
+        return replace(st, clients_connected=int(self.subscribers_matched()), errors=st.errors + self._ros_errors)
 
     def close(self) -> None:
-        """Stop the thread and close the session. Idempotent."""
-        if self._closed:
-            return
-        self._closed = True
-        self._stop.set()
-        self._thread.join(timeout=5.0)
+        """Stop sending and close the session. Idempotent."""
+        self._link.close()
         try:
             self._session.close()
         except Exception:

@@ -69,7 +69,12 @@ def test_three_subscribers_get_every_served_pose_in_order(rec_path):
     # The servo's receiver (as `servo run --connect zenoh/...` builds it) and two more.
     rxs = [PoseReceiver(f"zenoh/{key}?connect=tcp/127.0.0.1:{port}") for _ in range(3)]
     try:
-        assert _until(lambda: all(rx.hello is not None for rx in rxs), poll=rxs), "subscribers did not connect"
+        def connected():  # heartbeats until every subscriber hears them (the simulated clock stands still)
+            pub.heartbeat()
+            time.sleep(0.02)
+            return all(rx.stats().frames_ok > 0 for rx in rxs)
+
+        assert _until(connected, poll=rxs), "subscribers did not connect"
         got = [[] for _ in rxs]
         fired = []
 
