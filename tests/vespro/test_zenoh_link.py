@@ -215,3 +215,46 @@ def test_zenoh_urls_parse_and_bad_ones_are_refused():
     for bad in ("zenoh/", "zenoh/k?mode=router", "zenoh/k?port=3"):
         with pytest.raises(ValueError):
             parse_zenoh_url(bad)
+
+
+def test_servo_run_refuses_a_bad_zenoh_url_in_one_line(capsys):
+    from servo.cli import main as servo_main
+
+    assert servo_main(["run", "--connect", "zenoh/vespro/pose?mode=router", "--duration", "0.1"]) == 2
+    err = capsys.readouterr().err
+    assert "--connect" in err and "mode must be peer or client" in err and err.count("\n") == 1
+
+
+def test_the_documented_router_config_carries_the_poses_between_clients():
+    """docs/zenoh/router.json5 (on loopback here): the server and the servo each connect to the router only."""
+    import json
+
+    import zenoh
+
+    port = _free_port()
+    conf = zenoh.Config.from_file(str(ROOT / "docs" / "zenoh" / "router.json5"))
+    conf.insert_json5("listen/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
+    router = zenoh.open(conf)
+    pub = ZenohPublisher("cell/pose", HelloMsg(26.0, ("box",)), listen=[], connect=[f"tcp/127.0.0.1:{port}"])
+    rx = PoseReceiver(f"zenoh/cell/pose?connect=tcp/127.0.0.1:{port}&mode=client")
+    try:
+        assert _until(lambda: pub.heartbeat() is not None and rx.stats().frames_ok > 0, poll=[rx])
+        sent = [PoseMsg(k, 1, 0, 0, PoseStatus.TRACKING, [0.0, 0, k], [1.0, 0, 0, 0], [0, 0, 0], [0, 0, 0],
+                        np.eye(6)) for k in range(20)]
+        got = []
+
+        def arrived(k):
+            buf = []
+            rx.poll(out=buf)
+            got.extend(m for m in buf if isinstance(m, PoseMsg))
+            return len(got) == k + 1
+
+        for k, m in enumerate(sent):
+            pub.publish(m)
+            assert _until(lambda: arrived(k)), f"pose {k} did not arrive"
+        assert [m.seq for m in got] == list(range(20))
+        assert [m.p_world_object[2] for m in got] == list(range(20))
+    finally:
+        rx.close()
+        pub.close()
+        router.close()
