@@ -31,9 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .camera import project_points
 from .errors import InputError
-from .se3 import invert_transform, quat_from_matrix
 
 __all__ = ["RerunView", "STATUS_CODE", "add_view_options", "view_from_args", "COLORS"]
 
@@ -71,6 +69,8 @@ def _rr():
 
 
 def _xyzw(R: np.ndarray) -> list:
+    from .se3 import quat_from_matrix
+
     q = quat_from_matrix(R)
     return [q[1], q[2], q[3], q[0]]
 
@@ -280,6 +280,9 @@ class _Logger:
 
     def log_frame(self, fs, out, T_true, series) -> None:
         import cv2
+
+        from .camera import project_points
+        from .se3 import invert_transform
 
         rr, rec = self.rr, self.rec
         self._time(fs.t_ns, fs.index)

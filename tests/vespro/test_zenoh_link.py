@@ -121,6 +121,8 @@ def test_three_subscribers_get_every_served_pose_in_order(rec_path):
 
 
 def test_tracked_poses_also_go_out_as_ros2_cdr_with_the_rmw_zenoh_key():
+    pytest.importorskip("mcap_ros2", reason="ROS 2 messages need the interop extra (pip install 'vespro[interop]')")
+    pytest.importorskip("rosbags", reason="ROS 2 messages need the interop extra (pip install 'vespro[interop]')")
     import zenoh
     from mcap.records import Schema
     from mcap_ros2.decoder import DecoderFactory
