@@ -71,9 +71,10 @@ reason (see ``REJECT_REASONS``) and counts gaps in the POSE sequence numbers.
 Zenoh
 -----
 On Zenoh (``vespro serve --zenoh KEY``, ``servo run --connect zenoh/KEY``)
-each sample published on the key expression carries exactly one frame, as
-``encode`` makes it; a subscriber feeds the payloads to a :class:`Decoder` in
-arrival order. HELLO is repeated every second (a subscriber may join at any
+each sample published on the key expression carries one frame, as ``encode``
+makes it (the publisher's first sample opens with a lone ``0x00``, as any
+stream does); a subscriber feeds the payloads to a :class:`Decoder` in arrival
+order. HELLO is repeated every second (a subscriber may join at any
 time) and a HEARTBEAT goes out when nothing else did for a second.
 :func:`zenoh_config_json5` is the session configuration both sides use.
 """
