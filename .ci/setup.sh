@@ -16,5 +16,5 @@ if [ ${#need[@]} -gt 0 ]; then
     echo "setup: please install these system packages: ${need[*]}" >&2
   fi
 fi
-python3 -m pip install -q --disable-pip-version-check -e . 2>&1 | grep -v "Running pip as the 'root' user" || true
+python3 -m pip install -q --disable-pip-version-check -e '.[interop,view]' 2>&1 | grep -v "Running pip as the 'root' user" || true
 python3 -c "import vespro, servo" 

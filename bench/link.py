@@ -10,6 +10,11 @@ Rows:
   non-blocking send, I/O, decode). The send stamp is ``t_send_ns`` taken by
   the publisher before encoding; the receive stamp is taken when ``poll``
   returns.
+- ``zenoh peers``: the same through :class:`vespro.zenoh_link.ZenohPublisher`
+  and ``PoseReceiver("zenoh/KEY?connect=...")`` (two peers on loopback, the
+  receiver waiting in ``select`` on its wake-up descriptor); its ``raw`` row is
+  Zenoh's own ``put`` of the pre-encoded frame to a bare subscriber callback.
+  Latency only (see the note printed with the table).
 - ``raw``: the baseline, in the same process: the same pre-encoded bytes
   written with a plain ``sendall`` / ``os.write`` and read with ``recv`` /
   ``os.read``, frames counted by their 0x00 delimiters, no decoding.
@@ -126,19 +131,20 @@ def _raw_child(read, n: int, conn) -> None:
     conn.send(t_recv)
 
 
-def _spawn(target, *args):
+def _spawn(target, *args, start="fork"):
+    # "spawn" once this process runs a Zenoh session: a forked child inherits its runtime without its threads.
     parent, child = mp.Pipe()
-    p = mp.get_context("fork").Process(target=target, args=(*args, child), daemon=True)
+    p = mp.get_context(start).Process(target=target, args=(*args, child), daemon=True)
     p.start()
     if parent.poll(15):
         assert parent.recv() == "ready"
     return p, parent
 
 
-def _stack_run(pub, rx_url, n: int, period_ns: int):
+def _stack_run(pub, rx_url, n: int, period_ns: int, start="fork"):
     """Returns (latencies_ns, frames/s)."""
     poses = [make_pose(i) for i in range(n)]   # built beforehand, like the raw row's bytes
-    proc, conn = _spawn(_stack_child, rx_url, n)
+    proc, conn = _spawn(_stack_child, rx_url, n, start=start)
     t0 = time.monotonic_ns()
     for i in range(n):
         if period_ns:
@@ -221,6 +227,78 @@ def pty_raw(n, period_ns):
         os.close(slave)
 
 
+ZENOH_KEY = "bench/vespro/pose"
+
+
+def _zenoh_endpoint() -> str:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return f"tcp/127.0.0.1:{s.getsockname()[1]}"
+
+
+def zenoh_stack(n, period_ns):
+    """ZenohPublisher -> PoseReceiver("zenoh/..."): two peers on loopback."""
+    from vespro.zenoh_link import ZenohPublisher
+
+    ep = _zenoh_endpoint()
+    pub = ZenohPublisher(ZENOH_KEY, HELLO, listen=[ep], hello_period_s=0.1, heartbeat_period_s=0)
+    return _stack_run(pub, f"zenoh/{ZENOH_KEY}?connect={ep}", n, period_ns, start="spawn")
+
+
+def _zenoh_raw_child(ep: str, n: int, conn) -> None:
+    import threading
+
+    import zenoh
+
+    t_recv = np.zeros(n, dtype=np.int64)
+    k = [0]
+    done = threading.Event()
+
+    def on_sample(sample):
+        now = time.monotonic_ns()
+        if k[0] < n:
+            t_recv[k[0]] = now
+            k[0] += 1
+            if k[0] == n:
+                done.set()
+
+    session = zenoh.open(zenoh.Config.from_json5(wire.zenoh_config_json5("peer", [], [ep])))
+    session.declare_subscriber(ZENOH_KEY, on_sample)
+    conn.send("ready")
+    done.wait(60)
+    conn.send(t_recv[: k[0]])
+    session.close()
+
+
+def zenoh_raw(n, period_ns):
+    """The baseline: zenoh's own put of the pre-encoded bytes to a bare subscriber callback."""
+    import zenoh
+
+    ep = _zenoh_endpoint()
+    session = zenoh.open(zenoh.Config.from_json5(wire.zenoh_config_json5("peer", [ep], [])))
+    try:
+        pub = session.declare_publisher(ZENOH_KEY, congestion_control=zenoh.CongestionControl.DROP, express=True)
+        proc, conn = _spawn(_zenoh_raw_child, ep, n, start="spawn")
+        t_end = time.monotonic() + 15
+        while not pub.matching_status.matching and time.monotonic() < t_end:
+            time.sleep(0.01)
+        frame = wire.encode(make_pose(0))
+        t_send = np.zeros(n, dtype=np.int64)
+        t0 = time.monotonic_ns()
+        for i in range(n):
+            if period_ns:
+                wait_until(t0 + i * period_ns)
+            t_send[i] = time.monotonic_ns()
+            pub.put(frame)
+        t_recv = conn.recv()
+        proc.join(5)
+    finally:
+        session.close()
+    if len(t_recv) < n:
+        raise RuntimeError(f"zenoh raw: received {len(t_recv)} of {n} frames")
+    return t_recv - t_send, n / ((t_recv[-1] - t0) / 1e9)
+
+
 def codec_us(n: int = 5000) -> tuple[float, float]:
     m = make_pose(1)
     f = wire.encode(m)
@@ -241,6 +319,7 @@ def main(argv=None) -> int:
     ap.add_argument("--frames", type=int, default=1000, help="paced frames per latency run")
     ap.add_argument("--period-us", type=int, default=2000, help="pacing of the latency runs (500 Hz; the tracker sends 26 Hz)")
     ap.add_argument("--burst", type=int, default=20000, help="frames per throughput run")
+    ap.add_argument("--no-zenoh", action="store_true", help="skip the Zenoh rows")
     args = ap.parse_args(argv)
     period = args.period_us * 1000
 
@@ -262,6 +341,18 @@ def main(argv=None) -> int:
         rows.append((link, "stack", lat_s, thr_s))
         rows.append((link, "raw", lat_r, thr_r))
         rows.append((link, "ratio", (lat_s, lat_r), thr_s / thr_r))
+    if not args.no_zenoh:
+        try:
+            import zenoh  # noqa: F401
+        except ImportError:
+            print("zenoh rows skipped: eclipse-zenoh is not installed (pip install 'vespro[interop]')")
+        else:
+            # Latency only: the publisher drops samples a subscriber cannot take (latest value wins),
+            # so a burst measures its drops, not a throughput.
+            lat_s, _ = zenoh_stack(args.frames, period)
+            lat_r, _ = zenoh_raw(args.frames, period)
+            rows += [("zenoh peers", "stack", lat_s, None), ("zenoh peers", "raw", lat_r, None),
+                     ("zenoh peers", "ratio", (lat_s, lat_r), None)]
 
     hdr = f"{'link':<13} {'path':<6} {'frame B':>7} {'lat med us':>10} {'lat p99 us':>10} {'frames/s':>10}"
     print(hdr)
@@ -271,13 +362,17 @@ def main(argv=None) -> int:
             s, r = lat
             med = np.median(s) / np.median(r)
             p99 = np.percentile(s, 99) / np.percentile(r, 99)
-            print(f"{link:<13} {'ratio':<6} {'':>7} {med:>9.1f}x {p99:>9.1f}x {thr:>9.2f}x")
+            thr = f"{thr:>9.2f}x" if thr is not None else f"{'-':>10}"
+            print(f"{link:<13} {'ratio':<6} {'':>7} {med:>9.1f}x {p99:>9.1f}x {thr}")
         else:
+            thr = f"{thr:>10.0f}" if thr is not None else f"{'-':>10}"
             print(f"{link:<13} {path:<6} {size:>7} {np.median(lat) / 1e3:>10.1f} "
-                  f"{np.percentile(lat, 99) / 1e3:>10.1f} {thr:>10.0f}")
+                  f"{np.percentile(lat, 99) / 1e3:>10.1f} {thr}")
     print()
     print(f"latency: {args.frames} frames paced every {args.period_us} us, receiver waiting in select; "
           f"throughput: burst of {args.burst} frames")
+    if any(r[0] == "zenoh peers" for r in rows):
+        print("zenoh: no throughput row: its publisher drops what a subscriber cannot take (latest value wins)")
     return 0
 
 

@@ -25,7 +25,9 @@ def add_parser(sub) -> None:
         ),
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
-    p.add_argument("--connect", default="socket://127.0.0.1:5555", help="pyserial URL of the pose server")
+    p.add_argument("--connect", default="socket://127.0.0.1:5555",
+                   help="pyserial URL of the pose server, or zenoh/KEY[?connect=tcp/HOST:PORT] to subscribe to "
+                        "the poses on Zenoh (pip install 'vespro[interop]'; see servo.zenoh_source)")
     p.add_argument("--baud", type=int, default=115200, help="serial lines: baud rate")
     p.add_argument("--standoff", type=float, default=0.15, help="TCP height above the object origin while following, m")
     p.add_argument("--standoff-frame", choices=["world", "object"], default="world",
@@ -168,8 +170,12 @@ def run(args) -> int:
             return 2
         cfg = LoopConfig(**{**cfg.__dict__, "safety": {**cfg.safety, "max_future_s": args.clock_tolerance}})
     clock = WallClock()
-    receiver = PoseReceiver(args.connect, baudrate=args.baud,
-                            future_tolerance_s=cfg.safety.get("max_future_s", 0.005))
+    try:
+        receiver = PoseReceiver(args.connect, baudrate=args.baud,
+                                future_tolerance_s=cfg.safety.get("max_future_s", 0.005))
+    except ValueError as e:
+        print(f"servo run: --connect: {e}", file=sys.stderr)
+        return 2
     source = LinkSource(receiver)
     if args.robot.startswith("shm:"):
         from .shm_robot import ShmArm

@@ -201,7 +201,8 @@ class PoseReceiver:
     ----------
     url : str
         ``socket://HOST:PORT``, a device path (``/dev/ttyUSB0``, a pty slave),
-        or any other pyserial URL (``loop://``, ``rfc2217://...``).
+        any other pyserial URL (``loop://``, ``rfc2217://...``), or
+        ``zenoh/KEY`` (:mod:`servo.zenoh_source`).
     baudrate : int
         Serial lines only.
     backoff_min_s, backoff_max_s : float
@@ -239,6 +240,12 @@ class PoseReceiver:
                 raise ValueError(f"expected socket://HOST:PORT, got {url!r}")
             self._transport = _TcpTransport(parts.hostname, parts.port)
             self._idle_ns = int(idle_timeout_s * 1e9)
+        elif url.startswith("zenoh/"):
+            from .zenoh_source import ZenohTransport  # Zenoh: servo.zenoh_source (URL options there)
+
+            self._transport = ZenohTransport(url)
+            self._idle_ns = 0
+            connect_timeout_s = max(connect_timeout_s, 10.0)  # opening a session takes ~0.5 s, more under load
         else:
             self._transport = _SerialTransport(url, baudrate)
             self._idle_ns = 0

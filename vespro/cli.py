@@ -21,6 +21,7 @@ _COMMANDS = [
     ("vespro.cmd_calibrate", "calibrate"),
     ("vespro.cmd_bop", "bop"),
     ("vespro.cmd_import", "import"),
+    ("vespro.cmd_export", "export"),
 ]
 
 

@@ -37,6 +37,9 @@ def add_parser(sub) -> None:
     p.add_argument("--kill-server-at", type=float, help="kill the pose server after this many seconds (failure test)")
     p.add_argument("--lockstep", action="store_true",
                    help="run everything on one simulated clock in one process (slow machines, exact reproducibility)")
+    from .viewer import add_view_options
+
+    add_view_options(p)
     p.set_defaults(func=run)
 
 
@@ -54,7 +57,8 @@ def run(args) -> int:
     cfg = DemoConfig(out=args.out, object=args.object, cameras=args.cameras, duration=args.duration,
                      speed=args.speed, stop_time=args.stop_time, noise_px=args.noise, link=args.link,
                      baud=args.baud, video=not args.no_video, kill_server_at=args.kill_server_at,
-                     lockstep=args.lockstep)
+                     lockstep=args.lockstep, view=args.view, view_connect=args.view_connect,
+                     view_save=args.view_save, view_image_every=args.view_image_every)
     s = run_demo(cfg, log=lambda m: print(m, flush=True))
     e, te, sv = s["estimation"], s["tracking_error"], s.get("servo", {})
     vis = s.get("vision", {})

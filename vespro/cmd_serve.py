@@ -59,6 +59,7 @@ def add_parser(sub) -> None:
     link.add_argument("--serial", metavar="URL", help="write to a serial device or pyserial URL instead")
     p.add_argument("--host", default="127.0.0.1", help="TCP: address to bind (localhost unless told otherwise)")
     p.add_argument("--baud", type=int, default=115200, help="serial: baud rate")
+    add_zenoh_options(p)
     p.add_argument("--frames", type=int, help="stop after this many frames")
     p.add_argument("--quiet", action="store_true", help="no once-a-second status line")
     p.add_argument("--cpu", type=int, metavar="N",
@@ -71,7 +72,39 @@ def add_parser(sub) -> None:
                         "dedicated vision PC: other work on its core waits; the initialisation worker is not")
     add_scenario_options(p, rate_default=None)
     add_tracker_options(p)
+    from .viewer import add_view_options
+
+    add_view_options(p)
     p.set_defaults(func=run)
+
+
+def add_zenoh_options(p: argparse.ArgumentParser) -> None:
+    from .wire import ZENOH_ENDPOINT
+
+    z = p.add_argument_group("Zenoh (pip install 'vespro[interop]')")
+    z.add_argument("--zenoh", metavar="KEY",
+                   help="also publish every pose (wire frames) on this Zenoh key expression, for any number of "
+                        "subscribers (servo run --connect zenoh/KEY)")
+    z.add_argument("--zenoh-listen", action="append", metavar="ENDPOINT",
+                   help=f"Zenoh endpoint to listen on (repeatable; default {ZENOH_ENDPOINT}: this machine only)")
+    z.add_argument("--zenoh-connect", action="append", default=[], metavar="ENDPOINT",
+                   help="Zenoh endpoint to connect to, e.g. a router tcp/HOST:7447 (repeatable)")
+    z.add_argument("--zenoh-config", metavar="FILE", help="a Zenoh JSON5 configuration file instead of the above")
+    z.add_argument("--zenoh-ros2", metavar="TOPIC",
+                   help="also publish tracked poses as ROS 2 geometry_msgs/PoseWithCovarianceStamped on TOPIC, "
+                        "keyed as rmw_zenoh does (domain 0)")
+
+
+def zenoh_publisher(args, hello, clock_ns):
+    """The Zenoh publisher the options ask for, or None."""
+    if not args.zenoh:
+        return None
+    from .wire import ZENOH_ENDPOINT
+    from .zenoh_link import ZenohPublisher, ros2_key
+
+    return ZenohPublisher(args.zenoh, hello, listen=args.zenoh_listen or [ZENOH_ENDPOINT],
+                          connect=args.zenoh_connect, config_file=args.zenoh_config,
+                          ros2_key=ros2_key(args.zenoh_ros2) if args.zenoh_ros2 else None, clock_ns=clock_ns)
 
 
 def run(args) -> int:
@@ -183,6 +216,12 @@ def run(args) -> int:
                                       log=lambda line: print(f"vespro serve: {line}", flush=True))
         host, port = publisher.address
         where = f"tcp: connect to socket://{host}:{port}"
+    zpub = zenoh_publisher(args, hello, clock_ns)
+    if zpub is not None:
+        from .link import PublisherGroup
+
+        publisher = PublisherGroup(publisher, zpub)
+        where += f"; zenoh key {args.zenoh}"
     outputs, writer = [], None
     if args.record:
         from .recording import AsyncRecordingWriter
@@ -191,10 +230,16 @@ def run(args) -> int:
         writer = AsyncRecordingWriter(args.record / "recording", source.rig, model_file, source.rate_hz, model.name,
                                       overwrite=True, defer_png=args.record_defer_png)
 
+    from .viewer import view_from_args
+
+    view = view_from_args(args, source.rig, model, block=args.lockstep, name="vespro serve")
+
     def on_output(fs, out):
         if writer is not None:
             writer.write(fs)
             outputs.append(out)
+        if view is not None:
+            view.observe(fs, out, series={"latency_ms": server.stats.latency_ms[-1]})
 
     mode = False if args.lockstep else ("process" if factory is not None else "thread")
     server = PoseServer(source, tracker, publisher, clock, initializer, background_init=mode, log=log,
@@ -214,6 +259,8 @@ def run(args) -> int:
         link_stats = publisher.stats()
         publisher.close()
         source.close()
+        if view is not None and (line := view.close()):
+            print(line, file=sys.stderr)
         if writer is not None:
             if args.cpu is not None or args.fifo:  # the saving (PNG encoding) is not live work
                 leave_realtime()
@@ -251,6 +298,8 @@ def _save_run(folder: Path, writer, outputs, stats, link_stats, source) -> None:
     with open(folder / "outputs.pkl", "wb") as f:
         pickle.dump(outputs, f)
     info = {
+        # The capture stamp of frame set 0 (the recording's t = 0) on the clock the servo shares.
+        "t0_ns": writer.t0_ns,
         "frames": stats.frames, "tracking": stats.tracking, "init_attempts": stats.init_attempts,
         "init_successes": stats.init_successes, "recording_dropped": writer.dropped,
         "missed_captures": getattr(source, "missed", 0),

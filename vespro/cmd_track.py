@@ -96,6 +96,9 @@ def add_parser(sub) -> None:
     add_tracker_options(p)
     add_model_unit_option(p)
     p.add_argument("--no-progress", action="store_true")
+    from .viewer import add_view_options
+
+    add_view_options(p)
     p.set_defaults(func=run)
 
 
@@ -118,7 +121,15 @@ def run(args) -> int:
         print("vespro track: an initial pose is needed: pass --init-pose x,y,z,qw,qx,qy,qz "
               "(the object's pose in the world at the first frame)", file=sys.stderr)
         return 2
-    outs = track_recording(rec, tracker, init_pose, progress=not args.no_progress)
+    from .viewer import view_from_args
+
+    view = view_from_args(args, rec.rig, tracker.model, block=True, name="vespro track")
+    try:
+        outs = track_recording(rec, tracker, init_pose, progress=not args.no_progress,
+                               on_output=None if view is None else view.observe)
+    finally:
+        if view is not None and (line := view.close()):
+            print(line, file=sys.stderr)
     write_track(args.output, rec, outs)
     n = sum(o.status == "tracking" for o in outs)
     tm = np.median([o.time_ms for o in outs])

@@ -65,6 +65,10 @@ class DemoConfig:
     video : bool
     kill_server_at : float or None
         Kill the pose server this many seconds into the run (a failure test).
+    view, view_connect, view_save, view_image_every
+        The Rerun view (:mod:`vespro.viewer`): spawn a viewer, stream to one at
+        a URL, save a ``.rrd``; every n-th image. In lockstep the view also shows
+        the true pose, the arm's end effector and its target, and the servo's series.
     """
 
     out: Path = Path("out/demo")
@@ -80,6 +84,10 @@ class DemoConfig:
     video: bool = True
     kill_server_at: float | None = None
     lockstep: bool = False
+    view: bool = False
+    view_connect: str | None = None
+    view_save: Path | None = None
+    view_image_every: int = 1
 
 
 def _free_port() -> int:
@@ -205,6 +213,14 @@ def _warm_up(cfg: DemoConfig, rig_name: str, log) -> None:
         log(f"demo: compiled the tracker's kernels once ({time.monotonic() - t:.0f} s; cached for later runs)")
 
 
+def _view_args(cfg: DemoConfig) -> list[str]:
+    """The pose server's view options (the real-time demo: the vision process logs)."""
+    a = ["--view"] if cfg.view else []
+    a += ["--view-connect", cfg.view_connect] if cfg.view_connect else []
+    a += ["--view-save", str(cfg.view_save)] if cfg.view_save else []
+    return a + (["--view-image-every", str(cfg.view_image_every)] if a else [])
+
+
 def run_demo(cfg: DemoConfig, log=print) -> dict:
     """Run the cell; returns the summary (also written to ``out/summary.json``)."""
     if cfg.lockstep:
@@ -233,7 +249,7 @@ def run_demo(cfg: DemoConfig, log=print) -> dict:
                                   # Real time on 2 cores: no multisampling (46 -> 21 ms for three cameras),
                                   # a 0.6 px blur for the pixel integration it provided (0.84 -> 0.96 mm).
                                   "--render-samples", "0", "--blur", "0.6", "--mono",
-                                  "--record", str(out / "vision"), "--record-defer-png", *link_args,
+                                  "--record", str(out / "vision"), "--record-defer-png", *link_args, *_view_args(cfg),
                                   # The vision PC's live loop owns a core (other work on it waits), the
                                   # software renderer's thread with it (spread over both cores it
                                   # stalled on the servo's: 30 ms wall for 15 ms of work).
@@ -378,6 +394,7 @@ def run_demo_lockstep(cfg: DemoConfig, log=print) -> dict:
     from .sim.rigs import CAMERAS_DIR
     from .sources import WorldSource
     from .tracker import Tracker
+    from .se3 import transform_from_pq
     from .wire import HelloMsg
 
     out = Path(cfg.out)
@@ -404,10 +421,21 @@ def run_demo_lockstep(cfg: DemoConfig, log=print) -> dict:
     delayed = _DelayedPublisher(pub, LOCKSTEP_LATENCY_NS)
     writer = AsyncRecordingWriter(out / "vision" / "recording", rig, mesh, cell_cfg.rate_hz, model.name, overwrite=True)
     outputs = []
+    view = None
+    if cfg.view or cfg.view_connect or cfg.view_save:
+        from .viewer import COLORS, RerunView
+
+        view = RerunView(rig, model, spawn=cfg.view, connect=cfg.view_connect, save=cfg.view_save, block=True,
+                         image_every=cfg.view_image_every, name="vespro demo")
 
     def on_output(fs, o):
         writer.write(fs)
         outputs.append(o)
+        if view is not None:  # the truth beside the estimate: the demo (an evaluator) reads the plant
+            n = min(plant.k, len(plant.log["t_ns"]))
+            i = int(np.clip(np.searchsorted(plant.log["t_ns"][:n], fs.t_ns), 0, max(n - 1, 0)))
+            view.observe(fs, o, T_true=transform_from_pq(plant.log["object"][i]),
+                         series={"latency_ms": LOCKSTEP_LATENCY_NS * 1e-6})
 
     server = PoseServer(source, tracker, delayed, clock, initializer, background_init=False, log=None,
                         on_output=on_output)
@@ -430,6 +458,14 @@ def run_demo_lockstep(cfg: DemoConfig, log=print) -> dict:
     kill_ns = None if cfg.kill_server_at is None else t0 + int(cfg.kill_server_at * 1e9)
 
     def on_tick(t_ns, out_cmd):
+        if view is not None and plant.k % 10 == 0 and plant.k > 0:  # the arm at 50 Hz
+            k = min(plant.k, len(plant.log["t_ns"])) - 1
+            tcp = plant.log["tcp"][k, :3]
+            goal = plant.log["object"][k, :3] + [0.0, 0.0, STANDOFF]
+            view.log_series(t_ns, {"servo_status": int(out_cmd.status),
+                                   "servo_error_mm": 1e3 * np.linalg.norm(tcp - goal)},
+                            {"arm/tcp": (tcp, COLORS["orange"]),
+                             "arm/target": (np.array(out_cmd.ref.p), COLORS["blue"])})
         if kill_ns is not None and t_ns >= kill_ns:
             if not events:  # the pose server dies: no more poses, its link closes
                 pub.close()
@@ -457,6 +493,8 @@ def run_demo_lockstep(cfg: DemoConfig, log=print) -> dict:
         link_stats = pub.stats()
         pub.close()
         plant.finish(out / "plant.npz")
+        if view is not None and (line := view.close()):
+            log(line)
         _save_run(out / "vision", writer, outputs, server.stats, link_stats, source)
         source.close()
         arm.close()

@@ -51,7 +51,7 @@ from typing import Callable
 from vespro.throttle import LogThrottle
 from vespro.wire import REFUSAL_PREFIX, HeartbeatMsg, HelloMsg, encode
 
-__all__ = ["PosePublisher", "PublishStatus", "LinkStats", "SinkStats"]
+__all__ = ["PosePublisher", "PublisherGroup", "PublishStatus", "LinkStats", "SinkStats"]
 
 _U32 = 2**32
 
@@ -600,3 +600,40 @@ class PosePublisher:
             hb_due = self._heartbeat_ns > 0 and now - self._last_publish_ns >= self._heartbeat_ns
         if hb_due:
             self.heartbeat()
+
+
+class PublisherGroup:
+    """Several publishers behind one ``publish`` (the TCP or serial link and Zenoh, say).
+
+    ``publish`` hands the message to each in turn and returns the worst status;
+    ``stats`` adds up their counters.
+    """
+
+    def __init__(self, *publishers):
+        self.publishers = tuple(publishers)
+        self.hello = self.publishers[0].hello
+
+    def publish(self, msg) -> PublishStatus:
+        return max(p.publish(msg) for p in self.publishers)
+
+    def heartbeat(self) -> PublishStatus:
+        return max(p.heartbeat() for p in self.publishers)
+
+    def stats(self) -> LinkStats:
+        st = [p.stats() for p in self.publishers]
+        total = {f: sum(getattr(s, f) for s in st) for f in LinkStats.__dataclass_fields__ if f != "sinks"}
+        return LinkStats(**total, sinks=tuple(k for s in st for k in s.sinks))
+
+    @property
+    def address(self):
+        return self.publishers[0].address
+
+    def close(self) -> None:
+        for p in self.publishers:
+            p.close()
+
+    def __enter__(self) -> "PublisherGroup":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()

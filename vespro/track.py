@@ -60,11 +60,12 @@ def make_tracker(rec: Recording, config: TrackerConfig = TrackerConfig(), initia
 
 
 def track_recording(rec: Recording, tracker: Tracker, init_pose: np.ndarray | None = None,
-                    progress: bool = False) -> list[TrackerOutput]:
+                    progress: bool = False, on_output=None) -> list[TrackerOutput]:
     """Track every frame set of a recording, in order.
 
     ``init_pose`` (T_world_object at frame 0), when given, starts the filter at
     the first frame; otherwise the tracker's initializer decides.
+    ``on_output(frameset, output)``, when given, observes each frame (a viewer).
     """
     outs = []
     it = range(len(rec))
@@ -77,6 +78,8 @@ def track_recording(rec: Recording, tracker: Tracker, init_pose: np.ndarray | No
         if i == 0 and init_pose is not None:
             tracker.start(InitResult(init_pose), fs.t_ns)
         outs.append(tracker.process(fs))
+        if on_output is not None:
+            on_output(fs, outs[-1])
     return outs
 
 

@@ -76,6 +76,16 @@ Robustness
 ``encode`` raises ``ValueError`` on invalid content (wrong shape, non-finite,
 out of range). :class:`Decoder` never raises: it counts each rejected frame by
 reason (see ``REJECT_REASONS``) and counts gaps in the POSE sequence numbers.
+
+Zenoh
+-----
+On Zenoh (``vespro serve --zenoh KEY``, ``servo run --connect zenoh/KEY``)
+each sample published on the key expression carries one frame, as ``encode``
+makes it (the publisher's first sample opens with a lone ``0x00``, as any
+stream does); a subscriber feeds the payloads to a :class:`Decoder` in arrival
+order. HELLO is repeated every second (a subscriber may join at any
+time) and a HEARTBEAT goes out when nothing else did for a second.
+:func:`zenoh_config_json5` is the session configuration both sides use.
 """
 
 from __future__ import annotations
@@ -110,6 +120,8 @@ __all__ = [
     "MAX_FRAME_BYTES",
     "LINE_BYTES_PER_S_115200",
     "REFUSAL_PREFIX",
+    "ZENOH_ENDPOINT",
+    "zenoh_config_json5",
 ]
 
 PROTOCOL_VERSION = 1
@@ -735,3 +747,32 @@ class Decoder:
             self.seq_gaps += d - 1
         else:
             self.seq_resets += 1
+
+
+# --- Zenoh session ------------------------------------------------------------
+
+#: Where the publisher listens and subscribers connect by default: loopback only.
+ZENOH_ENDPOINT = "tcp/127.0.0.1:7447"
+
+
+def zenoh_config_json5(mode: str = "peer", listen=(), connect=()) -> str:
+    """A Zenoh session configuration (JSON5 text for ``zenoh.Config.from_json5``).
+
+    Multicast scouting is off, so a session finds no peer by itself and sends
+    nothing beyond the endpoints given: a peer on one machine listens or
+    connects on ``tcp/127.0.0.1:PORT``; across machines every session connects
+    to a router (``mode="client"`` or ``"peer"``, ``connect=("tcp/ROUTER:7447",)``).
+
+    Parameters
+    ----------
+    mode : str
+        ``peer``, ``client`` or ``router``.
+    listen, connect : sequence of str
+        Zenoh endpoints (``tcp/HOST:PORT``); an empty ``listen`` opens no port.
+    """
+    import json
+
+    if mode not in ("peer", "client", "router"):
+        raise ValueError(f"zenoh mode: expected peer, client or router, got {mode!r}")
+    return json.dumps({"mode": mode, "listen": {"endpoints": list(listen)}, "connect": {"endpoints": list(connect)},
+                       "scouting": {"multicast": {"enabled": False}}})
