@@ -30,9 +30,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .init.features import Undistorter, _gradient
+from .imageedges import front_faces as _front
+from .imageedges import image_gradient as _gradient
+from .imageedges import project_points as _project
+from .init.features import Undistorter
 from .init.modelfeat import model_features
-from .init.search import CameraView, EdgeFit, _front, _project, refine_subpixel
+from .init.search import CameraView, EdgeFit, refine_subpixel
 from .model import Model
 from .rig import Rig
 from .se3 import invert_transform
