@@ -24,8 +24,8 @@ import numpy as np
 
 from .se3 import invert_transform
 
-__all__ = ["EdgeImage", "image_gradient", "image_noise", "sobel_noise_gain", "project_points", "front_faces",
-           "edge_visible", "visible_samples"]
+__all__ = ["EdgeImage", "image_gradient", "image_noise", "sobel_noise_gain", "project_points", "projection_box",
+           "front_faces", "edge_visible", "visible_samples"]
 
 
 def image_gradient(img: np.ndarray, sigma: float) -> tuple[np.ndarray, np.ndarray]:
@@ -104,6 +104,22 @@ def project_points(K: np.ndarray, T_camera_object: np.ndarray, P: np.ndarray) ->
     X = P @ T_camera_object[:3, :3].T + T_camera_object[:3, 3]
     with np.errstate(divide="ignore", invalid="ignore"):
         return X[:, :2] / X[:, 2:3] * K[[0, 1], [0, 1]] + K[:2, 2], X[:, 2]
+
+
+def projection_box(K: np.ndarray, T_camera_object: np.ndarray, P: np.ndarray, margin_px: float, width: int,
+                   height: int) -> tuple[int, int, int, int] | None:
+    """Pixel box ``(x0, y0, x1, y1)`` around the projection of points ``P`` (N, 3) with ``margin_px``
+    on every side, clipped to the image; None when a point is behind the camera or the box is
+    under 8 px either way."""
+    uv, z = project_points(K, T_camera_object, P)
+    if np.any(z <= 1e-6):
+        return None
+    x0, y0 = np.floor(uv.min(0) - margin_px).astype(int)
+    x1, y1 = np.ceil(uv.max(0) + margin_px).astype(int)
+    x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, width), min(y1, height)
+    if x1 - x0 < 8 or y1 - y0 < 8:
+        return None
+    return int(x0), int(y0), int(x1), int(y1)
 
 
 def front_faces(R: np.ndarray, t: np.ndarray, mf) -> np.ndarray:

@@ -35,7 +35,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .imageedges import EdgeImage, project_points, visible_samples
+from .imageedges import EdgeImage, project_points, projection_box, visible_samples
 from .jit import njit
 from .se3 import invert_transform
 
@@ -226,16 +226,8 @@ class ImageLikelihood:
     def box(self, K: np.ndarray, T_camera_object: np.ndarray, width: int, height: int, margin_px: float = 0.0):
         """Pixel box ``(x0, y0, x1, y1)`` around the part's projection with room for the lines, or
         None (behind the camera, or outside the image)."""
-        uv, z = project_points(K, T_camera_object, self.mf.vertices)
-        if np.any(z <= 1e-6):
-            return None
         m = self.options.line_px + 6.0 + margin_px  # the lines, the gradient and blur kernels
-        x0, y0 = np.floor(uv.min(0) - m).astype(int)
-        x1, y1 = np.ceil(uv.max(0) + m).astype(int)
-        x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, width), min(y1, height)
-        if x1 - x0 < 8 or y1 - y0 < 8:
-            return None
-        return int(x0), int(y0), int(x1), int(y1)
+        return projection_box(K, T_camera_object, self.mf.vertices, m, width, height)
 
     def camera(self, T_world_object: np.ndarray, T_world_camera: np.ndarray, eimg: EdgeImage) -> CameraLikelihood:
         """One camera's :class:`CameraLikelihood` of a pose."""
