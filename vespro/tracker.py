@@ -1272,8 +1272,8 @@ class Tracker:
     def _process_bank(self, fs: FrameSet) -> TrackerOutput:
         """One frame with the hypothesis bank deciding (``decision`` ``"bank"``).
 
-        The initialiser, while nothing is published, proposes its answer and its best
-        candidates; the most probable hypothesis is tracked with the corners and edges
+        The initialiser, while nothing is published, proposes its answer and, beside it,
+        its best other candidates; the most probable hypothesis is tracked with the corners and edges
         (:meth:`_track`), the others with their edge fits; all are weighed on the frame
         (:meth:`_bank_status`)."""
         t0 = time.perf_counter()
@@ -1286,13 +1286,17 @@ class Tracker:
             if seed is not None and hasattr(self.initializer, "reseed"):
                 self.initializer.reseed(seed[0], velocity=seed[1], t_ns=seed[2])
             init = self.initializer(fs)
+            rep = getattr(self.initializer, "last_report", None)
             if init is not None:
                 bank.propose(init.T_world_object, fs.t_ns, init.cov6, init.velocity)
-            rep = getattr(self.initializer, "last_report", None)
-            if rep is not None and rep is not self._bank_report:
-                self._bank_report = rep
-                for T, _ in rep.candidates[:bank.options.proposals]:
-                    bank.propose(T, fs.t_ns)
+                if rep is not None and rep is not self._bank_report:
+                    # Its other candidates stand beside its answer as rivals. Not without an
+                    # answer: the bank weighs the poses it holds against each other and
+                    # clutter, not against poses it does not hold, and with the part's pose
+                    # missing, the best of the rest (a face matched to another) would win.
+                    for T, _ in rep.candidates[:bank.options.proposals]:
+                        bank.propose(T, fs.t_ns)
+            self._bank_report = rep
         best = bank.best()
         if best is None:
             self.ekf = None
