@@ -11,7 +11,10 @@ per-frame time (median, p99; the initialiser's calls included). With
 ``--overlay DIR`` it writes the bank's published outline over frames 0, 100
 and 200.
 
-Usage: ``python3 bench/visp_cube.py [--frames 218] [--decisions rules,bank] [--rules-frames 30] [--overlay DIR]``
+With ``--textured`` the initialiser is told the part's faces are textured
+(``vespro serve --textured``).
+
+Usage: ``python3 bench/visp_cube.py [--frames 218] [--decisions rules,bank] [--rules-frames 30] [--overlay DIR] [--textured]``
 """
 
 from __future__ import annotations
@@ -49,11 +52,11 @@ def start_pose() -> np.ndarray:
     return T
 
 
-def run(decision: str, n: int, overlay: Path | None) -> dict:
+def run(decision: str, n: int, overlay: Path | None, textured: bool = False) -> dict:
     model = box_model([0.084] * 3, center=(-0.042, 0.042, 0.042), name="cube")
     img0 = cv2.imread(str(DATA / "cube" / "image0000.pgm"), cv2.IMREAD_GRAYSCALE)
     rig = Rig((RigCamera("cam", CameraIntrinsics(img0.shape[1], img0.shape[0], K), T_world_camera=np.eye(4)),))
-    tr = Tracker(rig, model, TrackerConfig(decision=decision), initializer=make_initializer(rig, model))
+    tr = Tracker(rig, model, TrackerConfig(decision=decision), initializer=make_initializer(rig, model, plain_faces=not textured))
     syms = discrete_symmetries(model.vertices)
     out = dict(first=None, tracked=0, add0=float("nan"), ms=[])
     for k in range(n):
@@ -79,7 +82,7 @@ def run(decision: str, n: int, overlay: Path | None) -> dict:
             cv2.putText(vis, f"frame {k}: {o.status} p={o.probability:.3f}", (10, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.5,
                         (0, 0, 255), 1, cv2.LINE_AA)
             overlay.mkdir(parents=True, exist_ok=True)
-            cv2.imwrite(str(overlay / f"cube_{decision}_{k:03d}.png"), vis)
+            cv2.imwrite(str(overlay / f"cube_{decision}{'_textured' if textured else ''}_{k:03d}.png"), vis)
     return out
 
 
@@ -90,13 +93,14 @@ def main(argv=None):
                     help="frames run with the rules (each refused start costs about a second)")
     ap.add_argument("--decisions", default="rules,bank")
     ap.add_argument("--overlay", type=Path, default=None)
+    ap.add_argument("--textured", action="store_true", help="the initialiser told the part is textured (vespro's --textured)")
     a = ap.parse_args(argv)
     if not (DATA / "cube" / "image0000.pgm").exists():
         raise SystemExit("visp-images-data is not installed (apt install visp-images-data)")
     print(f"{'decision':>8} {'frames':>6} {'first':>5} {'tracked':>7} {'ADD0 %':>6} {'median ms':>9} {'p99 ms':>7}")
     for d in a.decisions.split(","):
         n = min(a.frames, a.rules_frames) if d == "rules" else a.frames
-        r = run(d, n, a.overlay)
+        r = run(d, n, a.overlay, a.textured)
         print(f"{d:>8} {n:>6} {str(r['first']):>5} {r['tracked']:>7} {r['add0']:>6.2f} "
               f"{np.median(r['ms']):>9.1f} {np.percentile(r['ms'], 99):>7.1f}", flush=True)
 
