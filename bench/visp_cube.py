@@ -12,7 +12,8 @@ per-frame time (median, p99; the initialiser's calls included). With
 and 200.
 
 With ``--textured`` the initialiser is told the part's faces are textured
-(``vespro serve --textured``).
+(``vespro serve --textured``); with the bank deciding it never assumes plain
+faces (as ``vespro serve --decision bank``: texture is clutter to the likelihood).
 
 Usage: ``python3 bench/visp_cube.py [--frames 218] [--decisions rules,bank] [--rules-frames 30] [--overlay DIR] [--textured]``
 """
@@ -56,7 +57,7 @@ def run(decision: str, n: int, overlay: Path | None, textured: bool = False) -> 
     model = box_model([0.084] * 3, center=(-0.042, 0.042, 0.042), name="cube")
     img0 = cv2.imread(str(DATA / "cube" / "image0000.pgm"), cv2.IMREAD_GRAYSCALE)
     rig = Rig((RigCamera("cam", CameraIntrinsics(img0.shape[1], img0.shape[0], K), T_world_camera=np.eye(4)),))
-    tr = Tracker(rig, model, TrackerConfig(decision=decision), initializer=make_initializer(rig, model, plain_faces=not textured))
+    tr = Tracker(rig, model, TrackerConfig(decision=decision), initializer=make_initializer(rig, model, plain_faces=not (textured or decision == "bank")))
     syms = discrete_symmetries(model.vertices)
     out = dict(first=None, tracked=0, add0=float("nan"), ms=[])
     for k in range(n):
