@@ -31,7 +31,7 @@ not published from that frame on.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
@@ -95,7 +95,6 @@ class Hypothesis:
     frames: int = 0
     last: PoseLikelihood | None = None
     last_log_lik: float = 0.0  # this frame's tempered log ratio
-    info: dict = field(default_factory=dict)
 
 
 def tempered_log_lik(pl: PoseLikelihood, edges_independent: float) -> float:
