@@ -99,6 +99,10 @@ class _Gated:
         self._next_t_ns = fs.t_ns + int(self.ini.last_report.cpu_s * 1e9)
         return res
 
+    @property
+    def last_report(self):
+        return self.ini.last_report
+
     def reseed(self, *a, **kw):
         self.ini.reseed(*a, **kw)
 

@@ -56,17 +56,23 @@ def add_tracker_options(p: argparse.ArgumentParser) -> None:
                    help="the part's faces carry texture or markings: image edges inside its faces do not count "
                         "against a pose found by one camera (by default faces are taken as plain, as CAD parts "
                         "of one material are; see InitOptions.plain_faces)")
+    p.add_argument("--decision", choices=["rules", "bank"], default="rules",
+                   help="what decides the published status: the confirmation rules, or the hypothesis bank "
+                        "weighing the initialiser's poses by the image likelihood (texture counts as clutter "
+                        "there: the initialiser then takes every part as textured)")
 
 
 def tracker_config(args):
     from .tracker import TrackerConfig
 
-    return TrackerConfig(features_per_camera=args.features, selection=args.selection, sigma_px=args.sigma_px)
+    return TrackerConfig(features_per_camera=args.features, selection=args.selection, sigma_px=args.sigma_px,
+                         decision=getattr(args, "decision", "rules"))
 
 
 def init_options(args) -> dict:
-    """``InitOptions`` fields the command line sets (``--textured``)."""
-    return {"plain_faces": not getattr(args, "textured", False)}
+    """``InitOptions`` fields the command line sets (``--textured``; ``--decision bank``: the bank's
+    likelihood takes texture inside the faces as clutter, so the plain-face checks stay off)."""
+    return {"plain_faces": not (getattr(args, "textured", False) or getattr(args, "decision", "rules") == "bank")}
 
 
 def initializer_for(args, rec, model):

@@ -30,9 +30,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .init.features import Undistorter, _gradient
+from .imageedges import front_faces as _front
+from .imageedges import image_gradient as _gradient
+from .imageedges import projection_box
+from .init.features import Undistorter
 from .init.modelfeat import model_features
-from .init.search import CameraView, EdgeFit, _front, _project, refine_subpixel
+from .init.search import CameraView, EdgeFit, refine_subpixel
 from .model import Model
 from .rig import Rig
 from .se3 import invert_transform
@@ -259,16 +262,8 @@ class EdgeAid:
 
     def _roi(self, K, T_world_camera, T_world_object, width, height):
         """Pixel box (x0, y0, x1, y1) around the model's projection, with room for the search."""
-        uv, z = _project(K, invert_transform(T_world_camera) @ T_world_object, self.mf.vertices)
-        if np.any(z <= 1e-6):
-            return None
         m = self.search_px + 8.0  # search, gradient and blur kernels, a pose a few px off
-        x0, y0 = np.floor(uv.min(0) - m).astype(int)
-        x1, y1 = np.ceil(uv.max(0) + m).astype(int)
-        x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, width), min(y1, height)
-        if x1 - x0 < 8 or y1 - y0 < 8:
-            return None
-        return int(x0), int(y0), int(x1), int(y1)
+        return projection_box(K, invert_transform(T_world_camera) @ T_world_object, self.mf.vertices, m, width, height)
 
     def edge_side(self, T_camera_object: np.ndarray) -> np.ndarray:
         """Which of each model edge's two faces the camera sees (bit 0: the first, bit 1: the second), (E,)."""

@@ -5,7 +5,10 @@
 velocity ``vx,vy,vz,wx,wy,wz`` (world frame, m/s and rad/s) and the 6x6 pose
 covariance as its 21 upper-triangle entries ``P00,P01,...,P55`` in the order
 [position (m), orientation error (rad)], the orientation error being the
-rotation vector ``log(R_true @ R_est.T)`` (a left, world-frame perturbation).
+rotation vector ``log(R_true @ R_est.T)`` (a left, world-frame perturbation),
+then ``probability``: the probability that the row's pose is the part's
+(:attr:`vespro.tracker.TrackerOutput.probability`; empty where the tracker
+does not state one).
 Rows whose status is not ``tracking`` may leave the pose fields empty.
 """
 
@@ -44,6 +47,8 @@ class PoseRow:
     velocity : ndarray (6,) or None
         ``[v (m/s), w (rad/s)]``, world frame.
     cov : ndarray (6, 6) or None
+    probability : float or None
+        That the pose is the part's (None: not stated).
     """
 
     index: int
@@ -53,6 +58,7 @@ class PoseRow:
     time_ms: float | None = None
     velocity: np.ndarray | None = None
     cov: np.ndarray | None = None
+    probability: float | None = None
 
     def __post_init__(self):
         if self.status not in STATUSES:
@@ -67,13 +73,14 @@ def write_poses(path: str | Path, rows) -> None:
     """Write rows (``PoseRow``) to ``poses.csv``."""
     with open(path, "w", newline="") as f:
         w = csv.writer(f, lineterminator="\n")
-        w.writerow(BASE + ["time_ms"] + VEL + COV_COLUMNS)
+        w.writerow(BASE + ["time_ms"] + VEL + COV_COLUMNS + ["probability"])
         for r in rows:
             pose = [""] * 7 if r.T_world_object is None else [_f(v) for v in pq_from_transform(r.T_world_object)]
             tm = "" if r.time_ms is None else f"{r.time_ms:.3f}"
             vel = [""] * 6 if r.velocity is None else [_f(v) for v in r.velocity]
             cov = [""] * 21 if r.cov is None else [_f(v) for v in np.asarray(r.cov)[_IU]]
-            w.writerow([str(r.index), f"{r.t:.9f}"] + pose + [r.status, tm] + vel + cov)
+            prob = "" if r.probability is None or not np.isfinite(r.probability) else f"{r.probability:.6g}"
+            w.writerow([str(r.index), f"{r.t:.9f}"] + pose + [r.status, tm] + vel + cov + [prob])
 
 
 def read_poses(path: str | Path) -> list[PoseRow]:
@@ -104,7 +111,8 @@ def read_poses(path: str | Path) -> list[PoseRow]:
                     cov = np.zeros((6, 6))
                     cov[_IU] = [float(d[c]) for c in COV_COLUMNS]
                     cov = cov + np.triu(cov, 1).T
-                out.append(PoseRow(int(d["index"]), float(d["t"]), status, T, tm, vel, cov))
+                prob = float(d["probability"]) if (d.get("probability") or "").strip() else None
+                out.append(PoseRow(int(d["index"]), float(d["t"]), status, T, tm, vel, cov, prob))
             except (ValueError, TypeError, AttributeError) as e:
                 raise ValueError(f"{p}: line {line}: {e}") from None
             if status == "tracking" and T is None:

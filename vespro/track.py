@@ -86,7 +86,8 @@ def track_recording(rec: Recording, tracker: Tracker, init_pose: np.ndarray | No
 def rows_from_outputs(rec: Recording, outs: list[TrackerOutput]) -> list[PoseRow]:
     rows = []
     for o in outs:
-        rows.append(PoseRow(o.index, float(rec.t[o.index]), o.status, o.T_world_object, o.time_ms, o.velocity, o.cov6))
+        rows.append(PoseRow(o.index, float(rec.t[o.index]), o.status, o.T_world_object, o.time_ms, o.velocity, o.cov6,
+                            o.probability))
     return rows
 
 

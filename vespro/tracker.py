@@ -32,14 +32,17 @@ from typing import Callable
 
 import numpy as np
 
+from .bank import BankOptions, HypothesisBank
 from .bsp import load_or_build_bsp
 from .edgeaid import EdgeAid, EdgeContrast
 from .ekf import PoseEKF
 from .ekf import Status as EKFStatus
 from .extraction import extract_corners, window_half_sizes
 from .features import salient_corners
+from .init.modelfeat import model_features
 from .metrics import add, add_sym, discrete_symmetries
 from .frames import FrameSet
+from .likelihood import ImageLikelihood
 from .model import Model
 from .projection import project_with_jacobian
 from .rig import Rig
@@ -407,6 +410,13 @@ class TrackerConfig:
         ``sigma_px`` settles on the well-behaved ones.
     feature_noise_rate, feature_noise_max : float
         Weight of each frame in a corner's running factor; the largest factor.
+    decision : str
+        What decides the status: ``"rules"`` (the confirmation and loss rules
+        above) or ``"bank"`` (:mod:`vespro.bank`: the initialiser's poses are
+        hypotheses, each its own filter, weighed by the image likelihood of
+        every frame, :mod:`vespro.likelihood`; the best is published while its
+        probability is at least ``1 - BankOptions.wrong_lock_rate``, and its
+        probability goes out with every frame, :attr:`TrackerOutput.probability`).
     """
 
     features_per_camera: int = 8
@@ -467,10 +477,13 @@ class TrackerConfig:
     feature_noise: bool = True
     feature_noise_rate: float = 0.3
     feature_noise_max: float = 9.0
+    decision: str = "rules"
 
     def __post_init__(self):
         if self.selection not in ("information", "quality"):
             raise ValueError(f"selection must be 'information' or 'quality', got {self.selection!r}")
+        if self.decision not in ("rules", "bank"):
+            raise ValueError(f"decision must be 'rules' or 'bank', got {self.decision!r}")
         if self.edge_aid not in ("single", "always", "off"):
             raise ValueError(f"edge_aid must be 'single', 'always' or 'off', got {self.edge_aid!r}")
         if self.features_per_camera < 3:
@@ -545,6 +558,9 @@ class TrackerOutput:
         Processing time of this frame (images already decoded).
     stage_ms : dict
         Time per stage: visibility, selection, extraction, update.
+    probability : float
+        With ``TrackerConfig.decision`` ``"bank"``: the probability that the
+        estimate is the part's pose (:mod:`vespro.bank`); NaN otherwise.
     """
 
     index: int
@@ -558,6 +574,7 @@ class TrackerOutput:
     mean_nis: float = float("nan")
     time_ms: float = 0.0
     stage_ms: dict = field(default_factory=dict)
+    probability: float = float("nan")
 
 
 @dataclass(frozen=True)
@@ -646,6 +663,12 @@ class Tracker:
         self._start_t_ns: int | None = None
         self.last_good = None  # (T_world_object, velocity (6,), t_ns) of the last tracking frame
         self._reseeded = True
+        self.bank = None
+        if config.decision == "bank":
+            mf = self.edge_aid.mf if self.edge_aid is not None else model_features(model)
+            self.bank = HypothesisBank(model.vertices, model.diameter, self.symmetries, ImageLikelihood(mf, self.tree),
+                                       self._new_filter, BankOptions())
+            self._bank_report = None  # the initialiser's last report seen (its candidates are proposed)
         self._warm_up()
 
     def _warm_up(self) -> None:
@@ -765,6 +788,8 @@ class Tracker:
     # -- one frame ------------------------------------------------------------
     def process(self, fs: FrameSet) -> TrackerOutput:
         """Estimate the pose at the frame set's capture instant."""
+        if self.bank is not None:
+            return self._process_bank(fs)
         t0 = time.perf_counter()
         self.frames += 1
         if self.ekf is None:
@@ -1135,6 +1160,8 @@ class Tracker:
         ``seen``: the observations that count in the frame's support (:meth:`_seeing` of
         ``obs``); ``obs`` are all published.
         """
+        if self.bank is not None:
+            return self._bank_status(fs, obs, n_acc, mean_nis, stage)
         c = self.config
         ekf = self.ekf
         # Status.
@@ -1233,3 +1260,151 @@ class Tracker:
         self.last_good = (T, vel, fs.t_ns)
         return TrackerOutput(fs.index, fs.t_ns, STATUS_TRACKING, T, vel, ekf.pose_covariance, tuple(obs),
                              n_acc, mean_nis, stage_ms=stage_ms)
+
+    # -- the hypothesis bank (decision "bank") -----------------------------------
+    def _new_filter(self, T_world_object: np.ndarray, cov6: np.ndarray | None = None,
+                    velocity: np.ndarray | None = None) -> PoseEKF:
+        """A filter started at a pose, as :meth:`start` starts one."""
+        c = self.config
+        P0 = np.diag(np.r_[np.full(3, c.init_sigma_pos**2), np.full(3, c.init_sigma_rot**2),
+                           np.full(3, c.init_sigma_vel**2), np.full(3, c.init_sigma_angvel**2)])
+        if cov6 is not None:
+            P0[:6, :6] = cov6
+        v = w = None
+        if velocity is not None:
+            v, w = velocity[:3], velocity[3:]
+        return PoseEKF(self.canonical_pose(T_world_object), P0, q_acc=c.q_acc, q_alpha=c.q_alpha,
+                       sigma_px=c.sigma_px, gate_prob=c.gate_prob, v=v, w=w, robust_nis=c.robust_nis)
+
+    def _process_bank(self, fs: FrameSet) -> TrackerOutput:
+        """One frame with the hypothesis bank deciding (``decision`` ``"bank"``).
+
+        The initialiser, while nothing is published, proposes its answer and, beside it,
+        its best other candidates; the most probable hypothesis is tracked with the corners and edges
+        (:meth:`_track`), the others with their edge fits; all are weighed on the frame
+        (:meth:`_bank_status`)."""
+        t0 = time.perf_counter()
+        self.frames += 1
+        bank = self.bank
+        if self.ekf is not None and all(h.ekf is not self.ekf for h in bank.hypotheses):
+            bank.add(self.ekf, self._t_ns if self._t_ns is not None else fs.t_ns)  # a pose given by start()
+        if self.initializer is not None and not self.confirmed:
+            seed = self.recovery_seed()
+            if seed is not None and hasattr(self.initializer, "reseed"):
+                self.initializer.reseed(seed[0], velocity=seed[1], t_ns=seed[2])
+            init = self.initializer(fs)
+            rep = getattr(self.initializer, "last_report", None)
+            if init is not None:
+                bank.propose(init.T_world_object, fs.t_ns, init.cov6, init.velocity)
+                if rep is not None and rep is not self._bank_report:
+                    # Its other candidates stand beside its answer as rivals. Not without an
+                    # answer: the bank weighs the poses it holds against each other and
+                    # clutter, not against poses it does not hold, and with the part's pose
+                    # missing, the best of the rest (a face matched to another) would win.
+                    for T, _ in rep.candidates[:bank.options.proposals]:
+                        bank.propose(T, fs.t_ns)
+            self._bank_report = rep
+        best = bank.best()
+        if best is None:
+            self.ekf = None
+            status = STATUS_INITIALIZING if self.status != STATUS_LOST else STATUS_LOST
+            return TrackerOutput(fs.index, fs.t_ns, status, time_ms=(time.perf_counter() - t0) * 1e3,
+                                 probability=0.0)
+        if self.ekf is not best.ekf:
+            # The most probable hypothesis is the one tracked with everything the frame has.
+            self.ekf = best.ekf
+            self._t_ns = best.t_ns
+            self._contrast = {}
+            self._bad = 0
+            self._disagree = 0
+            self.confirmed = False
+        self._advance_others(fs)
+        out = self._track(fs)
+        return replace(out, time_ms=(time.perf_counter() - t0) * 1e3)
+
+    def _advance_others(self, fs: FrameSet) -> None:
+        """Predict the hypotheses not tracked to the frame and update them with their edge fits."""
+        for h in list(self.bank.hypotheses):
+            if h.ekf is self.ekf:
+                continue
+            dt = (fs.t_ns - h.t_ns) * 1e-9
+            if dt > 0:
+                h.ekf.predict(dt)
+                h.t_ns = fs.t_ns
+            if self.edge_aid is not None:
+                for cam in self.rig:
+                    img = fs.grey(cam.name)
+                    T_wc = self._camera_pose(fs, cam.name)
+                    if img is None or T_wc is None:
+                        continue
+                    m = self.edge_aid.measure(cam.name, img, T_wc, h.ekf.pose)
+                    if m is not None:
+                        h.ekf.update_pose(m.T_world_object, m.cov6)
+            if not (np.all(np.isfinite(h.ekf.pose)) and np.all(np.isfinite(h.ekf.pose_covariance))):
+                self.bank.remove(h)
+
+    def _bank_views(self, fs: FrameSet) -> list:
+        """(T_world_camera, EdgeImage) of each camera with an image, over the box that holds every
+        hypothesis's projection."""
+        lk = self.bank.likelihood
+        views = []
+        for cam in self.rig:
+            img = fs.grey(cam.name)
+            T_wc = self._camera_pose(fs, cam.name)
+            if img is None or T_wc is None:
+                continue
+            K = np.asarray(cam.intrinsics.K, float)
+            T_cw = np.linalg.inv(T_wc)
+            boxes = [b for h in self.bank.hypotheses
+                     if (b := lk.box(K, T_cw @ h.ekf.pose, img.shape[1], img.shape[0])) is not None]
+            if not boxes:
+                continue
+            b = np.array(boxes)
+            box = (int(b[:, 0].min()), int(b[:, 1].min()), int(b[:, 2].max()), int(b[:, 3].max()))
+            und = self.edge_aid.undistort[cam.name](img, box) if self.edge_aid is not None else \
+                img[box[1]:box[3], box[0]:box[2]]
+            Kb = K.copy()
+            Kb[0, 2] -= box[0]
+            Kb[1, 2] -= box[1]
+            views.append((T_wc, lk.edge_image(und, Kb)))
+        return views
+
+    def _bank_status(self, fs: FrameSet, obs: list, n_acc: int, mean_nis: float, stage: dict) -> TrackerOutput:
+        """The bank's decision on a frame: every hypothesis weighed, the tracked one published
+        ``tracking`` while it is the most probable and its probability is at least
+        ``1 - wrong_lock_rate``; a published track whose probability falls is not published
+        from that frame on (``lost``), and the initialiser looks again."""
+        c = self.config
+        bank = self.bank
+        ekf = self.ekf
+        main = next((h for h in bank.hypotheses if h.ekf is ekf), None)
+        t = time.perf_counter()
+        if main is not None:
+            main.t_ns = self._t_ns
+            pos_std = float(np.sqrt(np.max(np.linalg.eigvalsh(ekf.pose_covariance[:3, :3]))))
+            if not np.all(np.isfinite(ekf.pose)) or pos_std > c.max_pos_std:
+                bank.remove(main)  # the filter has diverged
+                main = None
+        bank.weigh(self._bank_views(fs))
+        bank.tidy(keep=main)
+        stage["bank"] = time.perf_counter() - t
+        p = bank.probability(main) if main is not None else 0.0
+        stage_ms = {k: v * 1e3 for k, v in stage.items()}
+        if main is not None and bank.best() is main and p >= 1.0 - bank.options.wrong_lock_rate:
+            self.confirmed = True
+            self.status = STATUS_TRACKING
+            T = ekf.pose
+            vel = np.concatenate([ekf.velocity, ekf.angular_velocity])
+            self.last_good = (T, vel, fs.t_ns)
+            return TrackerOutput(fs.index, fs.t_ns, STATUS_TRACKING, T, vel, ekf.pose_covariance, tuple(obs),
+                                 n_acc, mean_nis, stage_ms=stage_ms, probability=p)
+        if self.confirmed:
+            self.confirmed = False  # demoted at once
+            self.lost_events += 1
+            self._reseeded = False
+            self.status = STATUS_LOST
+        if main is None:
+            self.ekf = None
+        status = STATUS_LOST if self.status == STATUS_LOST else STATUS_INITIALIZING
+        return TrackerOutput(fs.index, fs.t_ns, status, observations=tuple(obs), n_accepted=n_acc,
+                             mean_nis=mean_nis, stage_ms=stage_ms, probability=p)

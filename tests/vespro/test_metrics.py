@@ -58,7 +58,7 @@ def test_poses_csv_roundtrip(tmp_path):
     rows = [
         PoseRow(0, 0.0, "initializing"),
         PoseRow(1, 0.04, "tracking", transform_from_rt(exp_so3([0.1, 0.2, 0.3]), [1, 2, 3]), 1.25,
-                rng.normal(size=6), A @ A.T),
+                rng.normal(size=6), A @ A.T, 0.9987),
         PoseRow(2, 0.08, "lost", None, 0.5),
     ]
     write_poses(tmp_path / "p.csv", rows)
@@ -68,6 +68,7 @@ def test_poses_csv_roundtrip(tmp_path):
     np.testing.assert_allclose(back[1].cov, rows[1].cov, rtol=1e-8)
     np.testing.assert_allclose(back[1].velocity, rows[1].velocity, rtol=1e-8)
     assert back[2].time_ms == 0.5 and back[0].T_world_object is None
+    assert back[1].probability == 0.9987 and back[2].probability is None  # (written to 6 digits)
 
 
 def test_poses_csv_minimal_columns_and_errors(tmp_path):

@@ -178,10 +178,11 @@ def test_start_pose_validation_and_track_command(tmp_path, recs):
 def test_textured_parts_are_told_on_the_command_line(recs):
     """``--textured`` (``vespro track``, ``serve``, ``eval``) turns off the plain-face rules of
     the initialiser (``InitOptions.plain_faces``): with one camera a pose whose faces cover
-    image edges is otherwise refused, and a part with markings would never start."""
+    image edges is otherwise refused, and a part with markings would never start. With
+    ``--decision bank`` they are off too (the bank's likelihood takes texture as clutter)."""
     import argparse
 
-    from vespro.cmd_track import add_tracker_options, init_options, initializer_for
+    from vespro.cmd_track import add_tracker_options, init_options, initializer_for, tracker_config
     from vespro.model import load_model
     from vespro.recording import Recording
 
@@ -189,11 +190,12 @@ def test_textured_parts_are_told_on_the_command_line(recs):
     add_tracker_options(p)
     rec = Recording(recs["box_conveyor"])
     model = load_model(rec.model_path, name=rec.object_name)
-    for argv, plain in (([], True), (["--textured"], False)):
+    for argv, plain in (([], True), (["--textured"], False), (["--decision", "bank"], False)):
         args = p.parse_args(argv)
         assert init_options(args) == {"plain_faces": plain}
         ini = initializer_for(args, rec, model)
         assert ini is not None and ini.setup.options.plain_faces is plain
+    assert tracker_config(p.parse_args(["--decision", "bank"])).decision == "bank"
 
 
 def test_single_camera_does_not_drift_in_depth(tmp_path):

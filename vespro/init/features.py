@@ -21,12 +21,13 @@ Nothing here knows the scene: no background, colour or support plane.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import lru_cache
-
 import cv2
 import numpy as np
 
 from ..camera import CameraIntrinsics
+from ..imageedges import image_gradient as _gradient
+from ..imageedges import image_noise
+from ..imageedges import sobel_noise_gain as _sobel_noise_gain
 
 __all__ = ["EdgeOptions", "CameraFeatures", "Undistorter", "extract_features", "normal_bins", "lookup_dt",
            "image_noise", "canny_thresholds"]
@@ -198,49 +199,6 @@ def lookup_dt(dt: np.ndarray, bins: np.ndarray, uv: np.ndarray, outside: float) 
     vi = np.where(inside, v, 0).astype(np.int64)
     d = dt[bins, vi, ui]
     return np.where(inside, d, np.float32(outside))
-
-
-def _gradient(img: np.ndarray, sigma: float) -> tuple[np.ndarray, np.ndarray]:
-    """Sobel gradient of the strongest channel, int16 (as Canny wants it)."""
-    f = cv2.GaussianBlur(img, (0, 0), sigma) if sigma > 0 else img
-    dx = cv2.Sobel(f, cv2.CV_16S, 1, 0, ksize=3)
-    dy = cv2.Sobel(f, cv2.CV_16S, 0, 1, ksize=3)
-    if dx.ndim == 3:
-        mag = dx.astype(np.int32) ** 2 + dy.astype(np.int32) ** 2
-        k = np.argmax(mag, axis=2)[..., None]
-        dx = np.take_along_axis(dx, k, 2)[..., 0]
-        dy = np.take_along_axis(dy, k, 2)[..., 0]
-    return np.ascontiguousarray(dx), np.ascontiguousarray(dy)
-
-
-_LAPLACE_DIFF = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], np.float32)
-
-
-def image_noise(img: np.ndarray) -> float:
-    """Std of the additive intensity noise of an image, grey levels (largest over channels).
-
-    Immerkaer's difference of Laplacians (1996), which cancels smooth shading,
-    with the median instead of the mean of its magnitude so that the edges and
-    texture of a scene (a minority of pixels) do not count: ``median |c| =
-    0.6745 x 6 sigma`` for Gaussian noise (on every other pixel of every
-    other row: enough samples). Zero for a noise-free rendering.
-    """
-    chans = [img] if img.ndim == 2 else [img[..., k] for k in range(img.shape[2])]
-    out = 0.0
-    for c in chans:
-        r = cv2.filter2D(c.astype(np.float32), -1, _LAPLACE_DIFF)[1:-1:2, 1:-1:2]
-        out = max(out, float(np.median(np.abs(r))) / (0.6745 * 6.0))
-    return out
-
-
-@lru_cache(maxsize=8)
-def _sobel_noise_gain(blur_sigma: float) -> float:
-    """Std of one Sobel (3x3) component of Gaussian-smoothed unit white noise."""
-    d = np.zeros((41, 41), np.float32)
-    d[20, 20] = 1.0
-    if blur_sigma > 0:
-        d = cv2.GaussianBlur(d, (0, 0), blur_sigma)
-    return float(np.sqrt(np.sum(cv2.Sobel(d, cv2.CV_32F, 1, 0, ksize=3) ** 2)))
 
 
 def canny_thresholds(img: np.ndarray, opt: EdgeOptions, noise: float | None = None) -> tuple[float, float]:

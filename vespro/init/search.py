@@ -25,6 +25,10 @@ from numba import types
 from numba.extending import intrinsic
 from scipy.spatial import cKDTree
 
+from ..imageedges import edge_visible as _edge_visible
+from ..imageedges import front_faces as _front
+from ..imageedges import project_points as _project
+from ..imageedges import visible_samples
 from ..jit import njit
 from ..se3 import invert_transform
 from .features import CameraFeatures, lookup_dt, normal_bins
@@ -115,18 +119,6 @@ def p3p_hypotheses(feat: CameraFeatures, mf: ModelFeatures, vertices: np.ndarray
 def _edge_bins(uv_a, uv_b, n_bins):
     d = uv_b - uv_a
     return normal_bins(np.arctan2(d[..., 0], -d[..., 1]), n_bins)
-
-
-def _front(R, t, mf):
-    """Face front-facing flags, shape (H, F): the camera is on the outer side."""
-    n_c = np.matmul(mf.face_normals.astype(R.dtype)[None], R.transpose(0, 2, 1))  # (H, F, 3)
-    return mf.face_offsets[None, :] + np.matmul(n_c, t[:, :, None])[..., 0] < 0
-
-
-def _edge_visible(front, mf):
-    f0 = front[:, mf.edge_faces[:, 0]]
-    f1 = front[:, mf.edge_faces[:, 1]]
-    return np.where(mf.edge_convex[None, :], f0 | f1, f0 & f1)
 
 
 # -- compiled kernels ----------------------------------------------------------
@@ -453,34 +445,6 @@ class CameraView:
     fixed: bool = True
 
 
-def visible_samples(T_camera_object: np.ndarray, mf: ModelFeatures, tree=None) -> np.ndarray:
-    """Dense edge samples a camera sees at a pose (culling plus self-occlusion).
-
-    Parameters
-    ----------
-    T_camera_object : ndarray, shape (4, 4)
-    mf : ModelFeatures
-    tree : BSPTree or None
-        Needed for non-convex models (line of sight to the camera centre).
-
-    Returns
-    -------
-    idx : ndarray, shape (S,), int64
-        Indices into ``mf.sample_p``.
-    """
-    R, t = T_camera_object[None, :3, :3], T_camera_object[None, :3, 3]
-    vis_e = _edge_visible(_front(R, t, mf), mf)[0]
-    idx = np.flatnonzero(vis_e[mf.sample_edge])
-    if tree is not None and not mf.convex and idx.size:
-        cam_o = invert_transform(T_camera_object)[:3, 3]
-        A = mf.sample_p[idx]
-        seg = np.linalg.norm(cam_o - A, axis=1)
-        blocked = tree.segments_blocked(A, np.broadcast_to(cam_o, A.shape), t_lo=np.minimum(2e-4 / seg, 0.1),
-                                        t_hi=1.0, min_length=1e-9)
-        idx = idx[~blocked]
-    return idx
-
-
 def face_widths_px(T_camera_object: np.ndarray, K: np.ndarray, mf: ModelFeatures,
                    edge_len_px: np.ndarray) -> np.ndarray:
     """Each face's width in the image, px: projected area over its longest projected edge.
@@ -501,12 +465,6 @@ def face_widths_px(T_camera_object: np.ndarray, K: np.ndarray, mf: ModelFeatures
     for k in range(2):
         np.maximum.at(longest, mf.edge_faces[:, k], edge_len_px)
     return area / np.maximum(longest, 1e-9)
-
-
-def _project(K, T_camera_object, P):
-    X = P @ T_camera_object[:3, :3].T + T_camera_object[:3, 3]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return X[:, :2] / X[:, 2:3] * K[[0, 1], [0, 1]] + K[:2, 2], X[:, 2]
 
 
 @njit

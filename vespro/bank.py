@@ -1,0 +1,219 @@
+"""A bank of pose hypotheses, each its own filter, weighed by the image likelihood of every frame.
+
+Whatever proposes a pose (the initialiser, a user, a recovery) only adds a
+hypothesis; what is published follows from the evidence. Each hypothesis
+carries a :class:`vespro.ekf.PoseEKF` and a score: the log-likelihood ratio
+of the frames it has seen (:mod:`vespro.likelihood`, against all-clutter),
+with the past discounted by ``forget`` per frame so that a pose which stops
+explaining the images loses its standing within a few frames (a discounted
+sequential test). Beside the hypotheses stands the null, "the part is at none
+of these poses", whose lines read clutter only: its log ratio is 0 on every
+frame. A hypothesis's probability is its share of ``exp(score)`` over the
+null and all hypotheses.
+
+The likelihood of one frame treats its lines as independent, which they are
+not: the samples along one straight edge move together when the pose is off,
+and measure about two numbers (an offset and an angle). Each camera's log
+ratio is therefore scaled to ``edges_independent`` numbers per model edge
+observed (the tempered likelihood of composite-likelihood inference).
+
+Equivalent poses of a symmetric part and poses within ``merge_frac`` of the
+diameter of each other (ADD over the part's symmetries) are one hypothesis:
+the first keeps its filter, the scores add as probabilities. Hypotheses whose
+probability falls under ``prune_prob`` are dropped, and at most
+``max_hypotheses`` are kept.
+
+The decision: the best hypothesis is published ``tracking`` while its
+probability is at least ``1 - wrong_lock_rate``; when it falls below, it is
+not published from that frame on.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+from .ekf import PoseEKF
+from .likelihood import ImageLikelihood, PoseLikelihood
+from .metrics import add_sym
+
+__all__ = ["BankOptions", "Hypothesis", "HypothesisBank", "tempered_log_lik"]
+
+
+@dataclass(frozen=True)
+class BankOptions:
+    """Settings of the hypothesis bank.
+
+    Attributes
+    ----------
+    wrong_lock_rate : float
+        A hypothesis is published when its probability is at least one minus this.
+    forget : float
+        Weight of a hypothesis's past score in each new frame's (0: the last frame alone).
+    edges_independent : float
+        Independent numbers one observed model edge's samples count for.
+    new_prior : float
+        Prior probability of a proposed pose against the hypotheses already held
+        (its score starts at the log of this plus the best current score, at most 0).
+    merge_frac : float
+        Hypotheses closer than this (ADD over the symmetries / diameter) are one.
+    prune_prob : float
+        Hypotheses under this probability are dropped.
+    max_hypotheses : int
+    proposals : int
+        Candidates of each initialiser call proposed besides its answer.
+    """
+
+    wrong_lock_rate: float = 0.01
+    forget: float = 0.6
+    edges_independent: float = 2.0
+    new_prior: float = 0.1
+    merge_frac: float = 0.05
+    prune_prob: float = 1e-4
+    max_hypotheses: int = 5
+    proposals: int = 3
+
+    def __post_init__(self):
+        if not 0 < self.wrong_lock_rate < 1:
+            raise ValueError(f"wrong_lock_rate must be in (0, 1), got {self.wrong_lock_rate}")
+        if not 0 <= self.forget < 1:
+            raise ValueError(f"forget must be in [0, 1), got {self.forget}")
+        if self.max_hypotheses < 1:
+            raise ValueError(f"max_hypotheses must be >= 1, got {self.max_hypotheses}")
+
+
+@dataclass(eq=False)
+class Hypothesis:
+    """One pose hypothesis: its filter, score (discounted log-likelihood ratio) and last evidence."""
+
+    ekf: PoseEKF
+    score: float
+    t_ns: int  # the filter's stamp
+    frames: int = 0
+    last: PoseLikelihood | None = None
+    last_log_lik: float = 0.0  # this frame's tempered log ratio
+
+
+def tempered_log_lik(pl: PoseLikelihood, edges_independent: float) -> float:
+    """A pose likelihood's log ratio with each camera's scaled to ``edges_independent`` numbers per
+    observed model edge (never scaled up)."""
+    out = 0.0
+    for c in pl.cameras:
+        if c.weight <= 0:
+            continue
+        n_edges = int(np.count_nonzero(np.isfinite(c.edge_found)))
+        out += c.log_lik * min(1.0, edges_independent * n_edges / c.weight)
+    return out
+
+
+class HypothesisBank:
+    """Pose hypotheses of one part and their probabilities.
+
+    Parameters
+    ----------
+    vertices : ndarray, shape (V, 3)
+        The part's vertices (ADD), object frame, m.
+    diameter : float
+        m.
+    symmetries : list of ndarray (4, 4)
+        The part's symmetries (identity first).
+    likelihood : ImageLikelihood
+    make_filter : callable
+        ``make_filter(T_world_object, cov6 or None, velocity (6,) or None) -> PoseEKF``.
+    options : BankOptions
+    """
+
+    def __init__(self, vertices: np.ndarray, diameter: float, symmetries, likelihood: ImageLikelihood,
+                 make_filter: Callable[..., PoseEKF], options: BankOptions = BankOptions()):
+        self.vertices = np.asarray(vertices, float)
+        self.diameter = float(diameter)
+        self.symmetries = list(symmetries)
+        self.likelihood = likelihood
+        self.make_filter = make_filter
+        self.options = options
+        self.hypotheses: list[Hypothesis] = []
+        self.null_score = 0.0
+        self.proposed = 0
+        self.merged = 0
+        self.pruned = 0
+
+    def clear(self) -> None:
+        self.hypotheses = []
+        self.null_score = 0.0
+
+    def _same(self, T_a: np.ndarray, T_b: np.ndarray) -> bool:
+        return add_sym(T_a, T_b, self.vertices, self.symmetries) < self.options.merge_frac * self.diameter
+
+    def propose(self, T_world_object: np.ndarray, t_ns: int, cov6: np.ndarray | None = None,
+                velocity: np.ndarray | None = None) -> Hypothesis:
+        """Add a pose (or find the hypothesis it is the same as); returns that hypothesis."""
+        self.proposed += 1
+        for h in self.hypotheses:
+            if self._same(h.ekf.pose, T_world_object):
+                self.merged += 1
+                return h
+        best = max((h.score for h in self.hypotheses), default=0.0)
+        h = Hypothesis(self.make_filter(T_world_object, cov6, velocity),
+                       min(max(best, self.null_score), 0.0) + math.log(self.options.new_prior), t_ns)
+        self.hypotheses.append(h)
+        return h
+
+    def add(self, ekf: PoseEKF, t_ns: int, score: float = 0.0) -> Hypothesis:
+        """Hold an existing filter as a hypothesis (a pose given by the user)."""
+        h = Hypothesis(ekf, score, t_ns)
+        self.hypotheses.append(h)
+        return h
+
+    def remove(self, h: Hypothesis) -> None:
+        if h in self.hypotheses:
+            self.hypotheses.remove(h)
+
+    def weigh(self, views) -> None:
+        """Score every hypothesis on one frame: ``views`` as for :class:`ImageLikelihood`."""
+        g = self.options.forget
+        self.null_score *= g
+        for h in self.hypotheses:
+            pl = self.likelihood(h.ekf.pose, views)
+            h.last = pl
+            h.last_log_lik = tempered_log_lik(pl, self.options.edges_independent)
+            h.score = g * h.score + h.last_log_lik
+            h.frames += 1
+
+    def probabilities(self) -> np.ndarray:
+        """Each hypothesis's probability (the null takes the rest), in the order held."""
+        if not self.hypotheses:
+            return np.zeros(0)
+        s = np.array([self.null_score] + [h.score for h in self.hypotheses])
+        w = np.exp(s - s.max())
+        return (w / w.sum())[1:]
+
+    def probability(self, h: Hypothesis) -> float:
+        p = self.probabilities()
+        return float(p[self.hypotheses.index(h)]) if h in self.hypotheses else 0.0
+
+    def best(self) -> Hypothesis | None:
+        return max(self.hypotheses, key=lambda h: h.score, default=None)
+
+    def tidy(self, keep: Hypothesis | None = None) -> None:
+        """Merge near-duplicates (the scores add as probabilities), drop the improbable and the
+        surplus; ``keep`` (the tracked one) is never dropped while it is the best."""
+        o = self.options
+        hs = sorted(self.hypotheses, key=lambda h: -h.score)
+        out: list[Hypothesis] = []
+        for h in hs:
+            twin = next((k for k in out if self._same(k.ekf.pose, h.ekf.pose)), None)
+            if twin is None:
+                out.append(h)
+            else:
+                twin.score = float(np.logaddexp(twin.score, h.score))
+                self.merged += 1
+        self.hypotheses = out
+        p = self.probabilities()
+        best = self.best()
+        kept = [h for h, ph in zip(out, p) if ph >= o.prune_prob or h is best or h is keep]
+        kept = kept[:o.max_hypotheses]
+        self.pruned += len(out) - len(kept)
+        self.hypotheses = kept

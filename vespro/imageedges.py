@@ -1,0 +1,201 @@
+"""Image edges of a model at a pose: the measurement primitives every edge user shares.
+
+A model edge is measured in an image along its projected normal (a
+correspondence line): which model edges a camera sees at a pose (back-face
+culling, and the BSP line of sight for a non-convex part), where their points
+project, and the image gradient those lines read, with the intensity noise
+that sets how strong a gradient must be to be an edge at all. The
+initialiser's scores and sub-pixel fit (:mod:`vespro.init.search`), the
+tracker's edge fits (:mod:`vespro.edgeaid`) and the pose likelihood
+(:mod:`vespro.likelihood`) all measure through these functions.
+
+Model features (edge samples, faces, edges) come from
+:func:`vespro.init.modelfeat.model_features`; any object with the same
+attributes will do.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+
+import cv2
+import numpy as np
+
+from .se3 import invert_transform
+
+__all__ = ["EdgeImage", "image_gradient", "image_noise", "sobel_noise_gain", "project_points", "projection_box",
+           "front_faces", "edge_visible", "visible_samples"]
+
+
+def image_gradient(img: np.ndarray, sigma: float) -> tuple[np.ndarray, np.ndarray]:
+    """Sobel (3x3) gradient of the Gaussian-smoothed image, of the strongest channel.
+
+    Parameters
+    ----------
+    img : ndarray, shape (H, W) or (H, W, C), uint8
+    sigma : float
+        Smoothing std, px (0: none).
+
+    Returns
+    -------
+    dx, dy : ndarray, shape (H, W), int16
+        d/du and d/dv (as Canny wants them); an object can differ from its
+        background in hue alone, so per pixel the channel of largest magnitude.
+    """
+    f = cv2.GaussianBlur(img, (0, 0), sigma) if sigma > 0 else img
+    dx = cv2.Sobel(f, cv2.CV_16S, 1, 0, ksize=3)
+    dy = cv2.Sobel(f, cv2.CV_16S, 0, 1, ksize=3)
+    if dx.ndim == 3:
+        mag = dx.astype(np.int32) ** 2 + dy.astype(np.int32) ** 2
+        k = np.argmax(mag, axis=2)[..., None]
+        dx = np.take_along_axis(dx, k, 2)[..., 0]
+        dy = np.take_along_axis(dy, k, 2)[..., 0]
+    return np.ascontiguousarray(dx), np.ascontiguousarray(dy)
+
+
+_LAPLACE_DIFF = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], np.float32)
+
+
+def image_noise(img: np.ndarray) -> float:
+    """Std of the additive intensity noise of an image, grey levels (largest over channels).
+
+    Immerkaer's difference of Laplacians (1996), which cancels smooth shading,
+    with the median instead of the mean of its magnitude so that the edges and
+    texture of a scene (a minority of pixels) do not count: ``median |c| =
+    0.6745 x 6 sigma`` for Gaussian noise (on every other pixel of every
+    other row: enough samples). Zero for a noise-free rendering.
+    """
+    chans = [img] if img.ndim == 2 else [img[..., k] for k in range(img.shape[2])]
+    out = 0.0
+    for c in chans:
+        r = cv2.filter2D(c.astype(np.float32), -1, _LAPLACE_DIFF)[1:-1:2, 1:-1:2]
+        out = max(out, float(np.median(np.abs(r))) / (0.6745 * 6.0))
+    return out
+
+
+@lru_cache(maxsize=8)
+def sobel_noise_gain(blur_sigma: float) -> float:
+    """Std of one Sobel (3x3) component of Gaussian-smoothed unit white noise."""
+    d = np.zeros((41, 41), np.float32)
+    d[20, 20] = 1.0
+    if blur_sigma > 0:
+        d = cv2.GaussianBlur(d, (0, 0), blur_sigma)
+    return float(np.sqrt(np.sum(cv2.Sobel(d, cv2.CV_32F, 1, 0, ksize=3) ** 2)))
+
+
+def project_points(K: np.ndarray, T_camera_object: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Pinhole projection of object points.
+
+    Parameters
+    ----------
+    K : ndarray, shape (3, 3)
+    T_camera_object : ndarray, shape (4, 4)
+    P : ndarray, shape (N, 3)
+        Object frame, m.
+
+    Returns
+    -------
+    uv : ndarray, shape (N, 2)
+        px (inf or NaN for a point at depth 0).
+    z : ndarray, shape (N,)
+        Depth, m.
+    """
+    X = P @ T_camera_object[:3, :3].T + T_camera_object[:3, 3]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return X[:, :2] / X[:, 2:3] * K[[0, 1], [0, 1]] + K[:2, 2], X[:, 2]
+
+
+def projection_box(K: np.ndarray, T_camera_object: np.ndarray, P: np.ndarray, margin_px: float, width: int,
+                   height: int) -> tuple[int, int, int, int] | None:
+    """Pixel box ``(x0, y0, x1, y1)`` around the projection of points ``P`` (N, 3) with ``margin_px``
+    on every side, clipped to the image; None when a point is behind the camera or the box is
+    under 8 px either way."""
+    uv, z = project_points(K, T_camera_object, P)
+    if np.any(z <= 1e-6):
+        return None
+    x0, y0 = np.floor(uv.min(0) - margin_px).astype(int)
+    x1, y1 = np.ceil(uv.max(0) + margin_px).astype(int)
+    x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, width), min(y1, height)
+    if x1 - x0 < 8 or y1 - y0 < 8:
+        return None
+    return int(x0), int(y0), int(x1), int(y1)
+
+
+def front_faces(R: np.ndarray, t: np.ndarray, mf) -> np.ndarray:
+    """Which faces the camera sees from their outer side, (H, F) bool, for H poses ``R`` (H, 3, 3), ``t`` (H, 3)."""
+    n_c = np.matmul(mf.face_normals.astype(R.dtype)[None], R.transpose(0, 2, 1))  # (H, F, 3)
+    return mf.face_offsets[None, :] + np.matmul(n_c, t[:, :, None])[..., 0] < 0
+
+
+def edge_visible(front: np.ndarray, mf) -> np.ndarray:
+    """Which model edges can be seen, (H, E) bool, from the faces seen ``front`` (H, F): a convex
+    edge when one of its faces is, a concave edge when both are."""
+    f0 = front[:, mf.edge_faces[:, 0]]
+    f1 = front[:, mf.edge_faces[:, 1]]
+    return np.where(mf.edge_convex[None, :], f0 | f1, f0 & f1)
+
+
+def visible_samples(T_camera_object: np.ndarray, mf, tree=None) -> np.ndarray:
+    """Dense edge samples a camera sees at a pose (culling plus self-occlusion).
+
+    Parameters
+    ----------
+    T_camera_object : ndarray, shape (4, 4)
+    mf : ModelFeatures
+    tree : BSPTree or None
+        Needed for non-convex models (line of sight to the camera centre).
+
+    Returns
+    -------
+    idx : ndarray, shape (S,), int64
+        Indices into ``mf.sample_p``.
+    """
+    R, t = T_camera_object[None, :3, :3], T_camera_object[None, :3, 3]
+    vis_e = edge_visible(front_faces(R, t, mf), mf)[0]
+    idx = np.flatnonzero(vis_e[mf.sample_edge])
+    if tree is not None and not mf.convex and idx.size:
+        cam_o = invert_transform(T_camera_object)[:3, 3]
+        A = mf.sample_p[idx]
+        seg = np.linalg.norm(cam_o - A, axis=1)
+        blocked = tree.segments_blocked(A, np.broadcast_to(cam_o, A.shape), t_lo=np.minimum(2e-4 / seg, 0.1),
+                                        t_hi=1.0, min_length=1e-9)
+        idx = idx[~blocked]
+    return idx
+
+
+@dataclass(frozen=True)
+class EdgeImage:
+    """What a correspondence line reads of one camera image: its gradient and noise.
+
+    Attributes
+    ----------
+    K : ndarray, shape (3, 3)
+        Camera matrix of ``grad``'s pixels (of a crop: the principal point
+        moved by the crop's corner).
+    grad : ndarray, shape (2, H, W), float32
+        d/du, d/dv of the smoothed image (:func:`image_gradient`).
+    noise : float
+        Std of one gradient component due to the image's intensity noise
+        (:func:`image_noise` times :func:`sobel_noise_gain`), same unit as ``grad``.
+    """
+
+    K: np.ndarray
+    grad: np.ndarray
+    noise: float
+
+    @classmethod
+    def from_image(cls, img: np.ndarray, K: np.ndarray, box: tuple[int, int, int, int] | None = None,
+                   blur_sigma: float = 0.8) -> "EdgeImage":
+        """From an undistorted image (grey or colour, uint8), or its pixels ``box = (x0, y0, x1, y1)``."""
+        K = np.array(K, float)
+        if box is not None:
+            x0, y0, x1, y1 = box
+            img = img[y0:y1, x0:x1]
+            K[0, 2] -= x0
+            K[1, 2] -= y0
+        dx, dy = image_gradient(img, blur_sigma)
+        grad = np.stack([dx, dy]).astype(np.float32)
+        grad.setflags(write=False)
+        K.setflags(write=False)
+        return cls(K, grad, image_noise(img) * sobel_noise_gain(blur_sigma))

@@ -1,0 +1,276 @@
+"""How well a pose explains the images: a log-likelihood from the model's edges.
+
+Each visible model edge sample projects to a point with a normal (the
+projected edge's); the image gradient read along that normal within
+``line_px`` (a correspondence line, as in the probabilistic contour trackers
+SRT3D and ICG) shows gradient peaks: local maxima of ``|g . n|`` above what the
+image's own noise makes (``min_snr`` times the gradient noise std, measured in
+the image by :func:`vespro.imageedges.image_noise`, and at least
+``min_contrast``). Along one line the peaks are modelled as (the probabilistic
+data association of target tracking):
+
+- the model edge's own image edge, present with probability ``p_detect``,
+  at an offset ``d ~ N(0, sigma_px^2)`` from the projected point;
+- clutter: any number of peaks spread uniformly over the line, at the line's
+  own density ``lambda`` (its peaks per px, at least one over the line).
+
+Against the hypothesis that every peak on the line is clutter, the line's
+likelihood ratio is ``(1 - p_detect) + p_detect * sum_k N(d_k; 0, sigma^2) /
+lambda``. Texture inside a face or a busy background raises ``lambda``, and a
+line through uniform clutter gives a ratio near 1 (no evidence either way),
+so a textured part's faces neither support nor refute a pose; a line whose
+own edge is missing costs ``log(1 - p_detect)``; a line with a sharp peak at
+its centre and few others gains up to ``log(2 line_px N(0) / 1)``.
+
+Samples along one straight model edge share its errors (a pose off by a
+little moves all of them at once): an edge's samples weigh together at most
+one per ``spacing_px`` of its projected length, as in the sub-pixel fit
+(:func:`vespro.init.search.refine_subpixel`). The camera's log-likelihood is
+the weighted sum of its lines' log ratios; cameras add.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .imageedges import EdgeImage, project_points, projection_box, visible_samples
+from .jit import njit
+from .se3 import invert_transform
+
+__all__ = ["LikelihoodOptions", "CameraLikelihood", "PoseLikelihood", "ImageLikelihood", "line_evidence"]
+
+
+@dataclass(frozen=True)
+class LikelihoodOptions:
+    """Settings of the edge likelihood (each a property of the images, not of a case).
+
+    Attributes
+    ----------
+    sigma_px : float
+        Std of an image edge's offset from its projected model edge, px.
+    line_px : float
+        Half-length of each correspondence line, px.
+    p_detect : float
+        Probability that a visible model edge point shows as an image edge.
+    min_snr : float
+        A gradient peak counts when at least this many gradient noise stds.
+    min_contrast : float
+        ... and at least this strong (Sobel units: 4 per grey level of a step).
+    spacing_px : float
+        Samples of one edge weigh together at most one per this length, px.
+    blur_sigma : float
+        Smoothing before the gradient, px.
+    """
+
+    sigma_px: float = 1.0
+    line_px: float = 6.0
+    p_detect: float = 0.7
+    min_snr: float = 4.0
+    min_contrast: float = 20.0
+    spacing_px: float = 2.0
+    blur_sigma: float = 0.8
+
+    def __post_init__(self):
+        for name in ("sigma_px", "line_px", "spacing_px"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        if not 0.0 < self.p_detect < 1.0:
+            raise ValueError(f"p_detect must be in (0, 1), got {self.p_detect}")
+
+
+@dataclass(frozen=True)
+class CameraLikelihood:
+    """One camera's share of a pose's likelihood.
+
+    Attributes
+    ----------
+    log_lik : float
+        Weighted sum of the lines' log likelihood ratios (against all clutter).
+    n_visible : int
+        Edge samples the camera sees at the pose.
+    n_observed : int
+        Of those, with their point inside the image.
+    n_found : int
+        Of those, with a gradient peak within 2 ``sigma_px`` of the point.
+    weight : float
+        Summed weight of the observed samples (see ``spacing_px``).
+    found_frac : float
+        Weighted fraction of the observed samples that found their edge.
+    edge_log_lik : ndarray, shape (E,)
+        Per model edge, its samples' weighted log ratios (0 for an edge not seen).
+    edge_found : ndarray, shape (E,)
+        Per model edge, the weighted fraction of its observed samples found (NaN: none observed).
+    noise : float
+        The image's gradient noise std the peaks were judged by.
+    """
+
+    log_lik: float
+    n_visible: int
+    n_observed: int
+    n_found: int
+    weight: float
+    found_frac: float
+    edge_log_lik: np.ndarray
+    edge_found: np.ndarray
+    noise: float
+
+
+@dataclass(frozen=True)
+class PoseLikelihood:
+    """A pose's log-likelihood (sum over the cameras) and each camera's part."""
+
+    log_lik: float
+    cameras: tuple
+
+
+@njit
+def line_evidence(grad, uv, n, offs, thr, sigma, p_detect, llr, nearest, n_peaks):
+    """The correspondence lines of :mod:`vespro.likelihood`, compiled.
+
+    Parameters
+    ----------
+    grad : ndarray, shape (2, H, W), float32
+    uv : ndarray, shape (S, 2)
+        Projected sample points, px.
+    n : ndarray, shape (S, 2)
+        Unit normals, px.
+    offs : ndarray, shape (O,)
+        Evenly spaced offsets along the normal, from ``-line_px`` to ``line_px``.
+    thr, sigma, p_detect : float
+        Least peak strength; offset std, px; detection probability.
+    llr, nearest, n_peaks : ndarray, shape (S,)
+        Out: each line's log likelihood ratio (0 for a point outside the
+        image: no data), the smallest ``|offset|`` of a peak (inf: none), the
+        number of peaks. The gradient is read bilinearly; beyond the image
+        it reads 0.
+
+    Returns
+    -------
+    int
+        Lines whose point lies inside the image.
+    """
+    _, H, W = grad.shape
+    umax, vmax = W - 1.001, H - 1.001
+    S, O = uv.shape[0], offs.shape[0]
+    step = offs[1] - offs[0]
+    length = offs[O - 1] - offs[0]
+    norm = 1.0 / (np.sqrt(2.0 * np.pi) * sigma)
+    g = np.empty(O)
+    inside = 0
+    for s in range(S):
+        u0c, v0c = uv[s, 0], uv[s, 1]
+        if not (np.isfinite(u0c) and np.isfinite(v0c) and u0c >= 0 and v0c >= 0 and u0c <= umax and v0c <= vmax):
+            llr[s] = 0.0
+            nearest[s] = np.inf
+            n_peaks[s] = 0
+            continue
+        inside += 1
+        n0, n1 = n[s, 0], n[s, 1]
+        for o in range(O):
+            u = u0c + offs[o] * n0
+            v = v0c + offs[o] * n1
+            if u >= 0 and v >= 0 and u <= umax and v <= vmax:
+                iu, iv = np.int64(u), np.int64(v)
+                fu, fv = u - iu, v - iv
+                gx = (grad[0, iv, iu] * (1 - fu) + grad[0, iv, iu + 1] * fu) * (1 - fv) \
+                    + (grad[0, iv + 1, iu] * (1 - fu) + grad[0, iv + 1, iu + 1] * fu) * fv
+                gy = (grad[1, iv, iu] * (1 - fu) + grad[1, iv, iu + 1] * fu) * (1 - fv) \
+                    + (grad[1, iv + 1, iu] * (1 - fu) + grad[1, iv + 1, iu + 1] * fu) * fv
+                g[o] = abs(gx * n0 + gy * n1)
+            else:
+                g[o] = 0.0
+        count = 0
+        acc = 0.0
+        best = np.inf
+        for o in range(1, O - 1):
+            if g[o] >= thr and g[o] > g[o - 1] and g[o] >= g[o + 1]:
+                den = g[o - 1] - 2.0 * g[o] + g[o + 1]
+                frac = 0.5 * (g[o - 1] - g[o + 1]) / den if abs(den) > 1e-9 else 0.0
+                d = offs[o] + min(max(frac, -0.5), 0.5) * step
+                acc += norm * np.exp(-0.5 * (d / sigma) ** 2)
+                count += 1
+                best = min(best, abs(d))
+        lam = max(count, 1) / length
+        llr[s] = np.log((1.0 - p_detect) + p_detect * acc / lam)
+        nearest[s] = best
+        n_peaks[s] = count
+    return inside
+
+
+class ImageLikelihood:
+    """The edge likelihood of poses of one model (set-up: its edge samples and tree).
+
+    Parameters
+    ----------
+    mf : ModelFeatures
+        :func:`vespro.init.modelfeat.model_features` of the part.
+    tree : BSPTree, optional
+        The part's tree (self-occlusion of a non-convex part's edges).
+    options : LikelihoodOptions
+    """
+
+    def __init__(self, mf, tree=None, options: LikelihoodOptions = LikelihoodOptions()):
+        self.mf = mf
+        self.tree = None if mf.convex else tree
+        self.options = options
+        step = 0.5
+        m = int(np.ceil(options.line_px / step))
+        self.offs = np.arange(-m, m + 1) * step
+
+    def edge_image(self, img: np.ndarray, K: np.ndarray, box=None) -> EdgeImage:
+        """An undistorted image's :class:`~vespro.imageedges.EdgeImage` (of ``box`` only, if given)."""
+        return EdgeImage.from_image(img, K, box, self.options.blur_sigma)
+
+    def box(self, K: np.ndarray, T_camera_object: np.ndarray, width: int, height: int, margin_px: float = 0.0):
+        """Pixel box ``(x0, y0, x1, y1)`` around the part's projection with room for the lines, or
+        None (behind the camera, or outside the image)."""
+        m = self.options.line_px + 6.0 + margin_px  # the lines, the gradient and blur kernels
+        return projection_box(K, T_camera_object, self.mf.vertices, m, width, height)
+
+    def camera(self, T_world_object: np.ndarray, T_world_camera: np.ndarray, eimg: EdgeImage) -> CameraLikelihood:
+        """One camera's :class:`CameraLikelihood` of a pose."""
+        o = self.options
+        mf = self.mf
+        E = len(mf.edge_a)
+        T_co = invert_transform(np.asarray(T_world_camera, float)) @ np.asarray(T_world_object, float)
+        idx = visible_samples(T_co, mf, self.tree) if T_co[2, 3] > 0 else np.zeros(0, np.int64)
+        empty = CameraLikelihood(0.0, int(idx.size), 0, 0, 0.0, 0.0, np.zeros(E), np.full(E, np.nan), eimg.noise)
+        if idx.size == 0:
+            return empty
+        K = eimg.K
+        ua, za = project_points(K, T_co, mf.edge_a)
+        ub, zb = project_points(K, T_co, mf.edge_b)
+        se = mf.sample_edge[idx]
+        uv, z = project_points(K, T_co, mf.sample_p[idx])
+        front = (z > 1e-6) & (za[se] > 1e-6) & (zb[se] > 1e-6)
+        d = (ub - ua)[se]
+        nrm = np.stack([-d[:, 1], d[:, 0]], 1)
+        nrm /= np.linalg.norm(nrm, axis=1, keepdims=True) + 1e-12
+        uv = np.where(front[:, None], uv, np.nan)
+        S = idx.size
+        llr, nearest, n_peaks = np.empty(S), np.empty(S), np.empty(S, np.int64)
+        thr = max(o.min_snr * eimg.noise, o.min_contrast)
+        line_evidence(eimg.grad, np.ascontiguousarray(uv), np.ascontiguousarray(nrm), self.offs, float(thr),
+                      float(o.sigma_px), float(o.p_detect), llr, nearest, n_peaks)
+        H, W = eimg.grad.shape[1:]
+        with np.errstate(invalid="ignore"):  # (NaN: behind the camera, not observed)
+            observed = (uv[:, 0] >= 0) & (uv[:, 1] >= 0) & (uv[:, 0] <= W - 1.001) & (uv[:, 1] <= H - 1.001)
+        edge_len = np.linalg.norm(ub - ua, axis=1)
+        per_edge = np.bincount(se[observed], minlength=E)
+        w = np.where(observed, np.minimum(1.0, edge_len[se] / (o.spacing_px * np.maximum(per_edge[se], 1))), 0.0)
+        found = observed & (nearest <= 2.0 * o.sigma_px)
+        wsum = float(w.sum())
+        edge_ll = np.bincount(se, w * llr, E)
+        ew = np.bincount(se, w, E)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            edge_found = np.where(ew > 0, np.bincount(se, w * found, E) / ew, np.nan)
+        return CameraLikelihood(float(np.dot(w, llr)), int(S), int(observed.sum()), int(found.sum()), wsum,
+                                float(np.dot(w, found)) / wsum if wsum > 0 else 0.0, edge_ll, edge_found,
+                                eimg.noise)
+
+    def __call__(self, T_world_object: np.ndarray, views) -> PoseLikelihood:
+        """The pose's :class:`PoseLikelihood` over ``views``: (T_world_camera, EdgeImage) per camera."""
+        cams = tuple(self.camera(T_world_object, T_wc, e) for T_wc, e in views)
+        return PoseLikelihood(float(sum(c.log_lik for c in cams)), cams)
