@@ -24,7 +24,10 @@ Scenario fields (defaults in :data:`DEFAULTS`):
   ``occluder`` (bool: a paddle sweeps in front of the first fixed camera),
   ``dropouts`` (list of ``CAMERA:T0:T1``; CAMERA a name or a rig index),
   ``arm`` (home, watch; eye-in-hand rigs always watch), ``encoder_noise``,
-  ``seed``;
+  ``seed``, ``clutter`` (a count of textured background items),
+  ``distractors`` (a list of kinds: near, block, cylinder, box, lblock,
+  bracket; see :mod:`vespro.sim.distractors`), ``distractor_motion`` (static,
+  belt), ``textured_part`` (bool);
 * tracking: ``init`` (``gt``: the filter starts from the ground-truth pose of
   frame 0, an evaluator-only choice that scores tracking alone; ``auto``: the
   automatic initialiser of :mod:`vespro.init`), ``features``, ``selection``,
@@ -62,7 +65,8 @@ SIM_CACHE_VERSION = 1
 
 RECORDING_FIELDS = ("object", "rig", "motion", "speed", "amplitude", "rot_amplitude_deg", "stop_time", "frames",
                     "rate_hz", "resolution", "noise_px", "intensity_noise", "blur_px", "distortion", "occluder",
-                    "dropouts", "arm", "encoder_noise", "seed")
+                    "dropouts", "arm", "encoder_noise", "seed", "clutter", "distractors", "distractor_motion",
+                    "textured_part")
 TRACK_FIELDS = ("init", "features", "selection", "sigma_px")
 
 DEFAULTS = {
@@ -70,9 +74,13 @@ DEFAULTS = {
     "rot_amplitude_deg": None, "stop_time": None, "frames": 65, "rate_hz": 26.0, "resolution": None,
     "noise_px": 0.0, "intensity_noise": 0.0, "blur_px": 0.0, "distortion": False, "occluder": False,
     "dropouts": [], "arm": "home", "encoder_noise": 0.0, "seed": 0,
+    "clutter": 0, "distractors": [], "distractor_motion": "static", "textured_part": False,
     "init": "gt", "features": 8, "selection": "quality", "sigma_px": 0.5,
 }
-_NOT_CROSSED = ("dropouts", "distortion")
+#: Scene fields added after the cache's first recordings: left out of the cache key at their default,
+#: so the recordings of scenarios that do not use them keep their keys.
+_KEYED_WHEN_SET = ("clutter", "distractors", "distractor_motion", "textured_part")
+_NOT_CROSSED = ("dropouts", "distortion", "distractors")
 MOTIONS = {"conveyor": ("conveyor", None), "sinusoid": ("sinusoid", None), "sinusoid_slow": ("sinusoid", 1.0),
            "sinusoid_fast": ("sinusoid", 2.5), "random": ("random", None), "static": ("static", None)}
 SYMMETRIC_OBJECTS_NOTE = "ADD-S for objects with discrete symmetries (found from the model), ADD otherwise"
@@ -83,6 +91,28 @@ def _check_fields(d: dict, where: str) -> None:
     unknown = set(d) - set(DEFAULTS) - {"name"}
     if unknown:
         raise ValueError(f"{where}: unknown field(s) {sorted(unknown)}; known: {sorted(DEFAULTS)}")
+
+
+def _check_scene(s: dict, where: str) -> None:
+    """Validate (and normalise in place) the clutter and distractor fields of a scenario."""
+    from .sim.distractors import DISTRACTOR_KINDS, DISTRACTOR_MOTIONS
+
+    c = s["clutter"]
+    if isinstance(c, bool) or not isinstance(c, int) or c < 0:
+        raise ValueError(f"{where}: clutter must be a count >= 0, got {c!r}")
+    d = s["distractors"]
+    if isinstance(d, str):
+        d = [d]
+    if not isinstance(d, list) or any(k not in DISTRACTOR_KINDS for k in d):
+        raise ValueError(f"{where}: distractors must be a list of {', '.join(DISTRACTOR_KINDS)}, got {d!r}")
+    s["distractors"] = list(d)
+    if s["distractor_motion"] not in DISTRACTOR_MOTIONS:
+        raise ValueError(f"{where}: distractor_motion must be one of {', '.join(DISTRACTOR_MOTIONS)}, "
+                         f"got {s['distractor_motion']!r}")
+    if s["distractor_motion"] == "belt" and s["motion"] != "conveyor":
+        raise ValueError(f"{where}: distractor_motion belt needs motion conveyor")
+    if not isinstance(s["textured_part"], bool):
+        raise ValueError(f"{where}: textured_part must be true or false, got {s['textured_part']!r}")
 
 
 def expand_suite(data: dict, source: str = "suite") -> tuple[str, list[dict]]:
@@ -127,6 +157,7 @@ def expand_suite(data: dict, source: str = "suite") -> tuple[str, list[dict]]:
             raise ValueError(f"{source}: scenario {s['name']}: motion must be one of {sorted(MOTIONS)}")
         if s["init"] not in ("gt", "auto"):
             raise ValueError(f"{source}: scenario {s['name']}: init must be 'gt' or 'auto', got {s['init']!r}")
+        _check_scene(s, f"{source}: scenario {s['name']}")
     return str(data.get("name", Path(source).stem)), out
 
 
@@ -145,7 +176,7 @@ def scenario_key(sc: dict) -> str:
     """Cache key of a scenario's recording: hash of its recording fields, mesh and rig file."""
     from .cmd_record import object_mesh_path, rig_path
 
-    fields = {f: sc[f] for f in RECORDING_FIELDS}
+    fields = {f: sc[f] for f in RECORDING_FIELDS if f not in _KEYED_WHEN_SET or sc[f] != DEFAULTS[f]}
     payload = {"fields": fields, "mesh": _file_hash(object_mesh_path(str(sc["object"]))),
                "rig": _file_hash(rig_path(str(sc["rig"]))), "version": SIM_CACHE_VERSION}
     return hashlib.sha256(json.dumps(payload, sort_keys=True, default=str).encode()).hexdigest()[:16]
@@ -176,7 +207,9 @@ def _record_args(sc: dict, rig) -> argparse.Namespace:
         rot_amplitude_deg=sc["rot_amplitude_deg"], stop_time=sc["stop_time"], noise=float(sc["noise_px"]),
         intensity_noise=float(sc["intensity_noise"]), blur=float(sc["blur_px"]), distortion=bool(dist),
         distortion_coeffs=coeffs, occluder=bool(sc["occluder"]), drop=drops, arm=sc["arm"],
-        encoder_noise=float(sc["encoder_noise"]), seed=int(sc["seed"]), frames=int(sc["frames"]))
+        encoder_noise=float(sc["encoder_noise"]), seed=int(sc["seed"]), frames=int(sc["frames"]),
+        clutter=int(sc["clutter"]), distractor=list(sc["distractors"]), distractor_motion=sc["distractor_motion"],
+        textured_part=bool(sc["textured_part"]))
 
 
 def ensure_recording(sc: dict, cache_dir: str | Path, log=print) -> Path:
@@ -508,6 +541,12 @@ def _describe(sc: dict) -> str:
         bits.append("occluder")
     for d in sc["dropouts"] or []:
         bits.append(f"drop {d}")
+    if sc.get("clutter"):
+        bits.append(f"clutter {sc['clutter']}")
+    for d in sc.get("distractors") or []:
+        bits.append(f"distractor {d}")
+    if sc.get("textured_part"):
+        bits.append("textured part")
     return ", ".join(bits) or "clean"
 
 
