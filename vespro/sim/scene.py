@@ -265,7 +265,7 @@ def build_cell(spec: SceneSpec) -> tuple[mujoco.MjModel, dict]:
     if spec.clutter:
         from .clutter import add_clutter
 
-        add_clutter(s, spec.clutter, spec.clutter_seed)
+        add_clutter(s, spec.clutter, spec.clutter_seed, spec.rig)
     if spec.distractors:
         from .distractors import add_distractors
 
