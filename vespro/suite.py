@@ -58,7 +58,7 @@ from . import metrics
 from .crlb import crlb_from_information, crlb_std, frame_information, posterior_crlb
 
 __all__ = ["DEFAULTS", "RECORDING_FIELDS", "load_suite", "expand_suite", "scenario_key", "ensure_recording",
-           "score_scenario", "run_scenario", "run_suite", "markdown_table"]
+           "score_scenario", "track_scenario", "run_scenario", "run_suite", "markdown_table"]
 
 #: Bumped when the simulator's output for the same fields changes (invalidates the cache).
 SIM_CACHE_VERSION = 1
@@ -484,14 +484,24 @@ def _plot_summary(path: Path, results: list[dict]) -> None:
 
 
 # -- running -----------------------------------------------------------------------
-def run_scenario(sc: dict, cache_dir: str | Path, out_dir: str | Path, log=print) -> dict:
-    """Record (if needed), track and score one scenario; writes poses.csv and errors.png under ``out_dir``."""
+def track_scenario(sc: dict, cache_dir: str | Path, log=print, overrides: dict | None = None) -> dict:
+    """Record (if needed) and track one scenario.
+
+    ``overrides``: ``TrackerConfig`` fields to set besides the scenario's.
+
+    Returns
+    -------
+    dict
+        ``rec_path``, ``rec`` (Recording), ``T_true`` (N, 4, 4), ``tracker``, ``config`` and ``outs``
+        (list of TrackerOutput).
+    """
+    from dataclasses import replace
+
     from .groundtruth import read_groundtruth
     from .recording import Recording
-    from .track import make_tracker, track_recording, write_track
+    from .track import make_tracker, track_recording
     from .tracker import TrackerConfig
 
-    t_start = time.perf_counter()
     make_initializer = None
     if sc["init"] == "auto":  # checked before simulating anything
         try:
@@ -501,8 +511,8 @@ def run_scenario(sc: dict, cache_dir: str | Path, out_dir: str | Path, log=print
     rec_path = ensure_recording(sc, cache_dir, log=log)
     rec = Recording(rec_path)
     _, _, T_true = read_groundtruth(rec_path)
-    config = TrackerConfig(features_per_camera=int(sc["features"]), selection=sc["selection"],
-                           sigma_px=float(sc["sigma_px"]))
+    config = replace(TrackerConfig(features_per_camera=int(sc["features"]), selection=sc["selection"],
+                                   sigma_px=float(sc["sigma_px"])), **(overrides or {}))
     tracker = make_tracker(rec, config)
     init_pose = None
     if sc["init"] == "gt":
@@ -510,14 +520,24 @@ def run_scenario(sc: dict, cache_dir: str | Path, out_dir: str | Path, log=print
     else:
         tracker.initializer = make_initializer(rec.rig, tracker.model)
     outs = track_recording(rec, tracker, init_pose)
+    return {"rec_path": rec_path, "rec": rec, "T_true": T_true, "tracker": tracker, "config": config, "outs": outs}
+
+
+def run_scenario(sc: dict, cache_dir: str | Path, out_dir: str | Path, log=print) -> dict:
+    """Record (if needed), track and score one scenario; writes poses.csv and errors.png under ``out_dir``."""
+    from .track import write_track
+
+    t_start = time.perf_counter()
+    r = track_scenario(sc, cache_dir, log=log)
+    rec, tracker, outs = r["rec"], r["tracker"], r["outs"]
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     write_track(out_dir / "poses.csv", rec, outs)
-    fig, series = score_scenario(rec, outs, T_true, tracker.model, config, tracker.scene, tracker.salient,
+    fig, series = score_scenario(rec, outs, r["T_true"], tracker.model, r["config"], tracker.scene, tracker.salient,
                                  float(sc["noise_px"]))
     _plot_series(out_dir / "errors.png", sc["name"], series)
     return {"name": sc["name"], "scenario": {k: sc[k] for k in ("name",) + RECORDING_FIELDS + TRACK_FIELDS},
-            "recording": str(rec_path), "figures": fig, "wall_s": time.perf_counter() - t_start}
+            "recording": str(r["rec_path"]), "figures": fig, "wall_s": time.perf_counter() - t_start}
 
 
 def _f(v, nd=2, scale=1.0):

@@ -1,0 +1,126 @@
+"""What the tracker publishes on the decision suites: fast motion, clutter and distractors.
+
+For every scenario of the given suites (default ``bench/suites/fast.yaml`` and
+``bench/suites/clutter.yaml``) the recording is made if the cache lacks it
+(``vespro.suite``), tracked with the current tracker (the automatic start
+where the scenario says ``init: auto``, the true pose of frame 0 where it
+says ``gt``) and scored on what was *published* (frames with status
+``tracking``):
+
+- tracked: the fraction of frames published ``tracking``;
+- max err: the largest error of a published pose, ADD to the nearest
+  symmetric equivalent of the true pose, % of the part's diameter;
+- >=5% / >=10%: published frames that far off (10%: a wrong lock);
+- first: the first frame published ``tracking``;
+- distractor: frames published at a pose whose model centre is nearer the
+  centre of a distractor (``distractors.csv``, evaluator-only) than the
+  part's true centre;
+- ms/frame median and p99: the tracker's own per-frame time.
+
+Totals sum the frames over scenarios. Timings depend on the machine's load.
+
+Usage: ``python3 bench/decision.py [SUITE.yaml ...] [--only TEXT] [--cache DIR]
+[--set FIELD=VALUE ...]`` (``--set``: a ``TrackerConfig`` field for every
+scenario, e.g. a decision switch).
+"""
+
+from __future__ import annotations
+
+import argparse
+import ast
+import os
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+os.environ.setdefault("MUJOCO_GL", "egl")
+
+import numpy as np  # noqa: E402
+
+from bench._table import print_table, stats_ms  # noqa: E402
+from vespro.groundtruth import read_distractors  # noqa: E402
+from vespro.metrics import add_sym, discrete_symmetries  # noqa: E402
+from vespro.suite import load_suite, track_scenario  # noqa: E402
+
+SUITES = [ROOT / "bench" / "suites" / "fast.yaml", ROOT / "bench" / "suites" / "clutter.yaml"]
+
+
+def score_published(outs, T_true, model, distractors: dict) -> dict:
+    """Figures of the published poses of one tracked recording (see the module docstring)."""
+    syms = discrete_symmetries(model.vertices)
+    P = model.vertices
+    c = 0.5 * (P.min(axis=0) + P.max(axis=0))
+    n = len(outs)
+    err = np.full(n, np.nan)
+    on_distractor = 0
+    for i, o in enumerate(outs):
+        if o.status != "tracking":
+            continue
+        T = o.T_world_object
+        err[i] = add_sym(T, T_true[i], P, syms) / model.diameter
+        p = T[:3, :3] @ c + T[:3, 3]
+        d_part = np.linalg.norm(p - (T_true[i][:3, :3] @ c + T_true[i][:3, 3]))
+        for d in distractors.values():
+            k = np.flatnonzero(d["index"] == o.index)
+            if k.size and np.linalg.norm(p - d["center"][k[0]]) < d_part:
+                on_distractor += 1
+                break
+    pub = np.isfinite(err)
+    return {"frames": n, "published": int(pub.sum()), "max_err": float(np.nanmax(err)) if pub.any() else float("nan"),
+            "ge5": int(np.sum(err[pub] >= 0.05)), "ge10": int(np.sum(err[pub] >= 0.10)),
+            "first": int(np.argmax(pub)) if pub.any() else None, "on_distractor": on_distractor,
+            "times_s": [o.time_ms * 1e-3 for o in outs]}
+
+
+def _overrides(items) -> dict:
+    out = {}
+    for s in items or []:
+        k, _, v = s.partition("=")
+        try:
+            out[k.strip()] = ast.literal_eval(v.strip())
+        except (ValueError, SyntaxError):
+            out[k.strip()] = v.strip()
+    return out
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("suites", nargs="*", type=Path, default=SUITES, help="suite files (default: fast and clutter)")
+    ap.add_argument("--only", help="run only scenarios whose name contains this text")
+    ap.add_argument("--cache", type=Path, default=ROOT / "out" / "suite_cache", help="recording cache folder")
+    ap.add_argument("--set", action="append", metavar="FIELD=VALUE", help="a TrackerConfig field for every scenario")
+    args = ap.parse_args(argv)
+    overrides = _overrides(args.set)
+    headers = ["scenario", "init", "frames", "tracked %", "max err %D", ">=5%", ">=10%", "first", "distractor",
+               "ms med", "ms p99"]
+    for path in args.suites:
+        name, scenarios = load_suite(path)
+        if args.only:
+            scenarios = [s for s in scenarios if args.only in s["name"]]
+        rows, total, times = [], [], []
+        for sc in scenarios:
+            r = track_scenario(sc, args.cache, log=lambda m: print(m, file=sys.stderr), overrides=overrides)
+            f = score_published(r["outs"], r["T_true"], r["tracker"].model, read_distractors(r["rec_path"]))
+            med, p99 = stats_ms(f["times_s"])
+            rows.append([sc["name"], sc["init"], f["frames"], 100.0 * f["published"] / f["frames"],
+                         100.0 * f["max_err"], f["ge5"], f["ge10"], "-" if f["first"] is None else f["first"],
+                         f["on_distractor"] if sc["distractors"] else "-", med, p99])
+            total.append(f)
+            times += f["times_s"]
+        if not total:
+            continue
+        frames = sum(f["frames"] for f in total)
+        med, p99 = stats_ms(times)
+        errs = [f["max_err"] for f in total if np.isfinite(f["max_err"])]
+        rows.append(["total", "", frames, 100.0 * sum(f["published"] for f in total) / frames,
+                     100.0 * max(errs) if errs else float("nan"), sum(f["ge5"] for f in total), sum(f["ge10"] for f in total), "",
+                     sum(f["on_distractor"] for f in total), med, p99])
+        title = f"suite {name} ({path}){'; ' + ', '.join(args.set) if args.set else ''}"
+        print_table(headers, rows, title=title)
+        print()
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
