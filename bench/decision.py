@@ -20,8 +20,10 @@ says ``gt``) and scored on what was *published* (frames with status
 Totals sum the frames over scenarios. Timings depend on the machine's load.
 
 Usage: ``python3 bench/decision.py [SUITE.yaml ...] [--only TEXT] [--cache DIR]
-[--set FIELD=VALUE ...]`` (``--set``: a ``TrackerConfig`` field for every
-scenario, e.g. a decision switch).
+[--set FIELD=VALUE ...] [--out DIR]`` (``--set``: a ``TrackerConfig`` field
+for every scenario, e.g. a decision switch; ``--out``: per scenario
+``poses.csv`` and ``overlay.png``, every camera at the middle frame with the
+published pose in green and the true pose of each distractor in red).
 """
 
 from __future__ import annotations
@@ -41,6 +43,7 @@ import numpy as np  # noqa: E402
 from bench._table import print_table, stats_ms  # noqa: E402
 from vespro.groundtruth import read_distractors  # noqa: E402
 from vespro.metrics import add_sym, discrete_symmetries  # noqa: E402
+from vespro.se3 import invert_transform  # noqa: E402
 from vespro.suite import load_suite, track_scenario  # noqa: E402
 
 SUITES = [ROOT / "bench" / "suites" / "fast.yaml", ROOT / "bench" / "suites" / "clutter.yaml"]
@@ -73,6 +76,37 @@ def score_published(outs, T_true, model, distractors: dict) -> dict:
             "times_s": [o.time_ms * 1e-3 for o in outs]}
 
 
+def write_outputs(out: Path, r: dict, distractors: dict) -> None:
+    """``poses.csv`` and ``overlay.png`` (every camera side by side, the middle frame) of a tracked scenario."""
+    import cv2
+
+    from vespro.evaluate import draw_overlay
+    from vespro.track import write_track
+
+    out.mkdir(parents=True, exist_ok=True)
+    rec, outs, model = r["rec"], r["outs"], r["tracker"].model
+    write_track(out / "poses.csv", rec, outs)
+    i = len(outs) // 2
+    o = outs[i]
+    views = []
+    for cam in rec.rig:
+        img = rec.image(cam.name, i)
+        if img is None:
+            continue
+        T_cw = invert_transform(rec.T_world_camera(cam.name, i))
+        for d in distractors.values():  # the part's model at each distractor's pose: red
+            k = np.flatnonzero(d["index"] == o.index)
+            if k.size:
+                red = draw_overlay(img, model, cam.intrinsics, T_cw @ d["T"][k[0]])
+                mask = np.any(red != (img if img.ndim == 3 else cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)), axis=2)
+                img = img.copy() if img.ndim == 3 else cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)
+                img[mask] = (0, 0, 255)
+        T = T_cw @ o.T_world_object if o.status == "tracking" else None
+        views.append(draw_overlay(img, model, cam.intrinsics, T))
+    cv2.putText(views[0], f"frame {i}: {o.status}", (8, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (255, 255, 255), 1)
+    cv2.imwrite(str(out / "overlay.png"), np.hstack(views))
+
+
 def _overrides(items) -> dict:
     out = {}
     for s in items or []:
@@ -90,6 +124,7 @@ def main(argv=None) -> int:
     ap.add_argument("--only", help="run only scenarios whose name contains this text")
     ap.add_argument("--cache", type=Path, default=ROOT / "out" / "suite_cache", help="recording cache folder")
     ap.add_argument("--set", action="append", metavar="FIELD=VALUE", help="a TrackerConfig field for every scenario")
+    ap.add_argument("--out", type=Path, help="write poses.csv and overlay.png per scenario under this folder")
     args = ap.parse_args(argv)
     overrides = _overrides(args.set)
     headers = ["scenario", "init", "frames", "tracked %", "max err %D", ">=5%", ">=10%", "first", "distractor",
@@ -101,7 +136,10 @@ def main(argv=None) -> int:
         rows, total, times = [], [], []
         for sc in scenarios:
             r = track_scenario(sc, args.cache, log=lambda m: print(m, file=sys.stderr), overrides=overrides)
-            f = score_published(r["outs"], r["T_true"], r["tracker"].model, read_distractors(r["rec_path"]))
+            dist = read_distractors(r["rec_path"])
+            f = score_published(r["outs"], r["T_true"], r["tracker"].model, dist)
+            if args.out:
+                write_outputs(args.out / name / sc["name"], r, dist)
             med, p99 = stats_ms(f["times_s"])
             rows.append([sc["name"], sc["init"], f["frames"], 100.0 * f["published"] / f["frames"],
                          100.0 * f["max_err"], f["ge5"], f["ge10"], "-" if f["first"] is None else f["first"],
