@@ -25,16 +25,16 @@ HEADER = ["index", "t", "x", "y", "z", "qw", "qx", "qy", "qz"]
 DISTRACTOR_HEADER = ["index", "t", "name", "kind", "x", "y", "z", "qw", "qx", "qy", "qz", "cx", "cy", "cz"]
 
 
-class GroundTruthWriter:
-    """Append true object poses to ``<recording>/groundtruth.csv``."""
+class _CsvWriter:
+    """A CSV file of a recording, its header written first; a context manager."""
+
+    FILE = ""
+    COLUMNS: list = []
 
     def __init__(self, recording_path: str | Path):
-        self._f = open(Path(recording_path) / "groundtruth.csv", "w", newline="")
+        self._f = open(Path(recording_path) / self.FILE, "w", newline="")
         self._w = csv.writer(self._f, lineterminator="\n")
-        self._w.writerow(HEADER)
-
-    def write(self, index: int, t: float, T_world_object: np.ndarray) -> None:
-        self._w.writerow([str(index), f"{t:.9f}"] + [f"{v:.9f}" for v in pq_from_transform(T_world_object)])
+        self._w.writerow(self.COLUMNS)
 
     def close(self) -> None:
         if not self._f.closed:
@@ -45,6 +45,15 @@ class GroundTruthWriter:
 
     def __exit__(self, *exc):
         self.close()
+
+
+class GroundTruthWriter(_CsvWriter):
+    """Append true object poses to ``<recording>/groundtruth.csv``."""
+
+    FILE, COLUMNS = "groundtruth.csv", HEADER
+
+    def write(self, index: int, t: float, T_world_object: np.ndarray) -> None:
+        self._w.writerow([str(index), f"{t:.9f}"] + [f"{v:.9f}" for v in pq_from_transform(T_world_object)])
 
 
 def read_groundtruth(recording_path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -86,29 +95,16 @@ def read_groundtruth(recording_path: str | Path) -> tuple[np.ndarray, np.ndarray
     return index, t, T
 
 
-class DistractorWriter:
+class DistractorWriter(_CsvWriter):
     """Append true distractor poses to ``<recording>/distractors.csv``."""
 
-    def __init__(self, recording_path: str | Path):
-        self._f = open(Path(recording_path) / "distractors.csv", "w", newline="")
-        self._w = csv.writer(self._f, lineterminator="\n")
-        self._w.writerow(DISTRACTOR_HEADER)
+    FILE, COLUMNS = "distractors.csv", DISTRACTOR_HEADER
 
     def write(self, index: int, t: float, name: str, kind: str, T_world_distractor: np.ndarray,
               center_world: np.ndarray) -> None:
         self._w.writerow([str(index), f"{t:.9f}", name, kind]
                          + [f"{v:.9f}" for v in pq_from_transform(T_world_distractor)]
                          + [f"{v:.9f}" for v in center_world])
-
-    def close(self) -> None:
-        if not self._f.closed:
-            self._f.close()
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        self.close()
 
 
 def read_distractors(recording_path: str | Path) -> dict[str, dict]:

@@ -1,6 +1,5 @@
 """Scene options of the simulator: clutter, distractors, textured parts; their recording files and suite fields."""
 
-import builtins
 from pathlib import Path
 
 import numpy as np
@@ -89,19 +88,12 @@ def test_near_distractor_has_the_part_footprint_and_keeps_clear_in_view():
             assert np.all(z > 0) and np.all((uv >= 0) & (uv < [cam.intrinsics.width, cam.intrinsics.height]))
 
 
-def test_reading_a_recording_never_opens_distractors_csv(recordings, monkeypatch):
-    opened = []
-    real_open = builtins.open
-
-    def spy(file, *a, **k):
-        opened.append(str(file))
-        return real_open(file, *a, **k)
-
-    monkeypatch.setattr(builtins, "open", spy)
+def test_reading_a_recording_never_opens_distractors_csv(recordings, opened_files):
+    opened_files.clear()
     rec = Recording(recordings / "busy")
     for _ in rec:
         pass
-    assert opened and not any("distractors" in f for f in opened)
+    assert opened_files and not any("distractors" in f or "groundtruth" in f for f in opened_files)
 
 
 def test_record_refuses_bad_scene_options_in_one_line(tmp_path, capsys):
