@@ -195,11 +195,11 @@ def build_config(args) -> tuple:
         from .sim.distractors import place_distractors
 
         radius = float(np.max(np.linalg.norm(trimesh.load(str(mesh), force="mesh").vertices, axis=1)))
-        belt_speed = getattr(motion, "speed", 0.0) if args.motion == "conveyor" else 0.0
         if args.distractor_motion == "belt" and args.motion != "conveyor":
             raise ValueError("--distractor-motion belt needs --motion conveyor")
         distractors = place_distractors(args.distractor, mesh, rig, times, path, radius,
-                                        args.distractor_motion, belt_speed, args.seed)
+                                        args.distractor_motion, motion if args.motion == "conveyor" else None,
+                                        args.seed)
     config = CellConfig(
         object_mesh=mesh, rig=rig, rate_hz=args.rate,
         effects=ImageEffects(noise_px=args.noise, intensity_noise=args.intensity_noise, blur_px=args.blur),

@@ -75,7 +75,7 @@ def test_near_distractor_has_the_part_footprint_and_keeps_clear_in_view():
     rig = load_rig(ROOT / "cameras/fixed2.yaml")
     t = np.arange(52) / 26.0
     path = np.array([Conveyor().pose(x) for x in t])
-    (d,) = place_distractors(["near"], mesh, rig, t, path, 0.13, "belt", 0.1, seed=3)
+    (d,) = place_distractors(["near"], mesh, rig, t, path, 0.13, "belt", Conveyor(), seed=3)
     assert d.scale == (1.0, 1.0, NEAR_HEIGHT_SCALE)
     np.testing.assert_allclose(d.lo[:2], [-0.07, -0.05], atol=1e-6)
     np.testing.assert_allclose(d.hi, [0.07, 0.05, 0.1 * NEAR_HEIGHT_SCALE], atol=1e-6)

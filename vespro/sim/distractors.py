@@ -62,8 +62,8 @@ class Distractor:
         Bounds of the shape in its frame, m.
     T0 : ndarray (4, 4)
         ``T_world_distractor`` at t = 0.
-    velocity : ndarray (3,)
-        World velocity, m/s (zero when static).
+    belt : Conveyor or None
+        Carried along +y by this belt (its ``travel(t)``, speed changes and stop included); static if None.
     plinth : bool
         Stands on a plinth beside the belt.
     """
@@ -76,13 +76,14 @@ class Distractor:
     lo: np.ndarray
     hi: np.ndarray
     T0: np.ndarray
-    velocity: np.ndarray
+    belt: object = None
     plinth: bool = False
 
     def pose(self, t: float) -> np.ndarray:
         """``T_world_distractor`` at time ``t`` (s)."""
         T = np.array(self.T0, dtype=float)
-        T[:3, 3] += np.asarray(self.velocity) * t
+        if self.belt is not None:
+            T[1, 3] += self.belt.travel(t)
         return T
 
     @property
@@ -138,7 +139,7 @@ def _in_view(rig: Rig, pts_world: np.ndarray) -> bool:
 
 
 def place_distractors(kinds, part_mesh: Path, rig: Rig, times: np.ndarray, part_poses: np.ndarray,
-                      part_radius: float, motion: str = "static", belt_speed: float = 0.0,
+                      part_radius: float, motion: str = "static", belt=None,
                       seed: int = 0) -> tuple[Distractor, ...]:
     """Distractors of the given kinds, placed beside the part's path (see the module docstring).
 
@@ -156,7 +157,8 @@ def place_distractors(kinds, part_mesh: Path, rig: Rig, times: np.ndarray, part_
     part_radius : float
         Radius of a ball about the part's frame origin holding the part, m.
     motion : str
-        ``static`` or ``belt`` (carried along +y at ``belt_speed``).
+        ``static`` or ``belt`` (carried along +y by ``belt``, the part's :class:`~vespro.sim.motion.Conveyor`).
+    belt : Conveyor, optional
     seed : int
 
     Raises
@@ -166,21 +168,27 @@ def place_distractors(kinds, part_mesh: Path, rig: Rig, times: np.ndarray, part_
     """
     if motion not in DISTRACTOR_MOTIONS:
         raise ValueError(f"distractor motion must be one of {', '.join(DISTRACTOR_MOTIONS)}, got {motion!r}")
+    if motion == "belt" and belt is None:
+        raise ValueError("distractors riding the belt need the part on the belt (conveyor motion)")
     rng = np.random.default_rng([seed, 4409])
-    v = np.array([0.0, belt_speed if motion == "belt" else 0.0, 0.0])
+    belt = belt if motion == "belt" else None
     times = np.asarray(times, float)
     path = np.asarray(part_poses)[:, :3, 3]
     # Part centre track: frame origin plus a ball; sampled sparsely (enough for clearance).
     step = max(1, len(times) // 40)
     ts, ps = times[::step], path[::step]
+    travel = np.zeros((len(ts), 3))
+    if belt is not None:
+        travel[:, 1] = [belt.travel(x) for x in ts]
     placed: list[Distractor] = []
+    tracks: list[np.ndarray] = []
     xs = np.arange(BELT_CENTER_X - 0.40, BELT_CENTER_X + 0.40 + 1e-9, 0.02)
     ys = np.arange(-0.50, 0.50 + 1e-9, 0.02)
     for i, kind in enumerate(kinds):
         mesh, scale, half, lo, hi = _shape(kind, part_mesh, rng)
         yaw = rng.uniform(-np.pi, np.pi)
         R = exp_so3([0.0, 0.0, yaw])
-        proto = Distractor(f"distractor_{i}", kind, mesh, scale, half, np.asarray(lo), np.asarray(hi), np.eye(4), v)
+        proto = Distractor(f"distractor_{i}", kind, mesh, scale, half, np.asarray(lo), np.asarray(hi), np.eye(4), belt)
         r = proto.radius
         corners = proto.corners() @ R.T
         best = None
@@ -191,10 +199,9 @@ def place_distractors(kinds, part_mesh: Path, rig: Rig, times: np.ndarray, part_
                 continue
             for y in ys:
                 p0 = np.array([x, y, BELT_TOP_Z])
-                track = p0 + ts[:, None] * v
+                track = p0 + travel
                 clear = np.min(np.hypot(*(track[:, :2] - ps[:, :2]).T)) - r - part_radius
-                for d in placed:
-                    dt = d.T0[:3, 3] + ts[:, None] * d.velocity
+                for d, dt in zip(placed, tracks):
                     clear = min(clear, np.min(np.hypot(*(track[:, :2] - dt[:, :2]).T)) - r - d.radius)
                 if clear < CLEARANCE:
                     continue
@@ -208,7 +215,8 @@ def place_distractors(kinds, part_mesh: Path, rig: Rig, times: np.ndarray, part_
             raise ValueError(f"no place for distractor {kind!r} beside the part's path in view of every fixed camera")
         _, p0, on_belt = best
         placed.append(Distractor(f"distractor_{i}", kind, mesh, scale, half, np.asarray(lo), np.asarray(hi),
-                                 transform_from_rt(R, p0), v, plinth=not on_belt))
+                                 transform_from_rt(R, p0), belt, plinth=not on_belt))
+        tracks.append(p0 + travel)
     return tuple(placed)
 
 
@@ -238,7 +246,7 @@ def add_distractors(s: mujoco.MjSpec, distractors, rgba=(0.60, 0.62, 0.66, 1.0))
         else:
             body.add_geom(name=f"{d.name}_geom", type=mujoco.mjtGeom.mjGEOM_CYLINDER, size=[d.half[0], d.half[2], 0],
                           pos=[0, 0, d.half[2]], **kw)
-        if d.plinth and not np.any(d.velocity):
+        if d.plinth and d.belt is None:
             h = 0.5 * BELT_TOP_Z
             p = d.T0[:3, 3]
             s.worldbody.add_geom(name=f"{d.name}_plinth", type=mujoco.mjtGeom.mjGEOM_BOX,
