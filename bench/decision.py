@@ -23,7 +23,8 @@ Usage: ``python3 bench/decision.py [SUITE.yaml ...] [--only TEXT] [--cache DIR]
 [--set FIELD=VALUE ...] [--out DIR]`` (``--set``: a ``TrackerConfig`` field
 for every scenario, e.g. a decision switch; ``--out``: per scenario
 ``poses.csv`` and ``overlay.png``, every camera at the middle frame with the
-published pose in green and the true pose of each distractor in red).
+published pose in green, each distractor's true centre as a red cross and the
+near-shape distractor's outline in red).
 """
 
 from __future__ import annotations
@@ -41,9 +42,11 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 import numpy as np  # noqa: E402
 
 from bench._table import print_table, stats_ms  # noqa: E402
+from vespro.camera import project_points  # noqa: E402
 from vespro.groundtruth import read_distractors  # noqa: E402
 from vespro.metrics import add_sym, discrete_symmetries  # noqa: E402
 from vespro.se3 import invert_transform  # noqa: E402
+from vespro.sim.distractors import NEAR_HEIGHT_SCALE  # noqa: E402
 from vespro.suite import load_suite, track_scenario  # noqa: E402
 
 SUITES = [ROOT / "bench" / "suites" / "fast.yaml", ROOT / "bench" / "suites" / "clutter.yaml"]
@@ -94,13 +97,18 @@ def write_outputs(out: Path, r: dict, distractors: dict) -> None:
         if img is None:
             continue
         T_cw = invert_transform(rec.T_world_camera(cam.name, i))
-        for d in distractors.values():  # the part's model at each distractor's pose: red
+        img = img.copy() if img.ndim == 3 else cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)
+        for d in distractors.values():
             k = np.flatnonzero(d["index"] == o.index)
-            if k.size:
-                red = draw_overlay(img, model, cam.intrinsics, T_cw @ d["T"][k[0]])
-                mask = np.any(red != (img if img.ndim == 3 else cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)), axis=2)
-                img = img.copy() if img.ndim == 3 else cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)
+            if not k.size:
+                continue
+            if d["kind"] == "near":  # its shape: the part's model, lower
+                T = T_cw @ d["T"][k[0]] @ np.diag([1.0, 1.0, NEAR_HEIGHT_SCALE, 1.0])
+                mask = np.any(draw_overlay(img, model, cam.intrinsics, T) != img, axis=2)
                 img[mask] = (0, 0, 255)
+            uv, z = project_points(cam.intrinsics, T_cw, d["center"][k[0]][None])
+            if z[0] > 0:
+                cv2.drawMarker(img, (int(uv[0, 0]), int(uv[0, 1])), (0, 0, 255), cv2.MARKER_CROSS, 12, 2)
         T = T_cw @ o.T_world_object if o.status == "tracking" else None
         views.append(draw_overlay(img, model, cam.intrinsics, T))
     cv2.putText(views[0], f"frame {i}: {o.status}", (8, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (255, 255, 255), 1)
