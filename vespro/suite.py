@@ -58,7 +58,7 @@ from . import metrics
 from .crlb import crlb_from_information, crlb_std, frame_information, posterior_crlb
 
 __all__ = ["DEFAULTS", "RECORDING_FIELDS", "load_suite", "expand_suite", "scenario_key", "ensure_recording",
-           "score_scenario", "track_scenario", "run_scenario", "run_suite", "markdown_table"]
+           "score_scenario", "score_published", "track_scenario", "run_scenario", "run_suite", "markdown_table"]
 
 #: Bumped when the simulator's output for the same fields changes (invalidates the cache).
 SIM_CACHE_VERSION = 1
@@ -481,6 +481,53 @@ def _plot_summary(path: Path, results: list[dict]) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
+
+
+def score_published(outs, T_true: np.ndarray, model, distractors: dict | None = None) -> dict:
+    """Figures of what was published (status ``tracking``) over one tracked recording.
+
+    Parameters
+    ----------
+    outs : list of TrackerOutput
+    T_true : ndarray (N, 4, 4)
+        True ``T_world_object`` per frame.
+    model : Model
+    distractors : dict, optional
+        :func:`vespro.groundtruth.read_distractors` of the recording.
+
+    Returns
+    -------
+    dict
+        ``frames``; ``published`` (frames published ``tracking``); ``max_err`` (largest
+        published error, ADD to the nearest symmetric equivalent, fraction of the
+        diameter; nan if none); ``ge5``, ``ge10`` (published frames at least 5% / 10% of
+        the diameter off); ``first`` (first published frame or None); ``on_distractor``
+        (published frames whose model centre lies nearer a distractor's centre than the
+        part's true centre); ``times_s`` (the tracker's time per frame).
+    """
+    syms = metrics.discrete_symmetries(model.vertices)
+    P = model.vertices
+    c = 0.5 * (P.min(axis=0) + P.max(axis=0))
+    n = len(outs)
+    err = np.full(n, np.nan)
+    on_distractor = 0
+    for i, o in enumerate(outs):
+        if o.status != "tracking":
+            continue
+        T = o.T_world_object
+        err[i] = metrics.add_sym(T, T_true[i], P, syms) / model.diameter
+        p = T[:3, :3] @ c + T[:3, 3]
+        d_part = np.linalg.norm(p - (T_true[i][:3, :3] @ c + T_true[i][:3, 3]))
+        for d in (distractors or {}).values():
+            k = np.flatnonzero(d["index"] == o.index)
+            if k.size and np.linalg.norm(p - d["center"][k[0]]) < d_part:
+                on_distractor += 1
+                break
+    pub = np.isfinite(err)
+    return {"frames": n, "published": int(pub.sum()), "max_err": float(np.nanmax(err)) if pub.any() else float("nan"),
+            "ge5": int(np.sum(err[pub] >= 0.05)), "ge10": int(np.sum(err[pub] >= 0.10)),
+            "first": int(np.argmax(pub)) if pub.any() else None, "on_distractor": on_distractor,
+            "times_s": [o.time_ms * 1e-3 for o in outs]}
 
 
 # -- running -----------------------------------------------------------------------

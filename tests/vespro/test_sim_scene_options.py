@@ -130,3 +130,27 @@ def test_suite_scene_fields_parse_and_key_the_cache_only_when_set():
     assert scenario_key(c) != scenario_key(a)
     _, crossed = expand_suite({"cross": [{"object": ["box", "lblock"], "distractors": ["near", "block"]}]})
     assert [s["distractors"] for s in crossed] == [["near", "block"]] * 2  # a list of kinds, not an axis
+
+
+def test_score_published_counts_errors_and_a_pose_on_the_distractor():
+    from vespro.model import load_model
+    from vespro.se3 import transform_from_rt
+    from vespro.suite import score_published
+    from vespro.tracker import TrackerOutput
+
+    model = load_model(ROOT / "models/objects/lblock.stl")
+    D = model.diameter
+    T_true = np.array([transform_from_rt(np.eye(3), [0.9, -0.2 + 0.01 * i, 0.5]) for i in range(5)])
+    off = lambda i, dx: transform_from_rt(np.eye(3), T_true[i][:3, 3] + [dx, 0, 0])  # noqa: E731
+    T_d = np.array([off(i, 0.25) for i in range(5)])
+    dist = {"distractor_0": {"kind": "near", "index": np.arange(5), "T": T_d,
+                             "center": T_d[:, :3, 3] + [0.0, 0.0, 0.028]}}
+    outs = [TrackerOutput(0, 0, "searching"),
+            TrackerOutput(1, 1, "tracking", off(1, 0.0)),
+            TrackerOutput(2, 2, "tracking", off(2, 0.06 * D)),  # 6% off
+            TrackerOutput(3, 3, "tracking", off(3, 0.24)),  # on the distractor
+            TrackerOutput(4, 4, "lost")]
+    f = score_published(outs, T_true, model, dist)
+    assert (f["frames"], f["published"], f["first"], f["ge5"], f["ge10"], f["on_distractor"]) == (5, 3, 1, 2, 1, 1)
+    assert f["max_err"] == pytest.approx(0.24 / D)
+    assert score_published(outs[:1], T_true, model)["first"] is None
