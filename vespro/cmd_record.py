@@ -120,7 +120,7 @@ def add_scenario_options(p: argparse.ArgumentParser) -> None:
                    help="home: arm parked; watch: flange hovers over the working area (eye-in-hand view)")
     p.add_argument("--encoder-noise", type=float, default=0.0, help="joint sensor noise, rad")
     p.add_argument("--clutter", type=_count, default=0, metavar="N",
-                   help="N textured items in the background (a mat on the belt, panels behind it, boxes and "
+                   help="N textured items in the background (a pattern on the belt, panels behind it, boxes and "
                         "patches on the floor), placed by --seed")
     p.add_argument("--distractor", action="append", default=[], metavar="KIND",
                    help="another object in view of every fixed camera, beside the part's path (repeatable): "
