@@ -1,3 +1,4 @@
+import builtins
 import os
 from pathlib import Path
 
@@ -16,3 +17,20 @@ def example_box2() -> Path:
     if not (EXAMPLE_BOX2 / "meta.yaml").is_file():
         pytest.skip("../shared/data/example_box2 is not present (a user's clone has none)")
     return EXAMPLE_BOX2
+
+
+@pytest.fixture
+def opened_files(monkeypatch) -> list:
+    """Every path passed to ``open`` or ``cv2.imread`` from now on in the test, in order."""
+    import cv2
+
+    opened = []
+    real_open, real_imread = builtins.open, cv2.imread
+
+    def spy(file, *a, **k):
+        opened.append(str(file))
+        return real_open(file, *a, **k)
+
+    monkeypatch.setattr(builtins, "open", spy)
+    monkeypatch.setattr(cv2, "imread", lambda f, *a: (opened.append(str(f)), real_imread(f, *a))[1])
+    return opened

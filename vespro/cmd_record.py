@@ -69,6 +69,15 @@ def _dropout(s: str):
         raise argparse.ArgumentTypeError(f"--drop takes CAMERA:T0:T1 (seconds), got {s!r}") from None
 
 
+def _count(s: str) -> int:
+    try:
+        n = int(s)
+        assert n >= 0
+    except (ValueError, AssertionError):
+        raise argparse.ArgumentTypeError(f"expected a count >= 0, got {s!r}") from None
+    return n
+
+
 def _distortion(s: str):
     try:
         v = tuple(float(x) for x in s.split(","))
@@ -115,7 +124,17 @@ def add_scenario_options(p: argparse.ArgumentParser, rate_default: float | None 
     p.add_argument("--arm", default="home", choices=["home", "watch"],
                    help="home: arm parked; watch: flange hovers over the working area (eye-in-hand view)")
     p.add_argument("--encoder-noise", type=float, default=0.0, help="joint sensor noise, rad")
-    p.add_argument("--seed", type=int, default=0, help="random seed (noise, random motion)")
+    p.add_argument("--clutter", type=_count, default=0, metavar="N",
+                   help="N textured items in the background (a pattern on the belt, panels behind it, boxes and "
+                        "patches on the floor), placed by --seed")
+    p.add_argument("--distractor", action="append", default=[], metavar="KIND",
+                   help="another object in view of every fixed camera, beside the part's path (repeatable): "
+                        "near (the part's footprint, 70%% of its height), block, cylinder, or a part "
+                        "(box, lblock, bracket); its poses go to distractors.csv (evaluators only)")
+    p.add_argument("--distractor-motion", choices=["static", "belt"], default="static",
+                   help="distractors stand still, or ride the belt beside the part (conveyor motion)")
+    p.add_argument("--textured-part", action="store_true", help="grey patterns printed on the part's faces")
+    p.add_argument("--seed", type=int, default=0, help="random seed (noise, random motion, clutter, distractors)")
 
 
 def add_parser(sub) -> None:
@@ -171,11 +190,28 @@ def build_config(args) -> tuple:
     rot = None if args.rot_amplitude_deg is None else float(np.deg2rad(args.rot_amplitude_deg))
     motion = make_motion(args.motion, speed=args.speed, amplitude=args.amplitude, rot_amplitude=rot,
                          seed=args.seed, stop_time=args.stop_time)
+    n_frames = getattr(args, "frames", None) or 78
+    times = np.arange(n_frames) / args.rate
+    path = np.array([motion.pose(t) for t in times])
+    distractors = ()
+    if getattr(args, "distractor", None):
+        import trimesh
+
+        from .sim.distractors import place_distractors
+
+        radius = float(np.max(np.linalg.norm(trimesh.load(str(mesh), force="mesh").vertices, axis=1)))
+        if args.distractor_motion == "belt" and args.motion != "conveyor":
+            raise ValueError("--distractor-motion belt needs --motion conveyor")
+        distractors = place_distractors(args.distractor, mesh, rig, times, path, radius,
+                                        args.distractor_motion, motion if args.motion == "conveyor" else None,
+                                        args.seed)
     config = CellConfig(
         object_mesh=mesh, rig=rig, rate_hz=args.rate,
         effects=ImageEffects(noise_px=args.noise, intensity_noise=args.intensity_noise, blur_px=args.blur),
         arm=args.arm, encoder_noise=args.encoder_noise, occluders=occluders, dropouts=tuple(args.drop),
         seed=args.seed, render_samples=getattr(args, "render_samples", 4), mono=getattr(args, "mono", False),
+        clutter=getattr(args, "clutter", 0), distractors=distractors,
+        textured_part=getattr(args, "textured_part", False),
     )
     return config, motion, mesh.stem
 

@@ -24,7 +24,10 @@ Scenario fields (defaults in :data:`DEFAULTS`):
   ``occluder`` (bool: a paddle sweeps in front of the first fixed camera),
   ``dropouts`` (list of ``CAMERA:T0:T1``; CAMERA a name or a rig index),
   ``arm`` (home, watch; eye-in-hand rigs always watch), ``encoder_noise``,
-  ``seed``;
+  ``seed``, ``clutter`` (a count of textured background items),
+  ``distractors`` (a list of kinds: near, block, cylinder, box, lblock,
+  bracket; see :mod:`vespro.sim.distractors`), ``distractor_motion`` (static,
+  belt), ``textured_part`` (bool);
 * tracking: ``init`` (``gt``: the filter starts from the ground-truth pose of
   frame 0, an evaluator-only choice that scores tracking alone; ``auto``: the
   automatic initialiser of :mod:`vespro.init`), ``features``, ``selection``,
@@ -55,14 +58,15 @@ from . import metrics
 from .crlb import crlb_from_information, crlb_std, frame_information, posterior_crlb
 
 __all__ = ["DEFAULTS", "RECORDING_FIELDS", "load_suite", "expand_suite", "scenario_key", "ensure_recording",
-           "score_scenario", "run_scenario", "run_suite", "markdown_table"]
+           "score_scenario", "score_published", "track_scenario", "run_scenario", "run_suite", "markdown_table"]
 
 #: Bumped when the simulator's output for the same fields changes (invalidates the cache).
 SIM_CACHE_VERSION = 1
 
 RECORDING_FIELDS = ("object", "rig", "motion", "speed", "amplitude", "rot_amplitude_deg", "stop_time", "frames",
                     "rate_hz", "resolution", "noise_px", "intensity_noise", "blur_px", "distortion", "occluder",
-                    "dropouts", "arm", "encoder_noise", "seed")
+                    "dropouts", "arm", "encoder_noise", "seed", "clutter", "distractors", "distractor_motion",
+                    "textured_part")
 TRACK_FIELDS = ("init", "features", "selection", "sigma_px")
 
 DEFAULTS = {
@@ -70,9 +74,13 @@ DEFAULTS = {
     "rot_amplitude_deg": None, "stop_time": None, "frames": 65, "rate_hz": 26.0, "resolution": None,
     "noise_px": 0.0, "intensity_noise": 0.0, "blur_px": 0.0, "distortion": False, "occluder": False,
     "dropouts": [], "arm": "home", "encoder_noise": 0.0, "seed": 0,
+    "clutter": 0, "distractors": [], "distractor_motion": "static", "textured_part": False,
     "init": "gt", "features": 8, "selection": "quality", "sigma_px": 0.5,
 }
-_NOT_CROSSED = ("dropouts", "distortion")
+#: Scene fields added after the cache's first recordings: left out of the cache key at their default,
+#: so the recordings of scenarios that do not use them keep their keys.
+_KEYED_WHEN_SET = ("clutter", "distractors", "distractor_motion", "textured_part")
+_NOT_CROSSED = ("dropouts", "distortion", "distractors")
 MOTIONS = {"conveyor": ("conveyor", None), "sinusoid": ("sinusoid", None), "sinusoid_slow": ("sinusoid", 1.0),
            "sinusoid_fast": ("sinusoid", 2.5), "random": ("random", None), "static": ("static", None)}
 SYMMETRIC_OBJECTS_NOTE = "ADD-S for objects with discrete symmetries (found from the model), ADD otherwise"
@@ -83,6 +91,28 @@ def _check_fields(d: dict, where: str) -> None:
     unknown = set(d) - set(DEFAULTS) - {"name"}
     if unknown:
         raise ValueError(f"{where}: unknown field(s) {sorted(unknown)}; known: {sorted(DEFAULTS)}")
+
+
+def _check_scene(s: dict, where: str) -> None:
+    """Validate (and normalise in place) the clutter and distractor fields of a scenario."""
+    from .sim.distractors import DISTRACTOR_KINDS, DISTRACTOR_MOTIONS
+
+    c = s["clutter"]
+    if isinstance(c, bool) or not isinstance(c, int) or c < 0:
+        raise ValueError(f"{where}: clutter must be a count >= 0, got {c!r}")
+    d = s["distractors"]
+    if isinstance(d, str):
+        d = [d]
+    if not isinstance(d, list) or any(k not in DISTRACTOR_KINDS for k in d):
+        raise ValueError(f"{where}: distractors must be a list of {', '.join(DISTRACTOR_KINDS)}, got {d!r}")
+    s["distractors"] = list(d)
+    if s["distractor_motion"] not in DISTRACTOR_MOTIONS:
+        raise ValueError(f"{where}: distractor_motion must be one of {', '.join(DISTRACTOR_MOTIONS)}, "
+                         f"got {s['distractor_motion']!r}")
+    if s["distractor_motion"] == "belt" and s["motion"] != "conveyor":
+        raise ValueError(f"{where}: distractor_motion belt needs motion conveyor")
+    if not isinstance(s["textured_part"], bool):
+        raise ValueError(f"{where}: textured_part must be true or false, got {s['textured_part']!r}")
 
 
 def expand_suite(data: dict, source: str = "suite") -> tuple[str, list[dict]]:
@@ -127,6 +157,7 @@ def expand_suite(data: dict, source: str = "suite") -> tuple[str, list[dict]]:
             raise ValueError(f"{source}: scenario {s['name']}: motion must be one of {sorted(MOTIONS)}")
         if s["init"] not in ("gt", "auto"):
             raise ValueError(f"{source}: scenario {s['name']}: init must be 'gt' or 'auto', got {s['init']!r}")
+        _check_scene(s, f"{source}: scenario {s['name']}")
     return str(data.get("name", Path(source).stem)), out
 
 
@@ -145,7 +176,7 @@ def scenario_key(sc: dict) -> str:
     """Cache key of a scenario's recording: hash of its recording fields, mesh and rig file."""
     from .cmd_record import object_mesh_path, rig_path
 
-    fields = {f: sc[f] for f in RECORDING_FIELDS}
+    fields = {f: sc[f] for f in RECORDING_FIELDS if f not in _KEYED_WHEN_SET or sc[f] != DEFAULTS[f]}
     payload = {"fields": fields, "mesh": _file_hash(object_mesh_path(str(sc["object"]))),
                "rig": _file_hash(rig_path(str(sc["rig"]))), "version": SIM_CACHE_VERSION}
     return hashlib.sha256(json.dumps(payload, sort_keys=True, default=str).encode()).hexdigest()[:16]
@@ -176,7 +207,9 @@ def _record_args(sc: dict, rig) -> argparse.Namespace:
         rot_amplitude_deg=sc["rot_amplitude_deg"], stop_time=sc["stop_time"], noise=float(sc["noise_px"]),
         intensity_noise=float(sc["intensity_noise"]), blur=float(sc["blur_px"]), distortion=bool(dist),
         distortion_coeffs=coeffs, occluder=bool(sc["occluder"]), drop=drops, arm=sc["arm"],
-        encoder_noise=float(sc["encoder_noise"]), seed=int(sc["seed"]), frames=int(sc["frames"]))
+        encoder_noise=float(sc["encoder_noise"]), seed=int(sc["seed"]), frames=int(sc["frames"]),
+        clutter=int(sc["clutter"]), distractor=list(sc["distractors"]), distractor_motion=sc["distractor_motion"],
+        textured_part=bool(sc["textured_part"]))
 
 
 def ensure_recording(sc: dict, cache_dir: str | Path, log=print) -> Path:
@@ -450,15 +483,72 @@ def _plot_summary(path: Path, results: list[dict]) -> None:
     plt.close(fig)
 
 
+def score_published(outs, T_true: np.ndarray, model, distractors: dict | None = None) -> dict:
+    """Figures of what was published (status ``tracking``) over one tracked recording.
+
+    Parameters
+    ----------
+    outs : list of TrackerOutput
+    T_true : ndarray (N, 4, 4)
+        True ``T_world_object`` per frame.
+    model : Model
+    distractors : dict, optional
+        :func:`vespro.groundtruth.read_distractors` of the recording.
+
+    Returns
+    -------
+    dict
+        ``frames``; ``published`` (frames published ``tracking``); ``max_err`` (largest
+        published error, ADD to the nearest symmetric equivalent, fraction of the
+        diameter; nan if none); ``ge5``, ``ge10`` (published frames at least 5% / 10% of
+        the diameter off); ``first`` (first published frame or None); ``on_distractor``
+        (published frames whose model centre lies nearer a distractor's centre than the
+        part's true centre); ``times_s`` (the tracker's time per frame).
+    """
+    syms = metrics.discrete_symmetries(model.vertices)
+    P = model.vertices
+    c = 0.5 * (P.min(axis=0) + P.max(axis=0))
+    n = len(outs)
+    err = np.full(n, np.nan)
+    on_distractor = 0
+    for i, o in enumerate(outs):
+        if o.status != "tracking":
+            continue
+        T = o.T_world_object
+        err[i] = metrics.add_sym(T, T_true[i], P, syms) / model.diameter
+        p = T[:3, :3] @ c + T[:3, 3]
+        d_part = np.linalg.norm(p - (T_true[i][:3, :3] @ c + T_true[i][:3, 3]))
+        for d in (distractors or {}).values():
+            k = np.flatnonzero(d["index"] == o.index)
+            if k.size and np.linalg.norm(p - d["center"][k[0]]) < d_part:
+                on_distractor += 1
+                break
+    pub = np.isfinite(err)
+    return {"frames": n, "published": int(pub.sum()), "max_err": float(np.nanmax(err)) if pub.any() else float("nan"),
+            "ge5": int(np.sum(err[pub] >= 0.05)), "ge10": int(np.sum(err[pub] >= 0.10)),
+            "first": int(np.argmax(pub)) if pub.any() else None, "on_distractor": on_distractor,
+            "times_s": [o.time_ms * 1e-3 for o in outs]}
+
+
 # -- running -----------------------------------------------------------------------
-def run_scenario(sc: dict, cache_dir: str | Path, out_dir: str | Path, log=print) -> dict:
-    """Record (if needed), track and score one scenario; writes poses.csv and errors.png under ``out_dir``."""
+def track_scenario(sc: dict, cache_dir: str | Path, log=print, overrides: dict | None = None) -> dict:
+    """Record (if needed) and track one scenario.
+
+    ``overrides``: ``TrackerConfig`` fields to set besides the scenario's.
+
+    Returns
+    -------
+    dict
+        ``rec_path``, ``rec`` (Recording), ``T_true`` (N, 4, 4), ``tracker``, ``config`` and ``outs``
+        (list of TrackerOutput).
+    """
+    from dataclasses import replace
+
     from .groundtruth import read_groundtruth
     from .recording import Recording
-    from .track import make_tracker, track_recording, write_track
+    from .track import make_tracker, track_recording
     from .tracker import TrackerConfig
 
-    t_start = time.perf_counter()
     make_initializer = None
     if sc["init"] == "auto":  # checked before simulating anything
         try:
@@ -468,8 +558,8 @@ def run_scenario(sc: dict, cache_dir: str | Path, out_dir: str | Path, log=print
     rec_path = ensure_recording(sc, cache_dir, log=log)
     rec = Recording(rec_path)
     _, _, T_true = read_groundtruth(rec_path)
-    config = TrackerConfig(features_per_camera=int(sc["features"]), selection=sc["selection"],
-                           sigma_px=float(sc["sigma_px"]))
+    config = replace(TrackerConfig(features_per_camera=int(sc["features"]), selection=sc["selection"],
+                                   sigma_px=float(sc["sigma_px"])), **(overrides or {}))
     tracker = make_tracker(rec, config)
     init_pose = None
     if sc["init"] == "gt":
@@ -477,14 +567,24 @@ def run_scenario(sc: dict, cache_dir: str | Path, out_dir: str | Path, log=print
     else:
         tracker.initializer = make_initializer(rec.rig, tracker.model)
     outs = track_recording(rec, tracker, init_pose)
+    return {"rec_path": rec_path, "rec": rec, "T_true": T_true, "tracker": tracker, "config": config, "outs": outs}
+
+
+def run_scenario(sc: dict, cache_dir: str | Path, out_dir: str | Path, log=print) -> dict:
+    """Record (if needed), track and score one scenario; writes poses.csv and errors.png under ``out_dir``."""
+    from .track import write_track
+
+    t_start = time.perf_counter()
+    r = track_scenario(sc, cache_dir, log=log)
+    rec, tracker, outs = r["rec"], r["tracker"], r["outs"]
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     write_track(out_dir / "poses.csv", rec, outs)
-    fig, series = score_scenario(rec, outs, T_true, tracker.model, config, tracker.scene, tracker.salient,
+    fig, series = score_scenario(rec, outs, r["T_true"], tracker.model, r["config"], tracker.scene, tracker.salient,
                                  float(sc["noise_px"]))
     _plot_series(out_dir / "errors.png", sc["name"], series)
     return {"name": sc["name"], "scenario": {k: sc[k] for k in ("name",) + RECORDING_FIELDS + TRACK_FIELDS},
-            "recording": str(rec_path), "figures": fig, "wall_s": time.perf_counter() - t_start}
+            "recording": str(r["rec_path"]), "figures": fig, "wall_s": time.perf_counter() - t_start}
 
 
 def _f(v, nd=2, scale=1.0):
@@ -508,6 +608,12 @@ def _describe(sc: dict) -> str:
         bits.append("occluder")
     for d in sc["dropouts"] or []:
         bits.append(f"drop {d}")
+    if sc.get("clutter"):
+        bits.append(f"clutter {sc['clutter']}")
+    for d in sc.get("distractors") or []:
+        bits.append(f"distractor {d}")
+    if sc.get("textured_part"):
+        bits.append("textured part")
     return ", ".join(bits) or "clean"
 
 

@@ -1,7 +1,6 @@
 """Recordings: round trip, the example made outside the project, malformed input."""
 
 import ast
-import builtins
 import shutil
 from pathlib import Path
 
@@ -139,7 +138,7 @@ def test_bad_images_are_counted_not_fatal(tmp_path):
     assert rec.missing == {"a": 2, "h": 5}
 
 
-def test_reader_never_opens_groundtruth(tmp_path, monkeypatch):
+def test_reader_never_opens_groundtruth(tmp_path, opened_files):
     from vespro.sim.cell import CellConfig
     from vespro.sim.motion import Conveyor
     from vespro.sim.record import record
@@ -147,22 +146,11 @@ def test_reader_never_opens_groundtruth(tmp_path, monkeypatch):
 
     out = record(tmp_path / "rec", CellConfig(BOX, load_rig(ROOT / "cameras" / "fixed1.yaml")), Conveyor(), 3, "box")
     assert (out / "groundtruth.csv").is_file()
-    opened = []
-    real_open = builtins.open
-
-    def spy(file, *a, **k):
-        opened.append(str(file))
-        return real_open(file, *a, **k)
-
-    monkeypatch.setattr(builtins, "open", spy)
-    import cv2
-
-    real_imread = cv2.imread
-    monkeypatch.setattr(cv2, "imread", lambda f, *a: (opened.append(str(f)), real_imread(f, *a))[1])
+    opened_files.clear()  # from here on: what the reader opens
     rec = Recording(out)
     for _ in rec:
         pass
-    assert opened and not any("groundtruth" in f for f in opened)
+    assert opened_files and not any("groundtruth" in f for f in opened_files)
     # Nothing the tracker reads holds the object's true pose.
     gt_row = (out / "groundtruth.csv").read_text().splitlines()[1].split(",")
     for name in ("meta.yaml", "cameras.yaml", "frames.csv"):

@@ -93,6 +93,12 @@ class CellConfig:
         :class:`~vespro.sim.scene.SceneSpec`); render time grows with its square.
     mono : bool
         Monochrome cameras: 8-bit grey images instead of BGR.
+    clutter : int
+        Textured background items (:mod:`vespro.sim.clutter`; placed by ``seed``).
+    distractors : tuple of Distractor
+        Other objects in view (:mod:`vespro.sim.distractors`).
+    textured_part : bool
+        Grey patterns on the part's faces.
     """
 
     object_mesh: Path
@@ -109,6 +115,9 @@ class CellConfig:
     render_samples: int = 4
     supersample: int = 1
     mono: bool = False
+    clutter: int = 0
+    distractors: tuple = ()
+    textured_part: bool = False
 
     def __post_init__(self):
         if self.arm not in ARM_MODES:
@@ -142,7 +151,10 @@ class SimCell:
         self.model, info = build_cell(SceneSpec(Path(config.object_mesh), config.rig, markers=config.markers,
                                                 extras=tuple(config.scene_extras),
                                                 render_samples=config.render_samples,
-                                                supersample=config.supersample))
+                                                supersample=config.supersample, clutter=config.clutter,
+                                                clutter_seed=config.seed,
+                                                distractors=tuple(config.distractors),
+                                                textured_part=config.textured_part))
         self.data = mujoco.MjData(self.model)
         home = self.model.key("home").id
         mujoco.mj_resetDataKeyframe(self.model, self.data, home)
@@ -165,6 +177,7 @@ class SimCell:
                 self._renderers[key] = r
         self._obj_mocap = self.model.body("object").mocapid[0]
         self._occ_mocap = self.model.body("occluder").mocapid[0]
+        self._distractor_mocap = [self.model.body(d.name).mocapid[0] for d in config.distractors]
         self._flange = self.model.body("flange").id
         self._arm_target_q = self._q_home.copy()
         self._next_capture = 0
@@ -205,6 +218,8 @@ class SimCell:
             self.data.mocap_pos[self._occ_mocap] = PARK_POS + [1.0, 0, 0]
         else:
             self._set_mocap(self._occ_mocap, T_occ)
+        for d, m in zip(self.config.distractors, self._distractor_mocap):
+            self._set_mocap(m, d.pose(t))
         self.data.ctrl[:6] = self._arm_target_q
 
     # -- arm ---------------------------------------------------------------
@@ -337,6 +352,14 @@ class SimCell:
         """MuJoCo's pose of the object body now: ``T_world_object``."""
         b = self.model.body("object").id
         return transform_from_rt(matrix_from_quat(self.data.xquat[b]), self.data.xpos[b].copy())
+
+    def true_distractor_poses(self) -> dict[str, np.ndarray]:
+        """MuJoCo's pose of every distractor body now: ``{name: T_world_distractor}``."""
+        out = {}
+        for d in self.config.distractors:
+            b = self.model.body(d.name).id
+            out[d.name] = transform_from_rt(matrix_from_quat(self.data.xquat[b]), self.data.xpos[b].copy())
+        return out
 
     def true_camera_pose(self, name: str) -> np.ndarray:
         """The render camera's true ``T_world_camera`` (optical frame) now."""

@@ -2,9 +2,10 @@
 
 from __future__ import annotations
 
+from contextlib import ExitStack
 from pathlib import Path
 
-from ..groundtruth import GroundTruthWriter
+from ..groundtruth import DistractorWriter, GroundTruthWriter
 from ..recording import RecordingWriter
 from .cell import CellConfig, SimCell
 from .motion import Motion
@@ -16,8 +17,9 @@ def record(out: str | Path, config: CellConfig, motion: Motion, n_frames: int, o
            overwrite: bool = False, progress: bool = False, extra_meta: dict | None = None) -> Path:
     """Simulate the cell and write ``n_frames`` capture instants as a recording.
 
-    Ground truth goes to ``groundtruth.csv`` only (its own writer); the frames,
-    rig and measured eye-in-hand poses go where the tracker reads them.
+    Ground truth goes to ``groundtruth.csv`` only (its own writer), and the
+    distractors' true poses, when there are any, to ``distractors.csv``; the
+    frames, rig and measured eye-in-hand poses go where the tracker reads them.
 
     Returns
     -------
@@ -35,12 +37,19 @@ def record(out: str | Path, config: CellConfig, motion: Motion, n_frames: int, o
     with SimCell(config, motion) as cell, \
             RecordingWriter(out, config.rig, config.object_mesh, config.rate_hz, object_name,
                             overwrite=overwrite, extra_meta=extra_meta) as writer, \
-            GroundTruthWriter(out) as gt:
+            GroundTruthWriter(out) as gt, ExitStack() as stack:
+        dw = stack.enter_context(DistractorWriter(out)) if config.distractors else None
+        kinds = {d.name: d for d in config.distractors}
         cell.settle_arm()
         for _ in range(n_frames):
             fs = cell.next_frameset()
             writer.write(fs)
-            gt.write(fs.index, (fs.t_ns - writer.t0_ns) * 1e-9, cell.true_object_pose())
+            t = (fs.t_ns - writer.t0_ns) * 1e-9
+            gt.write(fs.index, t, cell.true_object_pose())
+            if dw is not None:
+                for name, T in cell.true_distractor_poses().items():
+                    d = kinds[name]
+                    dw.write(fs.index, t, name, d.kind, T, T[:3, :3] @ d.center + T[:3, 3])
             if bar:
                 bar.update(1)
     if bar:

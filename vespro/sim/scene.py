@@ -7,6 +7,9 @@ reference cameras). At run time this module adds, with MuJoCo's ``MjSpec``:
   (object frame = body frame; MuJoCo re-centres the mesh inside the geom, not
   the body, so the body pose is the CAD frame's pose);
 - an occluder paddle (mocap body ``occluder``), parked out of sight;
+- optionally a cluttered, textured background (:mod:`vespro.sim.clutter`),
+  distractors (mocap bodies ``distractor_<i>``, :mod:`vespro.sim.distractors`)
+  and a texture on the part's faces;
 - one render camera per rig camera, named ``rig_<name>``: fixed cameras in the
   world at ``T_world_camera``, eye-in-hand cameras on their ``link`` body at
   ``T_link_camera``. MuJoCo cameras look along -z with y up (``camera_gl``);
@@ -124,6 +127,14 @@ class SceneSpec:
     extras : tuple of callables
         Each is called as ``f(spec: mujoco.MjSpec)`` before compiling, to add
         bodies of its own (a calibration board, a second part...).
+    clutter : int
+        Number of textured background items (:func:`vespro.sim.clutter.add_clutter`).
+    clutter_seed : int
+        Their sizes, places and textures.
+    distractors : tuple of Distractor
+        Other objects in view (:mod:`vespro.sim.distractors`).
+    textured_part : bool
+        Grey patterns printed on the part's faces (the silhouette is unchanged).
     floor_tiles : bool
         Draw the floor's checker as geometry (flat tiles on a plain floor) instead
         of a texture: the same pattern, but a CPU rasteriser spends about half of a
@@ -140,6 +151,10 @@ class SceneSpec:
     render_samples: int = 4
     floor_tiles: bool = True
     supersample: int = 1
+    clutter: int = 0
+    clutter_seed: int = 0
+    distractors: tuple = ()
+    textured_part: bool = False
 
 
 # The floor's checker (models/cell.xml: 512 px builtin checker, 8 repeats over the 8 m plane).
@@ -202,9 +217,23 @@ def build_cell(spec: SceneSpec) -> tuple[mujoco.MjModel, dict]:
     if not mesh_path.is_file():
         raise ValueError(f"object mesh not found: {mesh_path}")
     s = mujoco.MjSpec.from_file(str(CELL_XML))
-    s.add_mesh(name="object_mesh", file=str(mesh_path))
-    mat = s.add_material(name="object_mat")
-    mat.rgba = list(spec.object_rgba)
+    if spec.textured_part:
+        from .textures import add_texture, grey_pattern, planar_uv_mesh
+
+        v, f, uv = planar_uv_mesh(mesh_path)
+        mesh = s.add_mesh(name="object_mesh")
+        mesh.uservert = v.ravel().tolist()
+        mesh.userface = f.ravel().tolist()
+        mesh.usertexcoord = uv.ravel().tolist()
+        mesh.userfacetexcoord = f.ravel().tolist()
+        rng = np.random.default_rng([spec.clutter_seed, 5281])
+        mat = s.material(add_texture(s, "object", grey_pattern(rng, mean=float(np.mean(spec.object_rgba[:3])),
+                                                                spread=0.3), per_metre=8.0))
+        mat.texuniform = False
+    else:
+        s.add_mesh(name="object_mesh", file=str(mesh_path))
+        mat = s.add_material(name="object_mat")
+        mat.rgba = list(spec.object_rgba)
     mat.specular = 0.35
     mat.shininess = 0.4
 
@@ -212,7 +241,7 @@ def build_cell(spec: SceneSpec) -> tuple[mujoco.MjModel, dict]:
     obj = wb.add_body(name="object", mocap=True, pos=PARK_POS.tolist())
     obj.add_geom(
         name="object_geom", type=mujoco.mjtGeom.mjGEOM_MESH, meshname="object_mesh",
-        material="object_mat", contype=0, conaffinity=0, group=2,
+        material=mat.name, contype=0, conaffinity=0, group=2,
     )
     occ = wb.add_body(name="occluder", mocap=True, pos=(PARK_POS + [1.0, 0, 0]).tolist())
     occ.add_geom(
@@ -233,6 +262,14 @@ def build_cell(spec: SceneSpec) -> tuple[mujoco.MjModel, dict]:
 
     if spec.floor_tiles:
         _floor_as_tiles(s)
+    if spec.clutter:
+        from .clutter import add_clutter
+
+        add_clutter(s, spec.clutter, spec.clutter_seed, spec.rig)
+    if spec.distractors:
+        from .distractors import add_distractors
+
+        add_distractors(s, spec.distractors, spec.object_rgba)
     for extra in spec.extras:
         extra(s)
 
