@@ -132,7 +132,7 @@ def _raw_child(read, n: int, conn) -> None:
 
 
 def _spawn(target, *args, start="fork"):
-    # "spawn" once this process runs a Zenoh session: a forked child inherits its runtime without its threads.
+    # "spawn" once this process has a Zenoh peer open: a forked child inherits its runtime without its threads.
     parent, child = mp.Pipe()
     p = mp.get_context(start).Process(target=target, args=(*args, child), daemon=True)
     p.start()
@@ -262,12 +262,12 @@ def _zenoh_raw_child(ep: str, n: int, conn) -> None:
             if k[0] == n:
                 done.set()
 
-    session = zenoh.open(zenoh.Config.from_json5(wire.zenoh_config_json5("peer", [], [ep])))
-    session.declare_subscriber(ZENOH_KEY, on_sample)
+    peer = zenoh.open(zenoh.Config.from_json5(wire.zenoh_config_json5("peer", [], [ep])))
+    peer.declare_subscriber(ZENOH_KEY, on_sample)
     conn.send("ready")
     done.wait(60)
     conn.send(t_recv[: k[0]])
-    session.close()
+    peer.close()
 
 
 def zenoh_raw(n, period_ns):
@@ -275,9 +275,9 @@ def zenoh_raw(n, period_ns):
     import zenoh
 
     ep = _zenoh_endpoint()
-    session = zenoh.open(zenoh.Config.from_json5(wire.zenoh_config_json5("peer", [ep], [])))
+    peer = zenoh.open(zenoh.Config.from_json5(wire.zenoh_config_json5("peer", [ep], [])))
     try:
-        pub = session.declare_publisher(ZENOH_KEY, congestion_control=zenoh.CongestionControl.DROP, express=True)
+        pub = peer.declare_publisher(ZENOH_KEY, congestion_control=zenoh.CongestionControl.DROP, express=True)
         proc, conn = _spawn(_zenoh_raw_child, ep, n, start="spawn")
         t_end = time.monotonic() + 15
         while not pub.matching_status.matching and time.monotonic() < t_end:
@@ -293,7 +293,7 @@ def zenoh_raw(n, period_ns):
         t_recv = conn.recv()
         proc.join(5)
     finally:
-        session.close()
+        peer.close()
     if len(t_recv) < n:
         raise RuntimeError(f"zenoh raw: received {len(t_recv)} of {n} frames")
     return t_recv - t_send, n / ((t_recv[-1] - t0) / 1e9)

@@ -245,7 +245,7 @@ class PoseReceiver:
 
             self._transport = ZenohTransport(url)
             self._idle_ns = 0
-            connect_timeout_s = max(connect_timeout_s, 10.0)  # opening a session takes ~0.5 s, more under load
+            connect_timeout_s = max(connect_timeout_s, 10.0)  # opening a Zenoh peer takes ~0.5 s, more under load
         else:
             self._transport = _SerialTransport(url, baudrate)
             self._idle_ns = 0

@@ -11,7 +11,7 @@ unambiguously.
 (``start``, ``finish``, ``read``, ``fileno``, ``close``, see
 :mod:`servo.receiver`): Zenoh's own thread hands each sample's payload (one wire
 frame) to a queue and writes a byte to a socket pair so ``fileno()`` can be
-waited on; ``read`` returns what is queued, never blocking. Opening a session
+waited on; ``read`` returns what is queued, never blocking. Opening a Zenoh peer
 takes about half a second, so it happens in a thread: ``start`` begins it and
 ``finish`` reports when it is up; the 500 Hz loop never waits for it.
 """
@@ -55,27 +55,27 @@ class ZenohTransport:
     def __init__(self, url: str):
         self.options = parse_zenoh_url(url)
         try:
-            import zenoh  # noqa: F401  (checked here: the session is opened in a thread)
+            import zenoh  # noqa: F401  (checked here: the peer is opened in a thread)
         except ImportError:
             raise ValueError(f"{url}: Zenoh needs the 'eclipse-zenoh' package: pip install 'vespro[interop]'") from None
         self._frames: deque[bytes] = deque()
         self._wake_r = self._wake_w = None
         self._lock = threading.Lock()
-        self._attempt: dict | None = None  # the session being opened or open
+        self._attempt: dict | None = None  # the peer being opened or open
 
     @classmethod
     def from_url(cls, url: str) -> "ZenohTransport":
         return cls(url)
 
     def _open(self, attempt: dict) -> None:
-        session = None
+        peer = None
         try:
             import zenoh
 
             o = self.options
             conf = zenoh.Config.from_file(o["config"]) if o["config"] else \
                 zenoh.Config.from_json5(zenoh_config_json5(o["mode"], o["listen"], o["connect"]))
-            session = zenoh.open(conf)
+            peer = zenoh.open(conf)
             wake, frames = attempt["wake"], self._frames
 
             def on_sample(sample):
@@ -85,28 +85,28 @@ class ZenohTransport:
                 except OSError:
                     pass  # buffer full (a wake-up is pending anyway), or closed
 
-            session.declare_subscriber(o["key"], on_sample)
+            peer.declare_subscriber(o["key"], on_sample)
         except Exception as e:  # reported by finish(), in the loop's thread
             attempt["error"] = e
         with self._lock:
-            attempt["session"] = session
+            attempt["peer"] = peer
             cancelled = attempt["cancelled"]
             attempt["ready"] = True
-        if cancelled and session is not None:  # closed while opening: nobody else will close it
-            session.close()
+        if cancelled and peer is not None:  # closed while opening: nobody else will close it
+            peer.close()
 
     def start(self) -> bool:
-        """Begin opening the session (in a thread); True when already open."""
+        """Begin opening the peer (in a thread); True when already open."""
         r, w = socket.socketpair()
         r.setblocking(False)
         w.setblocking(False)
         self._wake_r, self._wake_w = r, w
-        self._attempt = {"wake": w, "session": None, "error": None, "ready": False, "cancelled": False}
+        self._attempt = {"wake": w, "peer": None, "error": None, "ready": False, "cancelled": False}
         threading.Thread(target=self._open, args=(self._attempt,), name="servo-zenoh-open", daemon=True).start()
         return False
 
     def finish(self) -> bool:
-        """True once the session is open and subscribed; raises what opening it raised."""
+        """True once the peer is open and subscribed; raises what opening it raised."""
         a = self._attempt
         if a is None or not a["ready"]:
             return False
@@ -137,15 +137,15 @@ class ZenohTransport:
         return None if self._wake_r is None else self._wake_r.fileno()
 
     def close(self) -> None:
-        """Close the session (or have it closed when its opening ends); never waits for it."""
+        """Close the peer (or have it closed when its opening ends); never waits for it."""
         a, self._attempt = self._attempt, None
         if a is not None:
             with self._lock:
                 a["cancelled"] = True
-                session = a["session"]
-            if session is not None:
+                peer = a["peer"]
+            if peer is not None:
                 try:
-                    session.close()
+                    peer.close()
                 except Exception:
                     pass
         for s in (self._wake_r, self._wake_w):

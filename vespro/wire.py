@@ -85,7 +85,7 @@ makes it (the publisher's first sample opens with a lone ``0x00``, as any
 stream does); a subscriber feeds the payloads to a :class:`Decoder` in arrival
 order. HELLO is repeated every second (a subscriber may join at any
 time) and a HEARTBEAT goes out when nothing else did for a second.
-:func:`zenoh_config_json5` is the session configuration both sides use.
+:func:`zenoh_config_json5` is the Zenoh configuration both sides use.
 """
 
 from __future__ import annotations
@@ -749,18 +749,18 @@ class Decoder:
             self.seq_resets += 1
 
 
-# --- Zenoh session ------------------------------------------------------------
+# --- Zenoh peers --------------------------------------------------------------
 
 #: Where the publisher listens and subscribers connect by default: loopback only.
 ZENOH_ENDPOINT = "tcp/127.0.0.1:7447"
 
 
 def zenoh_config_json5(mode: str = "peer", listen=(), connect=()) -> str:
-    """A Zenoh session configuration (JSON5 text for ``zenoh.Config.from_json5``).
+    """A Zenoh peer configuration (JSON5 text for ``zenoh.Config.from_json5``).
 
-    Multicast scouting is off, so a session finds no peer by itself and sends
+    Multicast scouting is off, so a peer finds no other by itself and sends
     nothing beyond the endpoints given: a peer on one machine listens or
-    connects on ``tcp/127.0.0.1:PORT``; across machines every session connects
+    connects on ``tcp/127.0.0.1:PORT``; across machines every peer connects
     to a router (``mode="client"`` or ``"peer"``, ``connect=("tcp/ROUTER:7447",)``).
 
     Parameters

@@ -10,7 +10,7 @@ controller; Zenoh serves monitors, loggers, fleets and ROS 2 (``rmw_zenoh``)::
 Every sample on ``key`` is one wire frame (:mod:`vespro.wire`, "Zenoh"): the
 POSE frames, a HELLO every ``hello_period_s`` and a HEARTBEAT when idle for
 ``heartbeat_period_s``. Subscribers: ``servo run --connect zenoh/KEY`` or any
-Zenoh session feeding the payloads to ``vespro.wire.Decoder``.
+Zenoh peer feeding the payloads to ``vespro.wire.Decoder``.
 
 Samples are sent with congestion control "drop": a subscriber that cannot keep
 up loses samples (latest value wins) and the tracker is never held back; the
@@ -36,13 +36,13 @@ from .link import LinkStats, PosePublisher, PublishStatus
 from .ros2 import MissingInteropError
 from .wire import ZENOH_ENDPOINT, HelloMsg, PoseMsg, PoseStatus, zenoh_config_json5
 
-__all__ = ["ZenohPublisher", "ZenohSetupError", "ros2_key", "open_session", "POSE_TYPE"]
+__all__ = ["ZenohPublisher", "ZenohSetupError", "ros2_key", "open_peer", "POSE_TYPE"]
 
 POSE_TYPE = "geometry_msgs/msg/PoseWithCovarianceStamped"
 
 
 class ZenohSetupError(InputError):
-    """A Zenoh session or key expression the options ask for cannot be set up."""
+    """A Zenoh peer or key expression the options ask for cannot be set up."""
 
 
 def _zenoh():
@@ -53,8 +53,8 @@ def _zenoh():
     return zenoh
 
 
-def open_session(mode: str = "peer", listen=(), connect=(), config_file: str | None = None):
-    """A Zenoh session: from ``config_file`` (a Zenoh JSON5 file) if given, else
+def open_peer(mode: str = "peer", listen=(), connect=(), config_file: str | None = None):
+    """A Zenoh peer: from ``config_file`` (a Zenoh JSON5 file) if given, else
     :func:`vespro.wire.zenoh_config_json5` of the endpoints."""
     zenoh = _zenoh()
     conf = zenoh.Config.from_file(config_file) if config_file else \
@@ -101,7 +101,7 @@ class ZenohPublisher:
         Key expression of the wire frames.
     hello : HelloMsg
     listen, connect : sequence of str
-        Zenoh endpoints of the session (peer mode). By default it listens on
+        Zenoh endpoints of the peer (peer mode). By default it listens on
         ``tcp/127.0.0.1:7447`` only: reachable from this machine alone.
     config_file : str, optional
         A Zenoh configuration file instead (several machines: see the README).
@@ -124,17 +124,17 @@ class ZenohPublisher:
         # ROS time is the system clock: capture stamps are moved onto it by this offset.
         self._ros_offset_ns = time.time_ns() - clock_ns()
         try:
-            self._session = open_session("peer", listen, connect, config_file)
+            self._peer = open_peer("peer", listen, connect, config_file)
         except Exception as e:
             where = f"configuration {config_file}" if config_file else f"listen {list(listen)} connect {list(connect)}"
-            raise ZenohSetupError(f"cannot open a Zenoh session ({where}): {e} (an endpoint in use, "
+            raise ZenohSetupError(f"cannot open a Zenoh peer ({where}): {e} (an endpoint in use, "
                                   "or a malformed one?)") from None
         opts = dict(congestion_control=zenoh.CongestionControl.DROP, express=True)
         try:
-            self._pub = self._session.declare_publisher(key, **opts)
-            self._ros = self._session.declare_publisher(ros2_key, **opts) if ros2_key else None
+            self._pub = self._peer.declare_publisher(key, **opts)
+            self._ros = self._peer.declare_publisher(ros2_key, **opts) if ros2_key else None
         except Exception as e:
-            self._session.close()
+            self._peer.close()
             raise ZenohSetupError(f"Zenoh key expression {key!r}: {e}") from None
         self._gid = os.urandom(16)   # rmw_zenoh's publisher id in the attachment
         self._ros_seq = 0
@@ -182,10 +182,10 @@ class ZenohPublisher:
         return replace(st, clients_connected=int(self.subscribers_matched()), errors=st.errors + self._ros_errors)
 
     def close(self) -> None:
-        """Stop sending and close the session. Idempotent."""
+        """Stop sending and close the peer. Idempotent."""
         self._link.close()
         try:
-            self._session.close()
+            self._peer.close()
         except Exception:
             pass
 

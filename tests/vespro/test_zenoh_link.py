@@ -147,9 +147,9 @@ def test_tracked_poses_also_go_out_as_ros2_cdr_with_the_rmw_zenoh_key():
     pub = ZenohPublisher("test/vespro/pose2", HelloMsg(26.0, ("box",)), listen=[f"tcp/127.0.0.1:{port}"],
                          ros2_key=topic)
     got = []
-    session = zenoh.open(zenoh.Config.from_json5(zenoh_config_json5("peer", [], [f"tcp/127.0.0.1:{port}"])))
+    peer = zenoh.open(zenoh.Config.from_json5(zenoh_config_json5("peer", [], [f"tcp/127.0.0.1:{port}"])))
     try:
-        session.declare_subscriber(topic, lambda s: got.append((s.payload.to_bytes(), s.attachment.to_bytes())))
+        peer.declare_subscriber(topic, lambda s: got.append((s.payload.to_bytes(), s.attachment.to_bytes())))
         rng = np.random.default_rng(1)
         A = rng.normal(size=(6, 6))
         cov = (A @ A.T * 1e-6).astype(np.float32)
@@ -171,7 +171,7 @@ def test_tracked_poses_also_go_out_as_ros2_cdr_with_the_rmw_zenoh_key():
         poses = lambda: [(decode(p), a) for p, a in got if decode(p).pose.pose.position.x != 9.0]  # noqa: E731
         assert _until(lambda: len(poses()) == 2)
     finally:
-        session.close()
+        peer.close()
         pub.close()
     for (ros, att), m in zip(poses(), [msgs[0], msgs[2]]):  # the LOST pose is not sent
         p, o = ros.pose.pose.position, ros.pose.pose.orientation
