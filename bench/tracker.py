@@ -45,6 +45,16 @@ from vespro.track import make_tracker, track_recording  # noqa: E402
 from vespro.tracker import TrackerConfig  # noqa: E402
 
 
+def bench_recording(cache: Path, obj: str, rig_name: str, frames: int, mono: bool = False) -> Path:
+    """The bench's recording of ``obj`` on the conveyor seen by rig ``rig_name`` (made once, cached)."""
+    path = cache / f"{obj}_{rig_name}_{frames}{'_mono' if mono else ''}"
+    if not (path / "groundtruth.csv").exists():
+        cfg = CellConfig(MODELS_DIR / "objects" / f"{obj}.stl", load_rig(CAMERAS_DIR / f"{rig_name}.yaml"),
+                         effects=ImageEffects(noise_px=0.5), mono=mono)
+        record(path, cfg, Conveyor(speed=0.1, y0=-0.2), frames, obj, overwrite=True)
+    return path
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--frames", type=int, default=78)
@@ -54,11 +64,7 @@ def main() -> None:
     args = ap.parse_args()
     rows = []
     for rig_name in ("fixed1", "fixed2", "fixed3"):
-        path = args.cache / f"{args.object}_{rig_name}_{args.frames}{'_mono' if args.mono else ''}"
-        if not (path / "groundtruth.csv").exists():
-            cfg = CellConfig(MODELS_DIR / "objects" / f"{args.object}.stl", load_rig(CAMERAS_DIR / f"{rig_name}.yaml"),
-                             effects=ImageEffects(noise_px=0.5), mono=args.mono)
-            record(path, cfg, Conveyor(speed=0.1, y0=-0.2), args.frames, args.object, overwrite=True)
+        path = bench_recording(args.cache, args.object, rig_name, args.frames, args.mono)
         rec = Recording(path)
         _, _, T = read_groundtruth(path)
         tr = make_tracker(rec)

@@ -216,6 +216,8 @@ def _save_run(folder: Path, writer, outputs, stats, link_stats, source) -> None:
         "init_successes": stats.init_successes, "recording_dropped": writer.dropped,
         "missed_captures": getattr(source, "missed", 0),
         "tracker_ms_median": float(np.median(tm)), "tracker_ms_p99": float(np.percentile(tm, 99)),
+        # Each live-loop stage's time per frame, ms (ServerStats.stage_ms), for bench/profile.py.
+        "stage_ms": {k: [round(float(v), 3) for v in vals] for k, vals in stats.stage_ms.items()},
         "latency_ms_median": float(np.median(lat)), "latency_ms_p99": float(np.percentile(lat, 99)),
         "link": {"frames_published": link_stats.frames_published, "frames_sent": link_stats.frames_sent,
                  "drops": link_stats.drops, "clients_accepted": link_stats.clients_accepted,

@@ -19,6 +19,7 @@ latency (capture to send), status and link statistics.
 from __future__ import annotations
 
 import threading
+import time
 from collections import deque
 from concurrent.futures import Future, ProcessPoolExecutor, ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -121,6 +122,15 @@ class ServerStats:
     tracker_ms: list = field(default_factory=list)
     latency_ms: list = field(default_factory=list)
     statuses: list = field(default_factory=list)
+    #: Per stage of the live loop, its time in each frame, ms (wall): ``capture`` (the
+    #: source's own work: rendering, reading a camera; not its wait for the capture
+    #: instant), ``track`` (tracker and catch-up), ``backlog``, ``publish``, ``record``
+    #: (the ``on_output`` hook); and ``init`` once per initialisation job: from its
+    #: submission to the loop taking its answer.
+    stage_ms: dict = field(default_factory=dict)
+
+    def add_stage(self, name: str, ms: float) -> None:
+        self.stage_ms.setdefault(name, []).append(ms)
 
 
 class PoseServer:
@@ -183,6 +193,7 @@ class PoseServer:
             self._pool = None
         self._job: Future | None = None
         self._job_t_ns = 0
+        self._job_wall = 0.0
         self._seq = 0
         self._last_T = None
         self._last_log_ns = None
@@ -224,8 +235,10 @@ class PoseServer:
             return
         if not self.background_init:
             self.stats.init_attempts += 1
+            t = time.perf_counter()
             # After a loss the initialiser first tries near the last good pose.
             res, _ = _init_call(self.initializer, fs, self.tracker.recovery_seed(), self.tracker.provisional_pose())
+            self.stats.add_stage("init", (time.perf_counter() - t) * 1e3)
             if res is not None:
                 self.stats.init_successes += 1
                 self._start(res, fs.t_ns)
@@ -239,6 +252,7 @@ class PoseServer:
                     self.log(f"initialiser failed: {e!r}")
             job_t = self._job_t_ns
             self._job = None
+            self.stats.add_stage("init", (time.perf_counter() - self._job_wall) * 1e3)
             if self.log:
                 waited = (fs.t_ns - job_t) * 1e-9
                 found = (f"no pose ({why})" if why else "no pose") if res is None else (
@@ -268,6 +282,7 @@ class PoseServer:
         if self._job is None:
             self.stats.init_attempts += 1
             self._job_t_ns = fs.t_ns
+            self._job_wall = time.perf_counter()
             self._job = self._submit(fs, self.tracker.recovery_seed(), self.tracker.provisional_pose())
 
     def _start(self, res, t_ns: int) -> bool:
@@ -311,23 +326,31 @@ class PoseServer:
     # -- the loop -------------------------------------------------------------------
     def step(self, fs: FrameSet) -> TrackerOutput:
         """Process and publish one frame set."""
+        s = self.stats
+        capture = getattr(self.source, "last_capture_ms", None)  # the source's work on this frame set
+        if capture is not None:
+            s.add_stage("capture", capture)
+        t0 = time.perf_counter()
+        t1 = t0
         try:
             self._maybe_start(fs)
             out = self._catch_up(fs) if self._catching is not None else self.tracker.process(fs)
+            t1 = time.perf_counter()
             if (self.tracker.ekf is None or self.tracker.provisional) and self._pool is not None:
                 # Kept in grey (what the tracker uses): a third of the memory.
                 self._backlog.append(FrameSet(fs.index, fs.t_ns, {k: fs.grey(k) for k in fs.images},
                                               fs.T_world_camera))
         except Exception as e:  # a tracker bug must not take the server down: drop the track
-            self.stats.tracker_errors += 1
-            if self.stats.tracker_errors <= 3 and self.log:
+            s.tracker_errors += 1
+            if s.tracker_errors <= 3 and self.log:
                 self.log(f"tracker error on frame {fs.index}: {e!r}")
             self.tracker.ekf = None
             self.tracker.status = "lost"
             out = TrackerOutput(fs.index, fs.t_ns, "lost")
+        t2 = time.perf_counter()
         if out.status == "tracking":
             self._last_T = out.T_world_object
-            self.stats.tracking += 1
+            s.tracking += 1
         t_send = self.clock.now_ns()
         msg = pose_message(out, self._seq, t_send, self.object_id, self._last_T)
         self._seq = (self._seq + 1) & 0xFFFFFFFF
@@ -335,14 +358,17 @@ class PoseServer:
             try:
                 self.publisher.publish(msg)
             except Exception:  # the link must never take the tracker down
-                self.stats.publish_failures += 1
-        s = self.stats
+                s.publish_failures += 1
+        t3 = time.perf_counter()
         s.frames += 1
         s.tracker_ms.append(out.time_ms)
         s.latency_ms.append((t_send - fs.t_ns) * 1e-6)
         s.statuses.append(out.status)
         if self.on_output is not None:
             self.on_output(fs, out)
+        t4 = time.perf_counter()
+        for name, a, b in (("track", t0, t1), ("backlog", max(t1, t0), t2), ("publish", t2, t3), ("record", t3, t4)):
+            s.add_stage(name, (b - a) * 1e3)
         self._log_line(out)
         return out
 

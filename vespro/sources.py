@@ -13,6 +13,7 @@ each stamped at capture on the server's clock, and None when it has no more.
 from __future__ import annotations
 
 import sys
+import time
 
 from typing import Protocol
 
@@ -190,6 +191,7 @@ class WorldSource:
         self.rate_hz = config.rate_hz
         self.clock = clock
         self.missed = 0
+        self.last_capture_ms = 0.0  # rendering time of the last capture, ms
         self._k = 0
         self._wait_start_s = float(wait_start_s)
         # One throwaway render now: the first one builds the imaging pipeline's noise banks
@@ -230,6 +232,7 @@ class WorldSource:
 
     def render_now(self) -> FrameSet | None:
         """Render the world as it is now, as capture index ``k`` (lockstep drivers call this)."""
+        t = time.perf_counter()
         state = self.world.read()
         if state is None:
             return None
@@ -237,6 +240,7 @@ class WorldSource:
         self.cell.set_world(q, self._pq(pq))
         fs = self.cell.render_frameset(self._k, t_ns, (t_ns - self.world.t0_ns) * 1e-9)
         self._k += 1
+        self.last_capture_ms = (time.perf_counter() - t) * 1e3
         return fs
 
     def close(self) -> None:
