@@ -52,6 +52,9 @@ def add_parser(sub) -> None:
     p.add_argument("--fifo", type=int, default=0, metavar="PRIO",
                    help="run the live loop SCHED_FIFO at this priority (1-99; 0 = normal scheduling), as on a "
                         "dedicated vision PC: other work on its core waits; the initialisation worker is not")
+    p.add_argument("--no-shed-load", action="store_true",
+                   help="live sources: keep the full load when capture deadlines are missed (by default the "
+                        "server says so and steps down: images recorded at a lower rate, then fewer cameras)")
     add_scenario_options(p)
     add_tracker_options(p)
     p.set_defaults(func=run)
@@ -69,6 +72,7 @@ def run(args) -> int:
     from .wire import HelloMsg
 
     from .cmd_track import tracker_config
+    from .frames import FrameSet
 
     clock = SimClock() if args.lockstep else WallClock()
     from .realtime import enter_realtime, leave_realtime
@@ -156,17 +160,30 @@ def run(args) -> int:
         args.record.mkdir(parents=True, exist_ok=True)
         mesh = getattr(getattr(source, "cell", None), "config", None)
         mesh = mesh.object_mesh if mesh is not None else (args.model or rec.model_path)
+        from functools import partial
+
+        from .realtime import background_thread
+
+        # The writer's thread: off the live loop's core and class, niced (it would inherit both).
         writer = AsyncRecordingWriter(args.record / "recording", source.rig, mesh, source.rate_hz, model.name,
-                                      overwrite=True, defer_png=args.record_defer_png)
+                                      overwrite=True, defer_png=args.record_defer_png,
+                                      thread_setup=partial(background_thread, args.cpu, 10))
+    shedder = None
+    if not args.lockstep and not args.no_shed_load:
+        from .loadshed import LoadShedder
+
+        shedder = LoadShedder(source.rate_hz, [(c.name, c.is_fixed) for c in source.rig])
 
     def on_output(fs, out):
         if writer is not None:
+            if shedder is not None and not shedder.record_images(fs.index):
+                fs = FrameSet(fs.index, fs.t_ns, {k: None for k in fs.images}, fs.T_world_camera)
             writer.write(fs)
             outputs.append(out)
 
     mode = False if args.lockstep else ("process" if factory is not None else "thread")
     server = PoseServer(source, tracker, publisher, clock, initializer, background_init=mode, log=log,
-                        on_output=on_output, initializer_factory=factory)
+                        on_output=on_output, initializer_factory=factory, shedder=shedder)
 
     def _stop(signum, frame):
         server.stop()
@@ -185,7 +202,7 @@ def run(args) -> int:
         if writer is not None:
             if args.cpu is not None or args.fifo:  # the saving (PNG encoding) is not live work
                 leave_realtime()
-            _save_run(args.record, writer, outputs, server.stats, link_stats, source)
+            _save_run(args.record, writer, outputs, server.stats, link_stats, source, shedder)
         for s, h in old.items():  # restored last: a late signal must not interrupt the saving
             signal.signal(s, h)
     print(f"vespro serve: stopped after {stats.frames} frames ({stats.tracking} tracking, "
@@ -193,7 +210,7 @@ def run(args) -> int:
     return 0
 
 
-def _save_run(folder: Path, writer, outputs, stats, link_stats, source) -> None:
+def _save_run(folder: Path, writer, outputs, stats, link_stats, source, shedder=None) -> None:
     """What a recorded server run leaves for evaluation (the demo's summary)."""
     import json
     import pickle
@@ -215,6 +232,11 @@ def _save_run(folder: Path, writer, outputs, stats, link_stats, source) -> None:
         "frames": stats.frames, "tracking": stats.tracking, "init_attempts": stats.init_attempts,
         "init_successes": stats.init_successes, "recording_dropped": writer.dropped,
         "missed_captures": getattr(source, "missed", 0),
+        "capture_instants": stats.frames + getattr(source, "missed", 0),
+        # Steps the load shedder took (vespro.loadshed): when (s from the first frame set), what.
+        "load_steps": [] if shedder is None else [
+            {"t_s": (st.t_ns - (writer.t0_ns or st.t_ns)) * 1e-9, "what": st.what, "missed": st.missed,
+             "instants": st.instants} for st in shedder.steps],
         "tracker_ms_median": float(np.median(tm)), "tracker_ms_p99": float(np.percentile(tm, 99)),
         # Each live-loop stage's time per frame, ms (ServerStats.stage_ms), for bench/profile.py.
         "stage_ms": {k: [round(float(v), 3) for v in vals] for k, vals in stats.stage_ms.items()},

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import os
 
-__all__ = ["enter_realtime", "leave_realtime"]
+__all__ = ["enter_realtime", "leave_realtime", "background_thread"]
 
 
 def enter_realtime(cpu: int | None, nice: int, fifo: int = 0) -> list[str]:
@@ -42,5 +42,27 @@ def leave_realtime() -> None:
         if os.sched_getscheduler(0) != os.SCHED_OTHER:
             os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
         os.sched_setaffinity(0, range(os.cpu_count() or 1))
+    except (OSError, AttributeError):
+        pass
+
+
+def background_thread(avoid_cpu: int | None, nice: int = 10) -> None:
+    """Make the calling thread background work of a live process: normal scheduling, off
+    core ``avoid_cpu`` (the live loop's; unless it is the only core) and niced by ``nice``.
+
+    A thread started by a pinned SCHED_FIFO loop inherits its core and class: the
+    recording writer's then ran on the vision core at the loop's priority, and the
+    loop waited for it. Best effort: what the system refuses is left as it was.
+    """
+    import threading
+
+    tid = threading.get_native_id()
+    try:
+        if os.sched_getscheduler(0) != os.SCHED_OTHER:
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+        cpus = set(range(os.cpu_count() or 1))
+        os.sched_setaffinity(0, (cpus - {avoid_cpu}) or cpus)
+        if nice:
+            os.setpriority(os.PRIO_PROCESS, tid, os.getpriority(os.PRIO_PROCESS, tid) + nice)
     except (OSError, AttributeError):
         pass

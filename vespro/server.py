@@ -155,6 +155,11 @@ class PoseServer:
         a thread; False: inline (lockstep, reproducible).
     initializer_factory : callable, optional
         Picklable ``() -> initializer``, for the worker process.
+    shedder : vespro.loadshed.LoadShedder, optional
+        Watches the source's missed capture instants (its ``missed``) and lowers the
+        load: the cameras it dropped are no longer captured (the source's
+        ``skip_cameras``, where it has one) nor tracked; it also says which frame
+        sets' images to record (the ``on_output`` hook asks it).
     log : callable, optional
         Receives the once-a-second status line.
     on_output : callable, optional
@@ -164,7 +169,7 @@ class PoseServer:
     def __init__(self, source, tracker: Tracker, publisher, clock: Clock,
                  initializer: Callable[[FrameSet], object] | None = None, background_init: bool = True,
                  log: Callable[[str], None] | None = print, on_output=None, object_id: int = 0,
-                 initializer_factory=None):
+                 initializer_factory=None, shedder=None):
         self.source = source
         self.tracker = tracker
         self.tracker.initializer = None
@@ -176,6 +181,7 @@ class PoseServer:
         self.log = log
         self.on_output = on_output
         self.object_id = object_id
+        self.shedder = shedder  # LoadShedder: missed capture deadlines lower the load (None: off)
         self.stats = ServerStats()
         self._stop = threading.Event()
         if background_init == "process":
@@ -324,8 +330,25 @@ class PoseServer:
         return TrackerOutput(fs.index, fs.t_ns, "initializing")
 
     # -- the loop -------------------------------------------------------------------
+    def _shed(self, fs: FrameSet) -> FrameSet:
+        """Watch the deadlines (a step down is logged and applied); ``fs`` less the dropped cameras."""
+        sh = self.shedder
+        step = sh.observe(fs.t_ns, int(getattr(self.source, "missed", 0)))
+        if step is not None:
+            if hasattr(self.source, "skip_cameras"):
+                self.source.skip_cameras = frozenset(sh.dropped)
+            if self.log:
+                self.log(f"missed {step.missed} of the last {step.instants} capture instants: too slow for this "
+                         f"load; {step.what}")
+        if sh.dropped and any(k in fs.images for k in sh.dropped):
+            fs = FrameSet(fs.index, fs.t_ns, {k: (None if k in sh.dropped else v) for k, v in fs.images.items()},
+                          fs.T_world_camera)
+        return fs
+
     def step(self, fs: FrameSet) -> TrackerOutput:
         """Process and publish one frame set."""
+        if self.shedder is not None:
+            fs = self._shed(fs)
         s = self.stats
         capture = getattr(self.source, "last_capture_ms", None)  # the source's work on this frame set
         if capture is not None:

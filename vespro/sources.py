@@ -192,6 +192,7 @@ class WorldSource:
         self.clock = clock
         self.missed = 0
         self.last_capture_ms = 0.0  # rendering time of the last capture, ms
+        self.skip_cameras: frozenset = frozenset()  # cameras not rendered (their images None)
         self._k = 0
         self._wait_start_s = float(wait_start_s)
         # One throwaway render now: the first one builds the imaging pipeline's noise banks
@@ -238,7 +239,7 @@ class WorldSource:
             return None
         t_ns, q, pq, _ = state
         self.cell.set_world(q, self._pq(pq))
-        fs = self.cell.render_frameset(self._k, t_ns, (t_ns - self.world.t0_ns) * 1e-9)
+        fs = self.cell.render_frameset(self._k, t_ns, (t_ns - self.world.t0_ns) * 1e-9, skip=self.skip_cameras)
         self._k += 1
         self.last_capture_ms = (time.perf_counter() - t) * 1e3
         return fs
