@@ -235,8 +235,8 @@ def _save_run(folder: Path, writer, outputs, stats, link_stats, source, shedder=
         "capture_instants": stats.frames + getattr(source, "missed", 0),
         # Steps the load shedder took (vespro.loadshed): when (s from the first frame set), what.
         "load_steps": [] if shedder is None else [
-            {"t_s": (st.t_ns - (writer.t0_ns or st.t_ns)) * 1e-9, "what": st.what, "missed": st.missed,
-             "instants": st.instants} for st in shedder.steps],
+            {"t_s": (st.t_ns - (writer.t0_ns or st.t_ns)) * 1e-9, "kind": st.kind, "what": st.what,
+             "missed": st.missed, "instants": st.instants} for st in shedder.steps],
         "tracker_ms_median": float(np.median(tm)), "tracker_ms_p99": float(np.percentile(tm, 99)),
         # Each live-loop stage's time per frame, ms (ServerStats.stage_ms), for bench/profile.py.
         "stage_ms": {k: [round(float(v), 3) for v in vals] for k, vals in stats.stage_ms.items()},

@@ -14,14 +14,22 @@ ladder, announces it (one log line) and records it:
    longer captured (rendered), tracked or recorded.
 
 After a step the window starts again, so the effect of one step is seen before
-the next. Steps are not taken back within a run: a loop that had to shed load
-once would miss deadlines again when it took it up.
+the next. Misses while the loop's own work (``busy_ms``: capture, tracking,
+publishing, recording) stays well inside the period come from outside the loop
+(other work stalling it): shedding would not help, so they are reported (a
+"stall" step that changes nothing) and nothing is shed. A step is taken back,
+last first, once ``recover_s`` have passed without a miss and the loop's work,
+scaled up by what the step took away, would still fit in ``recover_frac`` of the
+period (the load a busy start, such as the initialiser's search, forced down
+comes back when it is over).
 """
 
 from __future__ import annotations
 
 from collections import deque
 from dataclasses import dataclass, field
+
+import numpy as np
 
 __all__ = ["LoadShedder", "LoadStep"]
 
@@ -34,6 +42,7 @@ class LoadStep:
     what: str
     missed: int
     instants: int
+    kind: str = "down"  # "down", "up" (a step taken back) or "stall" (nothing changed)
 
 
 @dataclass
@@ -53,6 +62,13 @@ class LoadShedder:
         were missed.
     record_steps : tuple of int
         Image recording periods to go through (1: every frame set; 0: none).
+    stall_frac : float
+        Misses while the window's 90th percentile of the loop's work is under this
+        fraction of the period are stalls from outside: reported, nothing shed.
+    recover_s, recover_frac : float
+        Take the last step back after ``recover_s`` without a miss, when the loop's
+        work (90th percentile, scaled by the cameras it would take back) stays under
+        ``recover_frac`` of the period.
     """
 
     rate_hz: float
@@ -60,6 +76,9 @@ class LoadShedder:
     window_s: float = 2.0
     max_missed_frac: float = 0.02
     record_steps: tuple = (1, 2, 4, 0)
+    stall_frac: float = 0.6
+    recover_s: float = 6.0
+    recover_frac: float = 0.6
     record_every: int = 1
     dropped: list = field(default_factory=list)
     steps: list = field(default_factory=list)
@@ -70,28 +89,53 @@ class LoadShedder:
         self._hist: deque = deque()  # (t_ns, missed total) per processed frame set
         self._window_ns = int(self.window_s * 1e9)
 
-    def observe(self, t_ns: int, missed_total: int) -> LoadStep | None:
+    def observe(self, t_ns: int, missed_total: int, busy_ms: float | None = None) -> LoadStep | None:
         """One processed frame set at capture stamp ``t_ns``, with the source's count of
-        instants missed so far; the step taken now, if any."""
+        instants missed so far and the loop's work on it (ms; None: not known); the step
+        taken now (or the stall reported), if any."""
         h = self._hist
-        h.append((t_ns, missed_total))
-        while h and t_ns - h[0][0] > self._window_ns:
-            h.popleft()
+        h.append((t_ns, missed_total, busy_ms))
         period_ns = 1e9 / self.rate_hz
+        horizon = max(self._window_ns, int(self.recover_s * 1e9))
+        while h and t_ns - h[0][0] > horizon:
+            h.popleft()
+        win = [e for e in h if t_ns - e[0] <= self._window_ns]
         if t_ns - h[0][0] < 0.9 * self._window_ns - period_ns:
             return None  # not a full window yet (since the start, or the last step)
-        missed = missed_total - h[0][1]
-        instants = len(h) - 1 + missed
-        if instants <= 0 or missed <= self.max_missed_frac * instants:
-            return None
-        what = self._step_down()
-        if what is None:
-            return None
-        step = LoadStep(int(t_ns), what, int(missed), int(instants))
+        missed = missed_total - win[0][1]
+        instants = len(win) - 1 + missed
+        busy = [e[2] for e in win if e[2] is not None]
+        busy90 = float(np.percentile(busy, 90)) if busy else None
+        if instants > 0 and missed > self.max_missed_frac * instants:
+            if busy90 is not None and busy90 < self.stall_frac * period_ns * 1e-6:
+                what = (f"stalled from outside (the loop's work {busy90:.0f} ms of the "
+                        f"{period_ns * 1e-6:.0f} ms period): nothing shed")
+                return self._record(LoadStep(int(t_ns), what, int(missed), int(instants), "stall"), h, missed_total)
+            what = self._step_down()
+            if what is None:
+                return None
+            return self._record(LoadStep(int(t_ns), what, int(missed), int(instants)), h, missed_total)
+        if self.level and missed_total == h[0][1] and t_ns - h[0][0] >= 0.9 * self.recover_s * 1e9 and busy:
+            kept = len(self.cameras) - len(self.dropped)
+            scale = (kept + 1) / kept if self.dropped else 1.0
+            if float(np.percentile([e[2] for e in h if e[2] is not None], 90)) * scale < \
+                    self.recover_frac * period_ns * 1e-6:
+                return self._record(LoadStep(int(t_ns), self._step_up(), 0, len(h) - 1, "up"), h, missed_total)
+        return None
+
+    def _record(self, step: LoadStep, h: deque, missed_total: int) -> LoadStep:
         self.steps.append(step)
         h.clear()
-        h.append((t_ns, missed_total))
+        h.append((step.t_ns, missed_total, None))
         return step
+
+    def _step_up(self) -> str:
+        if self.dropped:
+            name = self.dropped.pop()
+            return f"camera {name} back"
+        k = self.record_steps.index(self.record_every)
+        self.record_every = self.record_steps[k - 1]
+        return f"recording images of one frame set in {self.record_every}"
 
     def _step_down(self) -> str | None:
         k = self.record_steps.index(self.record_every)
@@ -115,5 +159,5 @@ class LoadShedder:
 
     @property
     def level(self) -> int:
-        """Steps taken so far."""
-        return len(self.steps)
+        """Steps down in force (0: the full load)."""
+        return self.record_steps.index(self.record_every) + len(self.dropped)

@@ -182,6 +182,7 @@ class PoseServer:
         self.on_output = on_output
         self.object_id = object_id
         self.shedder = shedder  # LoadShedder: missed capture deadlines lower the load (None: off)
+        self._busy_ms = None  # the loop's work on the last frame set, ms
         self.stats = ServerStats()
         self._stop = threading.Event()
         if background_init == "process":
@@ -333,13 +334,15 @@ class PoseServer:
     def _shed(self, fs: FrameSet) -> FrameSet:
         """Watch the deadlines (a step down is logged and applied); ``fs`` less the dropped cameras."""
         sh = self.shedder
-        step = sh.observe(fs.t_ns, int(getattr(self.source, "missed", 0)))
+        step = sh.observe(fs.t_ns, int(getattr(self.source, "missed", 0)), self._busy_ms)
         if step is not None:
             if hasattr(self.source, "skip_cameras"):
                 self.source.skip_cameras = frozenset(sh.dropped)
             if self.log:
-                self.log(f"missed {step.missed} of the last {step.instants} capture instants: too slow for this "
-                         f"load; {step.what}")
+                self.log(f"capture deadlines kept for {sh.recover_s:.0f} s with room to spare: {step.what}"
+                         if step.kind == "up" else
+                         f"missed {step.missed} of the last {step.instants} capture instants: "
+                         + (step.what if step.kind == "stall" else f"too slow for this load; {step.what}"))
         if sh.dropped and any(k in fs.images for k in sh.dropped):
             fs = FrameSet(fs.index, fs.t_ns, {k: (None if k in sh.dropped else v) for k, v in fs.images.items()},
                           fs.T_world_camera)
@@ -392,6 +395,7 @@ class PoseServer:
         t4 = time.perf_counter()
         for name, a, b in (("track", t0, t1), ("backlog", max(t1, t0), t2), ("publish", t2, t3), ("record", t3, t4)):
             s.add_stage(name, (b - a) * 1e3)
+        self._busy_ms = (capture or 0.0) + (t4 - t0) * 1e3  # the loop's work on this frame set (the shedder's)
         self._log_line(out)
         return out
 

@@ -58,3 +58,45 @@ def test_eye_in_hand_rig_keeps_its_last_camera():
     sh = LoadShedder(RATE, [("hand", False)], record_steps=(1, 0))
     steps, _, _ = _run(sh, 26 * 10, miss_every=2)
     assert [s.what for s in steps] == ["recording no images"] and sh.dropped == []
+
+
+def _feed(sh, n, busy_ms, miss_every=0, t0=0, missed0=0, until_steps=None):
+    steps, missed, t = [], missed0, t0
+    for k in range(n):
+        if until_steps is not None and len(steps) == until_steps:
+            break
+        t += PERIOD
+        if miss_every and k % miss_every == 0:
+            missed += 1
+            continue
+        st = sh.observe(t, missed, busy_ms)
+        if st is not None:
+            steps.append(st)
+    return steps, t, missed
+
+
+def test_misses_with_a_light_loop_are_stalls_and_shed_nothing():
+    sh = LoadShedder(RATE, HYBRID)
+    steps, _, _ = _feed(sh, 26 * 8, busy_ms=8.0, miss_every=4)
+    assert steps and all(s.kind == "stall" and "nothing shed" in s.what for s in steps)
+    assert sh.level == 0 and sh.record_every == 1 and sh.dropped == []
+
+
+def test_a_step_is_taken_back_once_the_loop_has_room_again():
+    sh = LoadShedder(RATE, HYBRID, record_steps=(1, 0))
+    steps, t, missed = _feed(sh, 26 * 10, busy_ms=36.0, miss_every=3, until_steps=2)  # too slow: down twice
+    assert [s.what for s in steps] == ["recording no images", "camera cam_right dropped"]
+    # Light again (an initialiser's search over): 6 s without a miss, then one step back at a time.
+    up, t, _ = _feed(sh, 26 * 5, busy_ms=10.0, t0=t, missed0=missed)
+    assert up == []  # not yet 6 s
+    up, _, _ = _feed(sh, 26 * 9, busy_ms=10.0, t0=t, missed0=missed)
+    assert [(s.kind, s.what) for s in up] == [("up", "camera cam_right back"),
+                                             ("up", "recording images of one frame set in 1")]
+    assert sh.level == 0 and sh.dropped == []
+
+
+def test_no_step_back_while_the_load_would_not_fit():
+    sh = LoadShedder(RATE, HYBRID, record_steps=(1, 0))
+    _, t, missed = _feed(sh, 26 * 10, busy_ms=36.0, miss_every=3, until_steps=2)
+    up, _, _ = _feed(sh, 26 * 15, busy_ms=20.0, t0=t, missed0=missed)  # 20 * 3/2 = 30 ms > 0.6 period
+    assert up == [] and sh.dropped == ["cam_right"]
