@@ -52,6 +52,9 @@ def add_parser(sub) -> None:
     p.add_argument("--fifo", type=int, default=0, metavar="PRIO",
                    help="run the live loop SCHED_FIFO at this priority (1-99; 0 = normal scheduling), as on a "
                         "dedicated vision PC: other work on its core waits; the initialisation worker is not")
+    p.add_argument("--init-nice", type=int, default=0,
+                   help="niceness of the initialisation worker process (negative = ahead of other normal work "
+                        "while it searches; needs root)")
     p.add_argument("--no-shed-load", action="store_true",
                    help="live sources: keep the full load when capture deadlines are missed (by default the "
                         "server says so and steps down: images recorded at a lower rate, then fewer cameras)")
@@ -183,7 +186,8 @@ def run(args) -> int:
 
     mode = False if args.lockstep else ("process" if factory is not None else "thread")
     server = PoseServer(source, tracker, publisher, clock, initializer, background_init=mode, log=log,
-                        on_output=on_output, initializer_factory=factory, shedder=shedder)
+                        on_output=on_output, initializer_factory=factory, shedder=shedder,
+                        worker_nice=args.init_nice)
 
     def _stop(signum, frame):
         server.stop()

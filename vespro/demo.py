@@ -237,7 +237,10 @@ def run_demo(cfg: DemoConfig, log=print) -> dict:
                                   # The vision PC's live loop owns a core (other work on it waits), the
                                   # software renderer's thread with it (spread over both cores it
                                   # stalled on the servo's: 30 ms wall for 15 ms of work).
-                                  "--cpu", "0", "--fifo", "10"],
+                                  "--cpu", "0", "--fifo", "10",
+                                  # The initialiser's worker ahead of the machine's other normal work
+                                  # (behind the real-time loops): the first track waits for it.
+                                  "--init-nice", "-10"],
                                  out / "vision.log", LP_NUM_THREADS="1")
         # The plant (the world's clock) starts once the pose server is ready to capture: it
         # builds its tracker, initialiser and worker first (a second or two), and the cell's

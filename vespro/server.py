@@ -18,6 +18,7 @@ latency (capture to send), status and link statistics.
 
 from __future__ import annotations
 
+import os
 import threading
 import time
 from collections import deque
@@ -44,16 +45,23 @@ CATCH_UP_SHARE = 0.4
 CATCH_UP_MIN = 2
 
 
-def _worker_setup(factory) -> None:
+def _worker_setup(factory, nice: int = 0) -> None:
     """In the initialisation worker process: build the initialiser once.
 
-    It runs at the live loop's priority: the loop has nothing to track while the
-    worker searches (it only captures and publishes ``initializing``), so the
-    sooner the search ends the better; a niced worker took 5-7 s a call beside
-    the rendering in the real-time demo, longer than the catch-up backlog.
+    It runs at the live loop's priority or, with ``nice`` < 0, ahead of the machine's
+    other normal work (still behind real-time threads): the loop has nothing to track
+    while the worker searches (it only captures and publishes ``initializing``), so
+    the sooner the search ends the better; a niced worker took 5-7 s a call beside
+    the rendering in the real-time demo, longer than the catch-up backlog, and on a
+    machine busy with other work one call took 21 s.
     """
     global _WORKER_INIT
     leave_realtime()  # free of the live loop's core and real-time class, if it had them
+    if nice:
+        try:
+            os.setpriority(os.PRIO_PROCESS, 0, nice)
+        except (OSError, AttributeError):
+            pass  # not permitted: normal priority
     _WORKER_INIT = factory()
     warm_up = getattr(_WORKER_INIT, "warm_up", None)
     if warm_up is not None:
@@ -155,6 +163,9 @@ class PoseServer:
         a thread; False: inline (lockstep, reproducible).
     initializer_factory : callable, optional
         Picklable ``() -> initializer``, for the worker process.
+    worker_nice : int
+        Niceness of the initialisation worker process (negative: ahead of the
+        machine's other normal work; needs the permission to raise priority).
     shedder : vespro.loadshed.LoadShedder, optional
         Watches the source's missed capture instants (its ``missed``) and lowers the
         load: the cameras it dropped are no longer captured (the source's
@@ -169,7 +180,7 @@ class PoseServer:
     def __init__(self, source, tracker: Tracker, publisher, clock: Clock,
                  initializer: Callable[[FrameSet], object] | None = None, background_init: bool = True,
                  log: Callable[[str], None] | None = print, on_output=None, object_id: int = 0,
-                 initializer_factory=None, shedder=None):
+                 initializer_factory=None, shedder=None, worker_nice: int = 0):
         self.source = source
         self.tracker = tracker
         self.tracker.initializer = None
@@ -188,7 +199,8 @@ class PoseServer:
         if background_init == "process":
             if initializer_factory is None:
                 raise ValueError("background_init='process' needs an initializer_factory")
-            self._pool = ProcessPoolExecutor(max_workers=1, initializer=_worker_setup, initargs=(initializer_factory,))
+            self._pool = ProcessPoolExecutor(max_workers=1, initializer=_worker_setup,
+                                             initargs=(initializer_factory, worker_nice))
             # Start the worker now: started by the first real job, its launch stalled the live loop
             # for long enough that the frames after that job's were missing and its pose was discarded.
             self._worker_up = self._pool.submit(_worker_ping)
