@@ -1092,6 +1092,104 @@ def _subpixel_view_kernel(grad, fx, fy, cx, cy, T_co, R_wo, R_cw, idx, sample_p,
     return ok, sstar, c_peak, c0, dens, lost, edge_len, J
 
 
+@njit
+def _solve_edges(J, r, dens, eid, f_scale, edge_outlier_px):
+    """The Gauss-Newton step of a :func:`refine_subpixel` round, compiled: Huber weights
+    (``f_scale``) times the samples' ``dens``; ``(J^T W J + 1e-6 diag) step = -J^T W r``;
+    with ``edge_outlier_px``, edges the step leaves more than that off on average (weighted)
+    out and the step solved again (twice at most, keeping four edges). Sums run in sample
+    order (NumPy's matrix products and pairwise sums round differently: the step agrees
+    with the NumPy formulation to rounding).
+
+    Returns ``(step, A, n_keep, rms, n_edges, weight, GtG)``: ``A = J^T W J`` of the last
+    solve, the samples kept, their weighted residual RMS, the edges they lie on, their
+    summed ``dens``, and ``G^T G`` with ``G`` the per-edge sums of the weighted rows.
+    """
+    N = r.shape[0]
+    w = np.empty(N)
+    for i in range(N):
+        a = abs(r[i])
+        w[i] = dens[i] * (1.0 if a <= f_scale else f_scale / max(a, 1e-12))
+    # Edges: the sorted distinct ids, and each sample's index among them.
+    order = np.argsort(eid, kind="mergesort")
+    inv = np.empty(N, np.int64)
+    n_u = 0
+    for k in range(N):
+        i = order[k]
+        if k > 0 and eid[i] != eid[order[k - 1]]:
+            n_u += 1
+        inv[i] = n_u
+    n_u = n_u + 1 if N else 0
+    keep = np.ones(N, np.bool_)
+    A = np.zeros((6, 6))
+    b = np.zeros(6)
+    step = np.zeros(6)
+    for drops in range(3):
+        A[:] = 0.0
+        b[:] = 0.0
+        for i in range(N):
+            wi = w[i]
+            if wi == 0.0:
+                continue
+            for j in range(6):
+                jw = J[i, j] * wi
+                b[j] -= jw * r[i]
+                for k in range(6):
+                    A[j, k] += jw * J[i, k]
+        M = A.copy()
+        for j in range(6):
+            M[j, j] += 1e-6 * (A[j, j] + 1e-9)
+        step = np.linalg.solve(M, b)
+        if edge_outlier_px <= 0 or drops == 2:
+            break
+        wsum = np.zeros(n_u)
+        msum = np.zeros(n_u)
+        for i in range(N):
+            res = r[i]
+            for k in range(6):
+                res += J[i, k] * step[k]
+            wsum[inv[i]] += w[i]
+            msum[inv[i]] += w[i] * res
+        n_out = 0
+        n_in = 0
+        out = np.zeros(n_u, np.bool_)
+        for e in range(n_u):
+            if wsum[e] > 0:
+                if abs(msum[e] / max(wsum[e], 1e-12)) > edge_outlier_px:
+                    out[e] = True
+                    n_out += 1
+                else:
+                    n_in += 1
+        if n_out == 0 or n_in < 4:
+            break
+        for i in range(N):
+            if out[inv[i]]:
+                keep[i] = False
+                w[i] = 0.0
+    n_keep = 0
+    weight = 0.0
+    wrr = 0.0
+    wtot = 0.0
+    G = np.zeros((n_u, 6))
+    seen = np.zeros(n_u, np.bool_)
+    for i in range(N):
+        wtot += w[i]
+        wrr += w[i] * r[i] * r[i]
+        for k in range(6):
+            G[inv[i], k] += J[i, k] * w[i]
+        if keep[i]:
+            n_keep += 1
+            weight += dens[i]
+            seen[inv[i]] = True
+    GtG = np.zeros((6, 6))
+    for e in range(n_u):
+        for j in range(6):
+            for k in range(6):
+                GtG[j, k] += G[e, j] * G[e, k]
+    rms = np.sqrt(wrr / wtot) if wtot > 0 else np.nan
+    return step, A, n_keep, rms, int(seen.sum()), weight, GtG
+
+
 def refine_subpixel(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFeatures, tree=None,
                     rounds: int = 4, search_px: float = 3.0, min_grad: float = 40.0, f_scale: float = 0.7,
                     shared_edge_px: float = 1.5, spacing_px: float = 0.0, edge_outlier_px: float = 0.0,
@@ -1190,32 +1288,13 @@ def refine_subpixel(T_world_object: np.ndarray, views: list[CameraView], mf: Mod
             break
         dens = np.concatenate(rows_d)
         eid = np.concatenate(rows_e)
-        w = dens * np.where(np.abs(r) <= f_scale, 1.0, f_scale / np.maximum(np.abs(r), 1e-12))
-        keep = np.ones(len(r), bool)
-        u, inv = np.unique(eid, return_inverse=True)
-        for drops in range(3):
-            JW = J * w[:, None]
-            A = JW.T @ J
-            step = np.linalg.solve(A + 1e-6 * np.diag(np.diag(A) + 1e-9), -(JW.T @ r))
-            if edge_outlier_px <= 0 or drops == 2:
-                break
-            # Edges the fitted pose leaves off on average found a neighbouring image edge: out,
-            # and the step solved again without them (twice at most).
-            wsum = np.bincount(inv, w, len(u))
-            mean = np.bincount(inv, w * (r + J @ step), len(u)) / np.maximum(wsum, 1e-12)
-            out = (np.abs(mean) > edge_outlier_px) & (wsum > 0)
-            if not out.any() or np.count_nonzero(~out & (wsum > 0)) < 4:
-                break
-            keep &= ~out[inv]
-            w = np.where(keep, w, 0.0)
-        if keep.sum() < 12:
+        step, A, n_keep, rms, n_edges, weight, GtG = _solve_edges(J, r, dens, eid, float(f_scale),
+                                                                 float(edge_outlier_px))
+        if n_keep < 12:
             break
         if info:  # the record of the round (what the caller asked for; not needed for the pose)
-            # Per-edge sums of the weighted rows (JW is the last solve's, with the final weights).
-            G = np.stack([np.bincount(inv, JW[:, j], len(u)) for j in range(6)], 1)
-            fit = EdgeFit(A, float(np.sqrt(np.sum(w * r * r) / np.sum(w))), int(keep.sum()),
-                          len(np.unique(eid[keep])), n_searched, float(np.sum(dens[keep])),
-                          float(np.sum(dens[keep])) + w_shared, w_searched, G.T @ G, tuple(contrast))
+            fit = EdgeFit(A, rms, n_keep, n_edges, n_searched, weight, weight + w_shared, w_searched, GtG,
+                          tuple(contrast))
         T = _perturbed(T, step)
         if np.linalg.norm(step[:3]) < 1e-5 and np.linalg.norm(step[3:]) < 1e-6:
             break
