@@ -15,6 +15,9 @@ update, edges) and, timed by wrapping the functions for this run, the edge fit's
 gradient and pose fit, the filter's predict and updates, and each initialiser call. Per
 stage: median and p99 over the frames it ran in, and in how many.
 
+With ViSP's cube: its edge fit calls are also timed through the NumPy formulation the
+compiled fit replaced (the tests' reference), interleaved in this process: the ratio.
+
 Part 2, the demo's vision process (``vespro demo``, real time or ``--lockstep``): the live
 loop's stages per frame as its pose server recorded them (``vision/server.json``:
 capture, i.e. rendering the cameras; track; backlog; publish; record; and the
@@ -139,6 +142,49 @@ def profile_tracker(name: str, rig, model, framesets, T_start=None, initializer=
     return rows
 
 
+def edgefit_baseline(seq, n_calls: int = 120) -> list[list] | None:
+    """The edge fit's calls of a tracker run on ``seq``, each timed (thread CPU) through the
+    compiled :func:`vespro.init.search.refine_subpixel` and through the NumPy formulation it
+    replaced (kept as the reference of ``tests/vespro/test_init_kernels.py``), interleaved in
+    this process: rows (stage, median, p99, ratio). None where the tests are not at hand."""
+    tests = Path(__file__).resolve().parents[1] / "tests" / "vespro"
+    if not (tests / "test_init_kernels.py").exists():
+        return None
+    sys.path.insert(0, str(tests))
+    try:
+        from test_init_kernels import refine_subpixel_ref
+    except ImportError:
+        return None
+    calls = []
+    real = vespro.edgeaid.refine_subpixel
+
+    def keep(*a, **k):
+        calls.append((a, k))
+        return real(*a, **k)
+
+    vespro.edgeaid.refine_subpixel = keep
+    try:
+        tr = Tracker(seq.rig, seq.model)
+        for i in range(min(len(seq), n_calls)):
+            fs = seq.frameset(i)
+            if i == 0:
+                tr.start(InitResult(seq.T_start), fs.t_ns)
+            tr.process(fs)
+    finally:
+        vespro.edgeaid.refine_subpixel = real
+    ta, tb = [], []
+    for a, k in calls:
+        t0 = time.thread_time()
+        real(*a, **k)
+        t1 = time.thread_time()
+        refine_subpixel_ref(*a, **k)
+        ta.append((t1 - t0) * 1e3)
+        tb.append((time.thread_time() - t1) * 1e3)
+    return [["edge fit (compiled)", float(np.median(ta)), float(np.percentile(ta, 99)),
+             f"{np.median(ta) / np.median(tb):.2f}"],
+            ["edge fit (NumPy formulation)", float(np.median(tb)), float(np.percentile(tb, 99)), "1.00"]]
+
+
 def _frames(rec: Recording, n: int | None):
     for i in range(len(rec) if n is None else min(n, len(rec))):
         yield rec.frameset(i)
@@ -215,6 +261,13 @@ def main() -> None:
     rows = tracker_rows(args)
     print_table(["views", "stage", "median ms", "p99 ms", "frames"], rows,
                 title=f"Tracker time per frame set by stage (640x480 grey; {args.clock} time)")
+    seq = visp_cube() if "cube" not in args.skip else None
+    base = edgefit_baseline(seq) if seq is not None else None
+    if base:
+        print()
+        print_table(["stage", "median ms", "p99 ms", "ratio"], base,
+                    title="The cube's edge fit calls, compiled against the NumPy formulation (same calls, "
+                          "interleaved, thread CPU time)")
     if "vision" in args.skip:
         return
     for run in args.demo_run or [Path("out/demo")]:

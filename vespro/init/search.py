@@ -744,6 +744,23 @@ def edge_residuals(x: np.ndarray, T0: np.ndarray, setups: list, want_jac: bool, 
 
 
 @njit
+def _pose_row(p0, p1, p2, g0, g1, g2, R_wo, J, i):
+    """Row ``i`` of a pose Jacobian from ``g`` = d(residual)/d(world point) at object point ``p``:
+    ``X_w = R0 Exp(w) p + p0 + dp``, so ``dr/dw = (R0 p x g) R0`` and ``dr/ddp = g``
+    (products as ``_dot3``)."""
+    q0 = _dot3(p0, p1, p2, R_wo[0, 0], R_wo[0, 1], R_wo[0, 2])
+    q1 = _dot3(p0, p1, p2, R_wo[1, 0], R_wo[1, 1], R_wo[1, 2])
+    q2 = _dot3(p0, p1, p2, R_wo[2, 0], R_wo[2, 1], R_wo[2, 2])
+    c0 = q1 * g2 - q2 * g1
+    c1 = q2 * g0 - q0 * g2
+    c2 = q0 * g1 - q1 * g0
+    J[i, 0] = _dot3(c0, c1, c2, R_wo[0, 0], R_wo[1, 0], R_wo[2, 0])
+    J[i, 1] = _dot3(c0, c1, c2, R_wo[0, 1], R_wo[1, 1], R_wo[2, 1])
+    J[i, 2] = _dot3(c0, c1, c2, R_wo[0, 2], R_wo[1, 2], R_wo[2, 2])
+    J[i, 3], J[i, 4], J[i, 5] = g0, g1, g2
+
+
+@njit
 def _edge_residuals_kernel(T_co, T_cw, R_wo, P, bins, dt, fx, fy, cx, cy, dmax, want_jac, r, J):
     """Compiled body of :func:`edge_residuals` for one camera, one sample at a time.
 
@@ -788,17 +805,7 @@ def _edge_residuals_kernel(T_co, T_cw, R_wo, P, bins, dt, fx, fy, cx, cy, dmax, 
         g0 = _dot3(m0, m1, m2, T_cw[0, 0], T_cw[1, 0], T_cw[2, 0])  # dr/dX_world
         g1 = _dot3(m0, m1, m2, T_cw[0, 1], T_cw[1, 1], T_cw[2, 1])
         g2 = _dot3(m0, m1, m2, T_cw[0, 2], T_cw[1, 2], T_cw[2, 2])
-        # X_w = R0 Exp(w) p + p0 + dp: dr/dw = p x (R^T g), dr/ddp = g.
-        q0 = _dot3(p0, p1, p2, R_wo[0, 0], R_wo[0, 1], R_wo[0, 2])
-        q1 = _dot3(p0, p1, p2, R_wo[1, 0], R_wo[1, 1], R_wo[1, 2])
-        q2 = _dot3(p0, p1, p2, R_wo[2, 0], R_wo[2, 1], R_wo[2, 2])
-        c0 = q1 * g2 - q2 * g1
-        c1 = q2 * g0 - q0 * g2
-        c2 = q0 * g1 - q1 * g0
-        J[i, 0] = _dot3(c0, c1, c2, R_wo[0, 0], R_wo[1, 0], R_wo[2, 0])
-        J[i, 1] = _dot3(c0, c1, c2, R_wo[0, 1], R_wo[1, 1], R_wo[2, 1])
-        J[i, 2] = _dot3(c0, c1, c2, R_wo[0, 2], R_wo[1, 2], R_wo[2, 2])
-        J[i, 3], J[i, 4], J[i, 5] = g0, g1, g2
+        _pose_row(p0, p1, p2, g0, g1, g2, R_wo, J, i)
 
 
 def refine_pose(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFeatures, tree=None,
@@ -1079,16 +1086,7 @@ def _subpixel_view_kernel(grad, fx, fy, cx, cy, T_co, R_wo, R_cw, idx, sample_p,
         g1 = _dot3(m0, m1, m2, R_cw[0, 1], R_cw[1, 1], R_cw[2, 1])
         g2 = _dot3(m0, m1, m2, R_cw[0, 2], R_cw[1, 2], R_cw[2, 2])
         p = sample_p[idx[i]]
-        q0 = _dot3(p[0], p[1], p[2], R_wo[0, 0], R_wo[0, 1], R_wo[0, 2])
-        q1 = _dot3(p[0], p[1], p[2], R_wo[1, 0], R_wo[1, 1], R_wo[1, 2])
-        q2 = _dot3(p[0], p[1], p[2], R_wo[2, 0], R_wo[2, 1], R_wo[2, 2])
-        c0_ = q1 * g2 - q2 * g1
-        c1_ = q2 * g0 - q0 * g2
-        c2_ = q0 * g1 - q1 * g0
-        J[i, 0] = _dot3(c0_, c1_, c2_, R_wo[0, 0], R_wo[1, 0], R_wo[2, 0])
-        J[i, 1] = _dot3(c0_, c1_, c2_, R_wo[0, 1], R_wo[1, 1], R_wo[2, 1])
-        J[i, 2] = _dot3(c0_, c1_, c2_, R_wo[0, 2], R_wo[1, 2], R_wo[2, 2])
-        J[i, 3], J[i, 4], J[i, 5] = g0, g1, g2
+        _pose_row(p[0], p[1], p[2], g0, g1, g2, R_wo, J, i)
     return ok, sstar, c_peak, c0, dens, lost, edge_len, J
 
 
