@@ -239,6 +239,16 @@ def test_a_provisional_start_is_published_once_the_initialiser_confirms_it(rec_p
         assert first == 6 and ini.calls[:7] == list(range(7)), (status, ini.calls)
 
 
+def _child_prints_ok(code: str) -> None:
+    """Run ``code`` in a child process (the test process keeps its own scheduling): it prints OK,
+    or SKIP where real-time scheduling is not permitted."""
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=False)
+    assert out.returncode == 0, out.stderr
+    if out.stdout.startswith("SKIP"):
+        pytest.skip(f"real-time scheduling not permitted here: {out.stdout.strip()}")
+    assert out.stdout.strip() == "OK"
+
+
 def test_live_loop_core_and_priority_and_the_worker_left_free():
     """``serve --cpu/--fifo``: the loop is pinned and SCHED_FIFO, the initialisation worker and the
     end-of-run saving are not (checked in a child process: the test process keeps its own scheduling)."""
@@ -261,11 +271,7 @@ assert os.sched_getaffinity(0) == set(range(os.cpu_count()))
 assert os.sched_getscheduler(0) == os.SCHED_OTHER
 print("OK")
 """
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=False)
-    assert out.returncode == 0, out.stderr
-    if out.stdout.startswith("SKIP"):
-        pytest.skip(f"real-time scheduling not permitted here: {out.stdout.strip()}")
-    assert out.stdout.strip() == "OK"
+    _child_prints_ok(code)
 
 
 def test_catch_up_after_a_late_initialisation_keeps_the_live_rate(rec_path):
@@ -338,11 +344,7 @@ assert got["policy"] == os.SCHED_FIFO and got["prio"] == 1, got
 assert os.sched_getaffinity(0) == {0} and os.sched_getparam(0).sched_priority == 5  # the loop unchanged
 print("OK")
 """
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=False)
-    assert out.returncode == 0, out.stderr
-    if out.stdout.startswith("SKIP"):
-        pytest.skip(f"real-time scheduling not permitted here: {out.stdout.strip()}")
-    assert out.stdout.strip() == "OK"
+    _child_prints_ok(code)
 
 
 class _LateSource:
