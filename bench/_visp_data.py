@@ -83,7 +83,8 @@ class Sequence:
     T_start: np.ndarray  # T_world_object at frame 0
 
     def frameset(self, i: int) -> FrameSet:
-        return FrameSet(i, int(round(i * 1e9 / RATE_HZ)), {"cam0": cv2.imread(str(self.frames[i]), cv2.IMREAD_GRAYSCALE)})
+        img = cv2.imread(str(self.frames[i]), cv2.IMREAD_GRAYSCALE)
+        return FrameSet(i, int(round(i * 1e9 / RATE_HZ)), {"cam0": img})
 
     def __len__(self) -> int:
         return len(self.frames)

@@ -200,7 +200,8 @@ def main() -> None:
             ratio = "" if label == "ours" else f"{np.median(t_ours[1:]) / np.median(t):.2f}"
             rows.append([name, label, lost, float(np.median(t)), float(np.percentile(t, 99)), ratio,
                          "" if label == "ours" else f"{np.median(agree) * 1e3:.2f}", err])
-    print_table(["sequence", "tracker", "frames not tracked", "median ms", "p99 ms", "ours/this", "vs ours mm", "ADD RMSE mm"], rows,
+    print_table(["sequence", "tracker", "frames not tracked", "median ms", "p99 ms", "ours/this", "vs ours mm",
+                 "ADD RMSE mm"], rows,
                 title=f"Per-frame tracking time ({args.clock}), ours against ViSP's vpMbGenericTracker "
                       f"(same frames, same start)")
 
