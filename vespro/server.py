@@ -132,9 +132,10 @@ class ServerStats:
     statuses: list = field(default_factory=list)
     #: Per stage of the live loop, its time in each frame, ms (wall): ``capture`` (the
     #: source's own work: rendering, reading a camera; not its wait for the capture
-    #: instant), ``track`` (tracker and catch-up), ``backlog``, ``publish``, ``record``
-    #: (the ``on_output`` hook); and ``init`` once per initialisation job: from its
-    #: submission to the loop taking its answer.
+    #: instant), ``track`` (tracker and catch-up; ``track: <stage>`` its own stages,
+    #: ``TrackerOutput.stage_ms``), ``backlog``, ``publish``, ``record`` (the ``on_output``
+    #: hook); and ``init`` once per initialisation job: from its submission to the loop
+    #: taking its answer.
     stage_ms: dict = field(default_factory=dict)
 
     def add_stage(self, name: str, ms: float) -> None:
@@ -407,6 +408,8 @@ class PoseServer:
         t4 = time.perf_counter()
         for name, a, b in (("track", t0, t1), ("backlog", max(t1, t0), t2), ("publish", t2, t3), ("record", t3, t4)):
             s.add_stage(name, (b - a) * 1e3)
+        for name, ms in out.stage_ms.items():  # the tracker's own stages, where it tracked
+            s.add_stage(f"track: {name}", ms)
         self._busy_ms = (capture or 0.0) + (t4 - t0) * 1e3  # the loop's work on this frame set (the shedder's)
         self._log_line(out)
         return out
