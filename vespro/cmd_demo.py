@@ -80,6 +80,13 @@ def run(args) -> int:
     if vis:
         print(f"vision: {vis['frames']} frames, {vis.get('missed_captures', 0)} capture deadlines missed, tracker "
               f"median {_f(vis['tracker_ms_median'])} ms")
+    rt = s.get("realtime", {})
+    if rt:
+        steps = "; ".join(f"{st['what']} at {st['t_s']:.1f} s" for st in rt.get("load_steps", [])) or "none"
+        print(f"real time: {rt['processed']}/{rt['capture_instants']} capture instants processed ({rt['missed']} "
+              f"missed), capture-to-publish latency median {_f(rt['latency_ms_median'])} ms, p99 "
+              f"{_f(rt['latency_ms_p99'])} ms; part tracked {_f(rt['first_track_after_view_s'])} s after it came "
+              f"into view; load shed: {steps}")
     for ev in s.get("events", []):
         print(f"event: {ev}")
     if "recording_error" in s:

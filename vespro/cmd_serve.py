@@ -70,6 +70,12 @@ def add_parser(sub) -> None:
     p.add_argument("--fifo", type=int, default=0, metavar="PRIO",
                    help="run the live loop SCHED_FIFO at this priority (1-99; 0 = normal scheduling), as on a "
                         "dedicated vision PC: other work on its core waits; the initialisation worker is not")
+    p.add_argument("--init-nice", type=int, default=0,
+                   help="niceness of the initialisation worker process (negative = ahead of other normal work "
+                        "while it searches; needs root)")
+    p.add_argument("--no-shed-load", action="store_true",
+                   help="live sources: keep the full load when capture deadlines are missed (by default the "
+                        "server says so and steps down: images recorded at a lower rate, then fewer cameras)")
     add_scenario_options(p, rate_default=None)
     add_tracker_options(p)
     from .viewer import add_view_options
@@ -119,6 +125,7 @@ def run(args) -> int:
     from .wire import HelloMsg
 
     from .cmd_track import tracker_config
+    from .frames import FrameSet
 
     camera_rate = args.rate
     if args.rate is None:
@@ -227,8 +234,19 @@ def run(args) -> int:
         from .recording import AsyncRecordingWriter
 
         args.record.mkdir(parents=True, exist_ok=True)
+        from functools import partial
+
+        from .realtime import background_thread
+
+        # The writer's thread: off the live loop's core and class, niced (it would inherit both).
         writer = AsyncRecordingWriter(args.record / "recording", source.rig, model_file, source.rate_hz, model.name,
-                                      overwrite=True, defer_png=args.record_defer_png)
+                                      overwrite=True, defer_png=args.record_defer_png,
+                                      thread_setup=partial(background_thread, args.cpu, 10))
+    shedder = None
+    if not args.lockstep and not args.no_shed_load:
+        from .loadshed import LoadShedder
+
+        shedder = LoadShedder(source.rate_hz, [(c.name, c.is_fixed) for c in source.rig])
 
     from .viewer import view_from_args
 
@@ -236,6 +254,8 @@ def run(args) -> int:
 
     def on_output(fs, out):
         if writer is not None:
+            if shedder is not None and not shedder.record_images(fs.index):
+                fs = FrameSet(fs.index, fs.t_ns, {k: None for k in fs.images}, fs.T_world_camera)
             writer.write(fs)
             outputs.append(out)
         if view is not None:
@@ -243,7 +263,8 @@ def run(args) -> int:
 
     mode = False if args.lockstep else ("process" if factory is not None else "thread")
     server = PoseServer(source, tracker, publisher, clock, initializer, background_init=mode, log=log,
-                        on_output=on_output, initializer_factory=factory)
+                        on_output=on_output, initializer_factory=factory, shedder=shedder,
+                        worker_nice=args.init_nice)
 
     def _stop(signum, frame):
         server.stop()
@@ -264,7 +285,7 @@ def run(args) -> int:
         if writer is not None:
             if args.cpu is not None or args.fifo:  # the saving (PNG encoding) is not live work
                 leave_realtime()
-            _save_run(args.record, writer, outputs, server.stats, link_stats, source)
+            _save_run(args.record, writer, outputs, server.stats, link_stats, source, shedder)
         for s, h in old.items():  # restored last: a late signal must not interrupt the saving
             signal.signal(s, h)
     summ = stats.summary()
@@ -283,7 +304,7 @@ class ServeOptionError(InputError):
     """An option of ``vespro serve`` out of its range."""
 
 
-def _save_run(folder: Path, writer, outputs, stats, link_stats, source) -> None:
+def _save_run(folder: Path, writer, outputs, stats, link_stats, source, shedder=None) -> None:
     """What a recorded server run leaves for evaluation (the demo's summary)."""
     import json
     import pickle
@@ -305,6 +326,11 @@ def _save_run(folder: Path, writer, outputs, stats, link_stats, source) -> None:
         "missed_captures": getattr(source, "missed", 0),
         **stats.summary(),
         "images": source.images.as_dict() if getattr(source, "images", None) is not None else None,
+        "capture_instants": stats.frames + getattr(source, "missed", 0),
+        # Steps the load shedder took (vespro.loadshed): when (s from the first frame set), what.
+        "load_steps": [] if shedder is None else [
+            {"t_s": (st.t_ns - (writer.t0_ns or st.t_ns)) * 1e-9, "kind": st.kind, "what": st.what,
+             "missed": st.missed, "instants": st.instants} for st in shedder.steps],
         "link": {"frames_published": link_stats.frames_published, "frames_sent": link_stats.frames_sent,
                  "drops": link_stats.drops, "clients_accepted": link_stats.clients_accepted,
                  "errors": link_stats.errors},

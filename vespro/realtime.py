@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import os
 
-__all__ = ["enter_realtime", "leave_realtime"]
+__all__ = ["enter_realtime", "leave_realtime", "background_thread"]
 
 
 def enter_realtime(cpu: int | None, nice: int, fifo: int = 0) -> list[str]:
@@ -42,5 +42,31 @@ def leave_realtime() -> None:
         if os.sched_getscheduler(0) != os.SCHED_OTHER:
             os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
         os.sched_setaffinity(0, range(os.cpu_count() or 1))
+    except (OSError, AttributeError):
+        pass
+
+
+def background_thread(avoid_cpu: int | None, nice: int = 10) -> None:
+    """Make the calling thread background work of a live process: off core ``avoid_cpu``
+    (the live loop's; unless it is the only core) and below the loop.
+
+    A thread started by a pinned SCHED_FIFO loop inherits its core and priority: the
+    recording writer's then ran on the vision core at the loop's priority, and the loop
+    waited for it. Below the loop means: under SCHED_FIFO, its lowest priority (1), not
+    normal scheduling, because the thread shares the loop's interpreter lock, and a
+    normal thread preempted by other work while it holds the lock would stall the loop
+    for as long (a priority inversion); otherwise niced by ``nice``. Best effort: what
+    the system refuses is left as it was.
+    """
+    import threading
+
+    try:
+        cpus = set(range(os.cpu_count() or 1))
+        os.sched_setaffinity(0, (cpus - {avoid_cpu}) or cpus)
+        if os.sched_getscheduler(0) == os.SCHED_FIFO:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))
+        elif nice:
+            tid = threading.get_native_id()
+            os.setpriority(os.PRIO_PROCESS, tid, os.getpriority(os.PRIO_PROCESS, tid) + nice)
     except (OSError, AttributeError):
         pass

@@ -404,10 +404,11 @@ class AsyncRecordingWriter:
     without images no tracker looks at them).
     """
 
-    def __init__(self, *args, max_queue: int = 64, **kwargs):
+    def __init__(self, *args, max_queue: int = 64, thread_setup=None, **kwargs):
         import queue
         import threading
 
+        self._thread_setup = thread_setup  # called first on the writer thread (its scheduling)
         kwargs.setdefault("png_compression", 1)
         self.writer = RecordingWriter(*args, **kwargs)
         self.dropped = 0
@@ -416,6 +417,8 @@ class AsyncRecordingWriter:
         self._thread.start()
 
     def _run(self) -> None:
+        if self._thread_setup is not None:
+            self._thread_setup()
         last_t = None
         while True:
             fs = self._q.get()

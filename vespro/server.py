@@ -26,7 +26,9 @@ Statistics are kept in memory that does not grow with the run's length.
 
 from __future__ import annotations
 
+import os
 import threading
+import time
 from collections import deque
 from concurrent.futures import Future, ProcessPoolExecutor, ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -54,16 +56,23 @@ CATCH_UP_SHARE = 0.4
 CATCH_UP_MIN = 2
 
 
-def _worker_setup(factory) -> None:
+def _worker_setup(factory, nice: int = 0) -> None:
     """In the initialisation worker process: build the initialiser once.
 
-    It runs at the live loop's priority: the loop has nothing to track while the
-    worker searches (it only captures and publishes ``initializing``), so the
-    sooner the search ends the better; a niced worker took 5-7 s a call beside
-    the rendering in the real-time demo, longer than the catch-up backlog.
+    It runs at the live loop's priority or, with ``nice`` < 0, ahead of the machine's
+    other normal work (still behind real-time threads): the loop has nothing to track
+    while the worker searches (it only captures and publishes ``initializing``), so
+    the sooner the search ends the better; a niced worker took 5-7 s a call beside
+    the rendering in the real-time demo, longer than the catch-up backlog, and on a
+    machine busy with other work one call took 21 s.
     """
     global _WORKER_INIT
     leave_realtime()  # free of the live loop's core and real-time class, if it had them
+    if nice:
+        try:
+            os.setpriority(os.PRIO_PROCESS, 0, nice)
+        except (OSError, AttributeError):
+            pass  # not permitted: normal priority
     _WORKER_INIT = factory()
     warm_up = getattr(_WORKER_INIT, "warm_up", None)
     if warm_up is not None:
@@ -139,12 +148,27 @@ class ServerStats:
     tracker_ms: LogHistogram = field(default_factory=LogHistogram)
     latency_ms: LogHistogram = field(default_factory=LogHistogram)
     status_counts: dict = field(default_factory=dict)
+    #: Per stage of the live loop, a histogram of its time per frame, ms (wall): ``capture``
+    #: (the source's own work: rendering, reading a camera; not its wait for the capture
+    #: instant), ``track`` (tracker and catch-up; ``track: <stage>`` its own stages,
+    #: ``TrackerOutput.stage_ms``), ``backlog``, ``publish``, ``record`` (the ``on_output``
+    #: hook); and ``init`` once per initialisation job: from its submission to the loop
+    #: taking its answer. Bounded memory, whatever the uptime.
+    stage_ms: dict = field(default_factory=dict)
+
+    def add_stage(self, name: str, ms: float) -> None:
+        h = self.stage_ms.get(name)
+        if h is None:
+            h = self.stage_ms[name] = LogHistogram()
+        h.add(ms)
 
     def summary(self) -> dict:
-        """Median and p99 of the tracker time and the latency (ms), and the status counts."""
+        """Median and p99 of the tracker time, the latency and each stage (ms), and the status counts."""
         return {"tracker_ms_median": self.tracker_ms.quantile(0.5), "tracker_ms_p99": self.tracker_ms.quantile(0.99),
                 "latency_ms_median": self.latency_ms.quantile(0.5), "latency_ms_p99": self.latency_ms.quantile(0.99),
-                "statuses": dict(self.status_counts), "source_gaps": self.source_gaps}
+                "statuses": dict(self.status_counts), "source_gaps": self.source_gaps,
+                "stage_ms": {k: {"median": h.quantile(0.5), "p99": h.quantile(0.99), "n": len(h)}
+                             for k, h in self.stage_ms.items()}}
 
 
 class PoseServer:
@@ -169,6 +193,14 @@ class PoseServer:
         a thread; False: inline (lockstep, reproducible).
     initializer_factory : callable, optional
         Picklable ``() -> initializer``, for the worker process.
+    worker_nice : int
+        Niceness of the initialisation worker process (negative: ahead of the
+        machine's other normal work; needs the permission to raise priority).
+    shedder : vespro.loadshed.LoadShedder, optional
+        Watches the source's missed capture instants (its ``missed``) and lowers the
+        load: the cameras it dropped are no longer captured (the source's
+        ``skip_cameras``, where it has one) nor tracked; it also says which frame
+        sets' images to record (the ``on_output`` hook asks it).
     log : callable, optional
         Receives the once-a-second status line.
     on_output : callable, optional
@@ -182,7 +214,7 @@ class PoseServer:
     def __init__(self, source, tracker: Tracker, publisher, clock: Clock,
                  initializer: Callable[[FrameSet], object] | None = None, background_init: bool = True,
                  log: Callable[[str], None] | None = print, on_output=None, object_id: int = 0,
-                 initializer_factory=None, max_gap_s: float = 0.5):
+                 initializer_factory=None, shedder=None, worker_nice: int = 0, max_gap_s: float = 0.5):
         self.source = source
         self.tracker = tracker
         self.tracker.initializer = None
@@ -194,6 +226,8 @@ class PoseServer:
         self.log = log
         self.on_output = on_output
         self.object_id = object_id
+        self.shedder = shedder  # LoadShedder: missed capture deadlines lower the load (None: off)
+        self._busy_ms = None  # the loop's work on the last frame set, ms
         self.stats = ServerStats()
         self.max_gap_s = float(max_gap_s)
         self._note = LogThrottle(log, clock.now_ns)  # repeated kinds of line: at most one a second
@@ -203,7 +237,8 @@ class PoseServer:
         if background_init == "process":
             if initializer_factory is None:
                 raise ValueError("background_init='process' needs an initializer_factory")
-            self._pool = ProcessPoolExecutor(max_workers=1, initializer=_worker_setup, initargs=(initializer_factory,))
+            self._pool = ProcessPoolExecutor(max_workers=1, initializer=_worker_setup,
+                                             initargs=(initializer_factory, worker_nice))
             # Start the worker now: started by the first real job, its launch stalled the live loop
             # for long enough that the frames after that job's were missing and its pose was discarded.
             self._worker_up = self._pool.submit(_worker_ping)
@@ -215,6 +250,7 @@ class PoseServer:
             self._pool = None
         self._job: Future | None = None
         self._job_t_ns = 0
+        self._job_wall = 0.0
         self._seq = 0
         self._last_T = None
         self._last_log_ns = None
@@ -257,8 +293,10 @@ class PoseServer:
             return
         if not self.background_init:
             self.stats.init_attempts += 1
+            t = time.perf_counter()
             # After a loss the initialiser first tries near the last good pose.
             res, _ = _init_call(self.initializer, fs, self.tracker.recovery_seed(), self.tracker.provisional_pose())
+            self.stats.add_stage("init", (time.perf_counter() - t) * 1e3)
             if res is not None:
                 self.stats.init_successes += 1
                 self._start(res, fs.t_ns)
@@ -272,6 +310,7 @@ class PoseServer:
                     self.log(f"initialiser failed: {e!r}")
             job_t = self._job_t_ns
             self._job = None
+            self.stats.add_stage("init", (time.perf_counter() - self._job_wall) * 1e3)
             if self.log:
                 waited = (fs.t_ns - job_t) * 1e-9
                 found = (f"no pose ({why})" if why else "no pose") if res is None else (
@@ -300,6 +339,7 @@ class PoseServer:
         if self._job is None:
             self.stats.init_attempts += 1
             self._job_t_ns = fs.t_ns
+            self._job_wall = time.perf_counter()
             self._job = self._submit(fs, self.tracker.recovery_seed(), self.tracker.provisional_pose())
 
     def _start(self, res, t_ns: int) -> bool:
@@ -341,27 +381,54 @@ class PoseServer:
         return TrackerOutput(fs.index, fs.t_ns, "initializing")
 
     # -- the loop -------------------------------------------------------------------
+    def _shed(self, fs: FrameSet) -> FrameSet:
+        """Watch the deadlines (a step down is logged and applied); ``fs`` less the dropped cameras."""
+        sh = self.shedder
+        step = sh.observe(fs.t_ns, int(getattr(self.source, "missed", 0)), self._busy_ms)
+        if step is not None:
+            if hasattr(self.source, "skip_cameras"):
+                self.source.skip_cameras = frozenset(sh.dropped)
+            if self.log:
+                self.log(f"capture deadlines kept for {sh.recover_s:.0f} s with room to spare: {step.what}"
+                         if step.kind == "up" else
+                         f"missed {step.missed} of the last {step.instants} capture instants: "
+                         + (step.what if step.kind == "stall" else f"too slow for this load; {step.what}"))
+        if sh.dropped and any(k in fs.images for k in sh.dropped):
+            fs = FrameSet(fs.index, fs.t_ns, {k: (None if k in sh.dropped else v) for k, v in fs.images.items()},
+                          fs.T_world_camera)
+        return fs
+
     def step(self, fs: FrameSet) -> TrackerOutput:
         """Process and publish one frame set."""
+        if self.shedder is not None:
+            fs = self._shed(fs)
+        s = self.stats
+        capture = getattr(self.source, "last_capture_ms", None)  # the source's work on this frame set
+        if capture is not None:
+            s.add_stage("capture", capture)
+        t0 = time.perf_counter()
+        t1 = t0
         try:
             self._maybe_start(fs)
             out = self._catch_up(fs) if self._catching is not None else self.tracker.process(fs)
+            t1 = time.perf_counter()
             if (self.tracker.ekf is None or self.tracker.provisional) and self._pool is not None:
                 # Kept in grey (what the tracker uses): a third of the memory.
                 self._backlog.append(FrameSet(fs.index, fs.t_ns, {k: fs.grey(k) for k in fs.images},
                                               fs.T_world_camera))
         except Exception as e:  # a tracker bug must not take the server down: drop the track
-            self.stats.tracker_errors += 1
-            if self.stats.tracker_errors <= 3 and self.log:
+            s.tracker_errors += 1
+            if s.tracker_errors <= 3 and self.log:
                 self.log(f"tracker error on frame {fs.index}: {e!r}")
             self.tracker.ekf = None
             self.tracker.status = "lost"
             out = TrackerOutput(fs.index, fs.t_ns, "lost")
+        t2 = time.perf_counter()
         if out.status == "tracking":
             self._last_T = out.T_world_object
-            self.stats.tracking += 1
+            s.tracking += 1
         t_send = self._publish(out)
-        s = self.stats
+        t3 = time.perf_counter()
         s.frames += 1
         s.tracker_ms.add(out.time_ms)
         s.latency_ms.add((t_send - fs.t_ns) * 1e-6)
@@ -369,6 +436,12 @@ class PoseServer:
         self._window_lat.append((t_send - fs.t_ns) * 1e-6)
         if self.on_output is not None:
             self.on_output(fs, out)
+        t4 = time.perf_counter()
+        for name, a, b in (("track", t0, t1), ("backlog", max(t1, t0), t2), ("publish", t2, t3), ("record", t3, t4)):
+            s.add_stage(name, (b - a) * 1e3)
+        for name, ms in out.stage_ms.items():  # the tracker's own stages, where it tracked
+            s.add_stage(f"track: {name}", ms)
+        self._busy_ms = (capture or 0.0) + (t4 - t0) * 1e3  # the loop's work on this frame set (the shedder's)
         self._log_line(out)
         return out
 

@@ -17,6 +17,7 @@ from __future__ import annotations
 import math
 import sys
 import threading
+import time
 from collections import deque
 from dataclasses import dataclass
 from typing import Callable, Protocol
@@ -455,6 +456,8 @@ class WorldSource:
         self.rate_hz = config.rate_hz
         self.clock = clock
         self.missed = 0
+        self.last_capture_ms = 0.0  # rendering time of the last capture, ms
+        self.skip_cameras: frozenset = frozenset()  # cameras not rendered (their images None)
         self._k = 0
         self._wait_start_s = float(wait_start_s)
         # One throwaway render now: the first one builds the imaging pipeline's noise banks
@@ -495,13 +498,15 @@ class WorldSource:
 
     def render_now(self) -> FrameSet | None:
         """Render the world as it is now, as capture index ``k`` (lockstep drivers call this)."""
+        t = time.perf_counter()
         state = self.world.read()
         if state is None:
             return None
         t_ns, q, pq, _ = state
         self.cell.set_world(q, self._pq(pq))
-        fs = self.cell.render_frameset(self._k, t_ns, (t_ns - self.world.t0_ns) * 1e-9)
+        fs = self.cell.render_frameset(self._k, t_ns, (t_ns - self.world.t0_ns) * 1e-9, skip=self.skip_cameras)
         self._k += 1
+        self.last_capture_ms = (time.perf_counter() - t) * 1e3
         return fs
 
     def close(self) -> None:

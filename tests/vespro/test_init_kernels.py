@@ -256,6 +256,115 @@ def normal_search_ref(grad, uv, n, offs, min_grad, near_frac=0.0, expect=None, r
     return sstar, ok, c[np.arange(S), kk], np.ascontiguousarray(c[:, np.argmin(np.abs(offs))])
 
 
+def refine_subpixel_ref(T_world_object: np.ndarray, views, mf, tree=None,
+                    rounds: int = 4, search_px: float = 3.0, min_grad: float = 40.0, f_scale: float = 0.7,
+                    shared_edge_px: float = 1.5, spacing_px: float = 0.0, edge_outlier_px: float = 0.0,
+                    near_peak_frac: float = 0.0, expect: list | None = None,
+                    contrast_ratio: tuple[float, float] = (0.4, 3.0), info: bool = False):
+    """``search.refine_subpixel`` with its per-camera work in NumPy, as it was."""
+    T = np.array(T_world_object, float)
+    offs = np.arange(-search_px, search_px + 1e-9, 0.5)
+    fit = None
+    for _ in range(rounds):
+        rows_J, rows_r, rows_e, rows_d = [], [], [], []
+        n_searched = 0
+        w_searched = w_shared = 0.0  # summed sample weights: searched; found but lost to a parallel edge
+        contrast = []
+        for iv, v in enumerate(views):
+            T_cw = invert_transform(v.T_world_camera)
+            T_co = T_cw @ T
+            idx = search.visible_samples(T_co, mf, tree)
+            contrast.append(np.full(len(mf.sample_p), np.nan) if info else None)
+            if idx.size == 0:
+                continue
+            n_searched += idx.size
+            K = v.feat.K
+            ua, _ = search._project(K, T_co, mf.edge_a)
+            ub, _ = search._project(K, T_co, mf.edge_b)
+            se = mf.sample_edge[idx]
+            edge_len = np.linalg.norm(ub - ua, axis=1)
+            dens = np.ones(idx.size)
+            if spacing_px > 0:
+                per_edge = np.bincount(se, minlength=len(mf.edge_a))
+                dens = np.minimum(1.0, edge_len[se] / (spacing_px * per_edge[se]))
+            w_searched += float(dens.sum())
+            d = (ub - ua)[se]
+            n = np.stack([-d[:, 1], d[:, 0]], 1)
+            n /= np.linalg.norm(n, axis=1, keepdims=True) + 1e-12
+            P = mf.sample_p[idx]
+            X = P @ T_co[:3, :3].T + T_co[:3, 3]
+            z = X[:, 2]
+            uv = X[:, :2] / z[:, None] * K[[0, 1], [0, 1]] + K[:2, 2]
+            exp = None if expect is None or expect[iv] is None else np.asarray(expect[iv], float)[idx]
+            sstar, ok, c_peak, c0 = search._normal_search(v.feat.grad, uv, n, offs, float(min_grad), float(near_peak_frac),
+                                                   exp, float(contrast_ratio[0]), float(contrast_ratio[1]))
+            if info:
+                contrast[-1][idx] = c0
+            if not ok.any():
+                continue
+            if shared_edge_px > 0:
+                k_ok = np.flatnonzero(ok)
+                tgt = uv[k_ok] + sstar[k_ok, None] * n[k_ok]
+                lost = k_ok[search.shared_edge_losers(tgt, se[k_ok], ub - ua, np.abs(sstar[k_ok]), shared_edge_px)]
+                ok[lost] = False
+                if lost.size:
+                    # A face seen edge on shows its two edges as one image edge: there, the
+                    # sample that lost it still found its outline.
+                    thin = search.face_widths_px(T_co, K, mf, edge_len) < 2.0 * shared_edge_px
+                    ef = mf.edge_faces[se[lost]]
+                    w_shared += float(dens[lost][np.any(thin[ef], axis=1)].sum())
+            if info:
+                contrast[-1][idx[ok]] = c_peak[ok]  # the image edge a sample took (or, above, none near it)
+            # Residual: n . (uv - target) = -s*; Jacobian n^T d(uv)/dx.
+            X, z, n, sstar, P = X[ok], z[ok], n[ok], sstar[ok], P[ok]
+            rows_d.append(dens[ok])
+            du = np.stack([K[0, 0] / z, 0 * z, -K[0, 0] * X[:, 0] / z ** 2], 1)
+            dv = np.stack([0 * z, K[1, 1] / z, -K[1, 1] * X[:, 1] / z ** 2], 1)
+            g_w = (n[:, :1] * du + n[:, 1:] * dv) @ T_cw[:3, :3]
+            R = T[:3, :3]
+            rows_J.append(np.concatenate([np.cross(P @ R.T, g_w) @ R, g_w], 1))
+            rows_r.append(-sstar)
+            rows_e.append(se[ok] + len(mf.edge_a) * len(rows_e))
+        if not rows_J:
+            break
+        J = np.concatenate(rows_J)
+        r = np.concatenate(rows_r)
+        if len(r) < 12:
+            break
+        dens = np.concatenate(rows_d)
+        eid = np.concatenate(rows_e)
+        w = dens * np.where(np.abs(r) <= f_scale, 1.0, f_scale / np.maximum(np.abs(r), 1e-12))
+        keep = np.ones(len(r), bool)
+        u, inv = np.unique(eid, return_inverse=True)
+        for drops in range(3):
+            JW = J * w[:, None]
+            A = JW.T @ J
+            step = np.linalg.solve(A + 1e-6 * np.diag(np.diag(A) + 1e-9), -(JW.T @ r))
+            if edge_outlier_px <= 0 or drops == 2:
+                break
+            # Edges the fitted pose leaves off on average found a neighbouring image edge: out,
+            # and the step solved again without them (twice at most).
+            wsum = np.bincount(inv, w, len(u))
+            mean = np.bincount(inv, w * (r + J @ step), len(u)) / np.maximum(wsum, 1e-12)
+            out = (np.abs(mean) > edge_outlier_px) & (wsum > 0)
+            if not out.any() or np.count_nonzero(~out & (wsum > 0)) < 4:
+                break
+            keep &= ~out[inv]
+            w = np.where(keep, w, 0.0)
+        if keep.sum() < 12:
+            break
+        if info:  # the record of the round (what the caller asked for; not needed for the pose)
+            # Per-edge sums of the weighted rows (JW is the last solve's, with the final weights).
+            G = np.stack([np.bincount(inv, JW[:, j], len(u)) for j in range(6)], 1)
+            fit = search.EdgeFit(A, float(np.sqrt(np.sum(w * r * r) / np.sum(w))), int(keep.sum()),
+                          len(np.unique(eid[keep])), n_searched, float(np.sum(dens[keep])),
+                          float(np.sum(dens[keep])) + w_shared, w_searched, G.T @ G, tuple(contrast))
+        T = search._perturbed(T, step)
+        if np.linalg.norm(step[:3]) < 1e-5 and np.linalg.norm(step[3:]) < 1e-6:
+            break
+    return (T, fit) if info else T
+
+
 def segments_blocked_ref(tree, A, B, t_lo=0.0, t_hi=1.0, min_length=0.0):
     """``BSPTree.segments_blocked`` as the breadth-first NumPy walk it was."""
     B = np.asarray(B, dtype=float).reshape(-1, 3)
@@ -575,3 +684,93 @@ def test_normal_search_takes_only_edges_like_the_expected_contrast():
         assert np.allclose(sign * s[ok], [-2.0, 2.0, 0.0, -2.0, -2.0], atol=0.3)
         assert np.allclose(sign * c_peak[ok], [400.0, -60.0, 100.0, 400.0, 400.0])
         assert np.allclose(sign * c0, 100.0)
+
+
+def _view_rows_ref(T, v, mf, tree, offs, expect, spacing_px=2.0, shared_px=1.5):
+    """One camera's share of a ``refine_subpixel`` round in NumPy, as it was: (idx, ok, sstar, c_peak, c0,
+    dens, lost, rows of the found samples)."""
+    T_cw = invert_transform(v.T_world_camera)
+    T_co = T_cw @ T
+    idx = search.visible_samples(T_co, mf, tree)
+    K_ = v.feat.K
+    ua, _ = search._project(K_, T_co, mf.edge_a)
+    ub, _ = search._project(K_, T_co, mf.edge_b)
+    se = mf.sample_edge[idx]
+    edge_len = np.linalg.norm(ub - ua, axis=1)
+    per_edge = np.bincount(se, minlength=len(mf.edge_a))
+    dens = np.minimum(1.0, edge_len[se] / (spacing_px * per_edge[se]))
+    d = (ub - ua)[se]
+    n = np.stack([-d[:, 1], d[:, 0]], 1)
+    n /= np.linalg.norm(n, axis=1, keepdims=True) + 1e-12
+    P = mf.sample_p[idx]
+    X = P @ T_co[:3, :3].T + T_co[:3, 3]
+    z = X[:, 2]
+    uv = X[:, :2] / z[:, None] * K_[[0, 1], [0, 1]] + K_[:2, 2]
+    exp = None if expect is None else expect[idx]
+    sstar, ok, c_peak, c0 = search._normal_search(v.feat.grad, uv, n, offs, 40.0, 0.6, exp, 0.4, 3.0)
+    k_ok = np.flatnonzero(ok)
+    tgt = uv[k_ok] + sstar[k_ok, None] * n[k_ok]
+    lost = np.zeros(idx.size, bool)
+    lost[k_ok[search.shared_edge_losers(tgt, se[k_ok], ub - ua, np.abs(sstar[k_ok]), shared_px)]] = True
+    ok = ok & ~lost
+    X, z, n, P = X[ok], z[ok], n[ok], P[ok]
+    du = np.stack([K_[0, 0] / z, 0 * z, -K_[0, 0] * X[:, 0] / z ** 2], 1)
+    dv = np.stack([0 * z, K_[1, 1] / z, -K_[1, 1] * X[:, 1] / z ** 2], 1)
+    g_w = (n[:, :1] * du + n[:, 1:] * dv) @ T_cw[:3, :3]
+    R = T[:3, :3]
+    return idx, ok, sstar, c_peak, c0, dens, lost, np.concatenate([np.cross(P @ R.T, g_w) @ R, g_w], 1)
+
+
+def test_subpixel_view_kernel_matches_numpy(scene):
+    """The compiled per-camera round (projection, search, shared edges, rows) against the NumPy code:
+    the same bits, with the tracker's settings (nearest peak, spacing, expected contrast)."""
+    _, mf, tree, views = scene
+    rng = np.random.default_rng(11)
+    offs = np.arange(-3.0, 3.0 + 1e-9, 0.5)
+    for k in range(4):
+        T = T_WO @ _pose(rng.normal(size=3) * 0.01, rng.normal(size=3) * 0.002)
+        v = views[k % 2]
+        expect = None
+        if k >= 2:  # a contrast known for most samples, from the search at the true pose
+            _, fit0 = search.refine_subpixel(T_WO, [v], mf, tree, rounds=1, near_peak_frac=0.6, info=True)
+            expect = np.where(rng.random(len(mf.sample_p)) < 0.7, fit0.sample_contrast[0], np.nan)
+        idx, ok, sstar, c_peak, c0, dens, lost, rows = _view_rows_ref(T, v, mf, tree, offs, expect)
+        T_cw = invert_transform(v.T_world_camera)
+        K_ = v.feat.K
+        got = search._subpixel_view_kernel(
+            v.feat.grad, K_[0, 0], K_[1, 1], K_[0, 2], K_[1, 2], T_cw @ T, np.ascontiguousarray(T[:3, :3]),
+            np.ascontiguousarray(T_cw[:3, :3]), idx, mf.sample_p, mf.sample_edge, mf.edge_a, mf.edge_b, offs, 40.0,
+            0.6, np.full(idx.size, np.nan) if expect is None else expect[idx], 0.4, 3.0, 2.0, 1.5,
+            search._COS_PARALLEL)
+        for a, b in zip((ok, sstar, c_peak, c0, dens, lost), got[:6]):
+            assert_same_bits(a, b)
+        assert_same_bits(rows, got[7][got[0]])
+        assert ok.sum() > 40
+
+
+@pytest.mark.parametrize("expect_known", [False, True])
+def test_refine_subpixel_matches_numpy(scene, expect_known):
+    """The whole refinement against the NumPy code: the same edges and samples, the pose and the
+    fit's matrices to rounding (the compiled step sums in sample order, BLAS otherwise)."""
+    _, mf, tree, views = scene
+    rng = np.random.default_rng(11)
+    kw = dict(rounds=2, spacing_px=2.0, edge_outlier_px=1.0, near_peak_frac=0.6, info=True)
+    for k in range(3):
+        T = T_WO @ _pose(rng.normal(size=3) * 0.01, rng.normal(size=3) * 0.002)
+        vs = views[:1 + k % 2]
+        expect = None
+        if expect_known:
+            _, fit0 = search.refine_subpixel(T, vs, mf, tree, **kw)
+            expect = [np.where(rng.random(c.size) < 0.7, c, np.nan) for c in fit0.sample_contrast]
+        Ta, fa = search.refine_subpixel(T, vs, mf, tree, expect=expect, **kw)
+        Tb, fb = refine_subpixel_ref(T, vs, mf, tree, expect=expect, **kw)
+        np.testing.assert_allclose(Ta, Tb, rtol=0, atol=1e-12)
+        for name in ("normal", "offset_gram"):
+            a, b = getattr(fa, name), getattr(fb, name)
+            np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-9 * np.abs(b).max())
+        assert (fb.n_samples, fb.n_edges, fb.n_searched) == (fa.n_samples, fa.n_edges, fa.n_searched)
+        np.testing.assert_allclose([fa.rms_px, fa.weight, fa.found_weight, fa.searched_weight],
+                                   [fb.rms_px, fb.weight, fb.found_weight, fb.searched_weight], rtol=1e-12)
+        for a, b in zip(fb.sample_contrast, fa.sample_contrast):
+            np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-9)
+        assert fa.n_samples > 40 and not np.array_equal(Ta, T)

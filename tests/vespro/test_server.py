@@ -1,5 +1,6 @@
 """The pose server: a recording replayed through the tracker and the TCP link."""
 
+import os
 import signal
 import subprocess
 import sys
@@ -238,6 +239,16 @@ def test_a_provisional_start_is_published_once_the_initialiser_confirms_it(rec_p
         assert first == 6 and ini.calls[:7] == list(range(7)), (status, ini.calls)
 
 
+def _child_prints_ok(code: str) -> None:
+    """Run ``code`` in a child process (the test process keeps its own scheduling): it prints OK,
+    or SKIP where real-time scheduling is not permitted."""
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=False)
+    assert out.returncode == 0, out.stderr
+    if out.stdout.startswith("SKIP"):
+        pytest.skip(f"real-time scheduling not permitted here: {out.stdout.strip()}")
+    assert out.stdout.strip() == "OK"
+
+
 def test_live_loop_core_and_priority_and_the_worker_left_free():
     """``serve --cpu/--fifo``: the loop is pinned and SCHED_FIFO, the initialisation worker and the
     end-of-run saving are not (checked in a child process: the test process keeps its own scheduling)."""
@@ -260,11 +271,7 @@ assert os.sched_getaffinity(0) == set(range(os.cpu_count()))
 assert os.sched_getscheduler(0) == os.SCHED_OTHER
 print("OK")
 """
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=False)
-    assert out.returncode == 0, out.stderr
-    if out.stdout.startswith("SKIP"):
-        pytest.skip(f"real-time scheduling not permitted here: {out.stdout.strip()}")
-    assert out.stdout.strip() == "OK"
+    _child_prints_ok(code)
 
 
 def test_catch_up_after_a_late_initialisation_keeps_the_live_rate(rec_path):
@@ -410,3 +417,73 @@ def test_server_statistics_do_not_grow_with_the_number_of_frames():
     # within half a 1 % bin of the exact values (2, 3 and 5 ms)
     assert s["tracker_ms_median"] == pytest.approx(2.0, rel=0.005) and s["tracker_ms_p99"] == pytest.approx(3.0, rel=0.005)
     assert s["latency_ms_median"] == pytest.approx(5.0, rel=0.005)
+
+
+def test_a_background_thread_leaves_the_loops_core_below_its_priority():
+    """A thread of a pinned SCHED_FIFO loop made background work (the recording writer's): off the
+    loop's core, SCHED_FIFO at the lowest priority (checked in a child process)."""
+    if (os.cpu_count() or 1) < 2:
+        pytest.skip("one core: nowhere else to go")
+    code = """
+import os, threading
+from vespro.realtime import enter_realtime, background_thread
+msgs = enter_realtime(0, 0, 5)
+if msgs:
+    print("SKIP", msgs); raise SystemExit(0)
+got = {}
+def run():
+    background_thread(0)
+    got["cpus"] = os.sched_getaffinity(0)
+    got["policy"] = os.sched_getscheduler(0)
+    got["prio"] = os.sched_getparam(0).sched_priority
+t = threading.Thread(target=run); t.start(); t.join()
+assert 0 not in got["cpus"] and got["cpus"], got
+assert got["policy"] == os.SCHED_FIFO and got["prio"] == 1, got
+assert os.sched_getaffinity(0) == {0} and os.sched_getparam(0).sched_priority == 5  # the loop unchanged
+print("OK")
+"""
+    _child_prints_ok(code)
+
+
+class _LateSource:
+    """A recording replayed with every third capture instant missed, as a live source too slow
+    for its load counts them (``missed``); it takes the cameras not to capture (``skip_cameras``)."""
+
+    def __init__(self, rec):
+        self.rec, self.rig, self.rate_hz = rec, rec.rig, rec.rate_hz
+        self.missed, self.k = 0, 0
+        self.skip_cameras = frozenset()
+
+    def next(self):
+        if self.k % 3 == 2:
+            self.missed += 1
+            self.k += 1
+        if self.k >= len(self.rec):
+            return None
+        fs = self.rec.frameset(self.k)
+        self.k += 1
+        return fs
+
+
+def test_missed_deadlines_step_the_load_down_and_the_log_says_so(rec_path):
+    from vespro.loadshed import LoadShedder
+
+    rec = Recording(rec_path)
+    _, _, T = read_groundtruth(rec_path)
+    src = _LateSource(rec)
+    lines, seen = [], []
+    # stall_frac 0: every miss counts as this loop's (the test must not depend on how fast it runs)
+    shedder = LoadShedder(rec.rate_hz, [(c.name, c.is_fixed) for c in rec.rig], window_s=0.3, record_steps=(1, 0),
+                          stall_frac=0.0)
+    server = PoseServer(src, Tracker(rec.rig, load_model(rec.model_path)), None, SimClock(),
+                        lambda fs: InitResult(T[fs.index]), background_init=False, log=lines.append,
+                        on_output=lambda fs, out: seen.append(fs), shedder=shedder)
+    server.run()
+    whats = [s.what for s in shedder.steps]
+    assert whats[:2] == ["recording no images", f"camera {rec.rig.names[-1]} dropped"]
+    assert src.skip_cameras == frozenset(shedder.dropped)
+    assert any("missed" in ln and "camera" in ln and "dropped" in ln for ln in lines)
+    # From the drop on, that camera's images are gone before tracking; the other camera's stay.
+    after = [fs for fs in seen if fs.t_ns > shedder.steps[1].t_ns]
+    assert after and all(fs.images[rec.rig.names[-1]] is None for fs in after)
+    assert all(fs.images[rec.rig.names[0]] is not None for fs in after)

@@ -702,6 +702,23 @@ def edge_residuals(x: np.ndarray, T0: np.ndarray, setups: list, want_jac: bool, 
 
 
 @njit
+def _pose_row(p0, p1, p2, g0, g1, g2, R_wo, J, i):
+    """Row ``i`` of a pose Jacobian from ``g`` = d(residual)/d(world point) at object point ``p``:
+    ``X_w = R0 Exp(w) p + p0 + dp``, so ``dr/dw = (R0 p x g) R0`` and ``dr/ddp = g``
+    (products as ``_dot3``)."""
+    q0 = _dot3(p0, p1, p2, R_wo[0, 0], R_wo[0, 1], R_wo[0, 2])
+    q1 = _dot3(p0, p1, p2, R_wo[1, 0], R_wo[1, 1], R_wo[1, 2])
+    q2 = _dot3(p0, p1, p2, R_wo[2, 0], R_wo[2, 1], R_wo[2, 2])
+    c0 = q1 * g2 - q2 * g1
+    c1 = q2 * g0 - q0 * g2
+    c2 = q0 * g1 - q1 * g0
+    J[i, 0] = _dot3(c0, c1, c2, R_wo[0, 0], R_wo[1, 0], R_wo[2, 0])
+    J[i, 1] = _dot3(c0, c1, c2, R_wo[0, 1], R_wo[1, 1], R_wo[2, 1])
+    J[i, 2] = _dot3(c0, c1, c2, R_wo[0, 2], R_wo[1, 2], R_wo[2, 2])
+    J[i, 3], J[i, 4], J[i, 5] = g0, g1, g2
+
+
+@njit
 def _edge_residuals_kernel(T_co, T_cw, R_wo, P, bins, dt, fx, fy, cx, cy, dmax, want_jac, r, J):
     """Compiled body of :func:`edge_residuals` for one camera, one sample at a time.
 
@@ -746,17 +763,7 @@ def _edge_residuals_kernel(T_co, T_cw, R_wo, P, bins, dt, fx, fy, cx, cy, dmax, 
         g0 = _dot3(m0, m1, m2, T_cw[0, 0], T_cw[1, 0], T_cw[2, 0])  # dr/dX_world
         g1 = _dot3(m0, m1, m2, T_cw[0, 1], T_cw[1, 1], T_cw[2, 1])
         g2 = _dot3(m0, m1, m2, T_cw[0, 2], T_cw[1, 2], T_cw[2, 2])
-        # X_w = R0 Exp(w) p + p0 + dp: dr/dw = p x (R^T g), dr/ddp = g.
-        q0 = _dot3(p0, p1, p2, R_wo[0, 0], R_wo[0, 1], R_wo[0, 2])
-        q1 = _dot3(p0, p1, p2, R_wo[1, 0], R_wo[1, 1], R_wo[1, 2])
-        q2 = _dot3(p0, p1, p2, R_wo[2, 0], R_wo[2, 1], R_wo[2, 2])
-        c0 = q1 * g2 - q2 * g1
-        c1 = q2 * g0 - q0 * g2
-        c2 = q0 * g1 - q1 * g0
-        J[i, 0] = _dot3(c0, c1, c2, R_wo[0, 0], R_wo[1, 0], R_wo[2, 0])
-        J[i, 1] = _dot3(c0, c1, c2, R_wo[0, 1], R_wo[1, 1], R_wo[2, 1])
-        J[i, 2] = _dot3(c0, c1, c2, R_wo[0, 2], R_wo[1, 2], R_wo[2, 2])
-        J[i, 3], J[i, 4], J[i, 5] = g0, g1, g2
+        _pose_row(p0, p1, p2, g0, g1, g2, R_wo, J, i)
 
 
 def refine_pose(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFeatures, tree=None,
@@ -918,6 +925,227 @@ class EdgeFit:
         return 0.5 * (cov + cov.T)
 
 
+#: |cos| of the largest angle between two projected edges that count as parallel
+#: (``shared_edge_losers``' ``max_angle_deg`` = 10).
+_COS_PARALLEL = float(np.cos(np.deg2rad(10.0)))
+
+
+@njit
+def _subpixel_view_kernel(grad, fx, fy, cx, cy, T_co, R_wo, R_cw, idx, sample_p, sample_edge, edge_a, edge_b, offs,
+                          min_grad, near_frac, expect, ratio_lo, ratio_hi, spacing_px, shared_px, cos_par):
+    """One camera's share of a :func:`refine_subpixel` round, compiled: for the visible
+    samples ``idx`` (S,), their projection and normals, the edge search
+    (:func:`_normal_search`), the samples losing their image edge to a nearer parallel
+    edge's (:func:`shared_edge_losers`, with ``cos_par`` its parallel test) and the rows
+    ``n^T d(uv)/dx``. The NumPy code's operations in its order (products with a
+    rotation as ``_dot3``), so the same bits.
+
+    Returns ``(ok, sstar, c_peak, c0, dens, lost, edge_len, J)``: per sample (S,) whether
+    it found its edge (and kept it), the edge point's offset along the normal, the
+    contrast there and at the sample, its weight (``spacing_px``), whether it lost its
+    image edge to another sample; the projected length of every model edge (E,); the
+    rows (S, 6), valid where ``ok``.
+    """
+    E = edge_a.shape[0]
+    S = idx.shape[0]
+    ua = np.empty((E, 2))
+    ub = np.empty((E, 2))
+    edge_len = np.empty(E)
+    for e in range(E):
+        for k, (src, dst) in enumerate(((edge_a, ua), (edge_b, ub))):
+            X0 = _dot3(src[e, 0], src[e, 1], src[e, 2], T_co[0, 0], T_co[0, 1], T_co[0, 2]) + T_co[0, 3]
+            X1 = _dot3(src[e, 0], src[e, 1], src[e, 2], T_co[1, 0], T_co[1, 1], T_co[1, 2]) + T_co[1, 3]
+            z = _dot3(src[e, 0], src[e, 1], src[e, 2], T_co[2, 0], T_co[2, 1], T_co[2, 2]) + T_co[2, 3]
+            dst[e, 0] = X0 / z * fx + cx
+            dst[e, 1] = X1 / z * fy + cy
+        dx, dy = ub[e, 0] - ua[e, 0], ub[e, 1] - ua[e, 1]
+        edge_len[e] = np.sqrt(dx * dx + dy * dy)
+    per_edge = np.zeros(E, np.int64)
+    for i in range(S):
+        per_edge[sample_edge[idx[i]]] += 1
+    dens = np.ones(S)
+    n = np.empty((S, 2))
+    uv = np.empty((S, 2))
+    X = np.empty((S, 3))
+    for i in range(S):
+        e = sample_edge[idx[i]]
+        if spacing_px > 0:
+            x = edge_len[e] / (spacing_px * per_edge[e])
+            dens[i] = 1.0 if x >= 1.0 else x  # np.minimum: NaN stays NaN
+        d0, d1 = ub[e, 0] - ua[e, 0], ub[e, 1] - ua[e, 1]
+        nn = np.sqrt(-d1 * -d1 + d0 * d0) + 1e-12
+        n[i, 0] = -d1 / nn
+        n[i, 1] = d0 / nn
+        p = sample_p[idx[i]]
+        X[i, 0] = _dot3(p[0], p[1], p[2], T_co[0, 0], T_co[0, 1], T_co[0, 2]) + T_co[0, 3]
+        X[i, 1] = _dot3(p[0], p[1], p[2], T_co[1, 0], T_co[1, 1], T_co[1, 2]) + T_co[1, 3]
+        X[i, 2] = _dot3(p[0], p[1], p[2], T_co[2, 0], T_co[2, 1], T_co[2, 2]) + T_co[2, 3]
+        uv[i, 0] = X[i, 0] / X[i, 2] * fx + cx
+        uv[i, 1] = X[i, 1] / X[i, 2] * fy + cy
+    sstar, ok, c_peak, c0 = _normal_search(grad, uv, n, offs, min_grad, near_frac, expect, ratio_lo, ratio_hi)
+    lost = np.zeros(S, np.bool_)
+    if shared_px > 0:
+        # Pairs of found samples whose edge points lie within shared_px (as cKDTree's
+        # query_pairs, swept along u), of different, parallel edges: the farther loses.
+        k_all = np.flatnonzero(ok)
+        tu = np.empty(k_all.shape[0])
+        tv = np.empty(k_all.shape[0])
+        m = 0
+        k_ok = np.empty(k_all.shape[0], np.int64)
+        for i in k_all:  # points not finite take part in no pair
+            u = uv[i, 0] + sstar[i] * n[i, 0]
+            v = uv[i, 1] + sstar[i] * n[i, 1]
+            if np.isfinite(u) and np.isfinite(v):
+                tu[m], tv[m], k_ok[m] = u, v, i
+                m += 1
+        tu, tv, k_ok = tu[:m], tv[:m], k_ok[:m]
+        if m >= 2:
+            dn = np.empty((E, 2))
+            for e in range(E):
+                dx, dy = ub[e, 0] - ua[e, 0], ub[e, 1] - ua[e, 1]
+                nn = np.sqrt(dx * dx + dy * dy) + 1e-12
+                dn[e, 0] = dx / nn
+                dn[e, 1] = dy / nn
+            order = np.argsort(tu)
+            r2 = shared_px * shared_px
+            for a in range(m):
+                ia = order[a]
+                for b in range(a + 1, m):
+                    ib = order[b]
+                    du = tu[ib] - tu[ia]
+                    if du > shared_px:
+                        break
+                    dv = tv[ib] - tv[ia]
+                    if du * du + dv * dv > r2:
+                        continue
+                    i, j = k_ok[min(ia, ib)], k_ok[max(ia, ib)]
+                    ei, ej = sample_edge[idx[i]], sample_edge[idx[j]]
+                    if ei == ej or abs(dn[ei, 0] * dn[ej, 0] + dn[ei, 1] * dn[ej, 1]) < cos_par:
+                        continue
+                    if abs(sstar[i]) > abs(sstar[j]):
+                        lost[i] = True
+                    else:
+                        lost[j] = True
+        for i in range(S):
+            if lost[i]:
+                ok[i] = False
+    J = np.empty((S, 6))
+    for i in range(S):
+        if not ok[i]:
+            continue
+        z = X[i, 2]
+        X0, X1 = X[i, 0], X[i, 1]
+        n0, n1 = n[i, 0], n[i, 1]
+        zz = 0 * z
+        m0 = n0 * (fx / z) + n1 * zz
+        m1 = n0 * zz + n1 * (fy / z)
+        m2 = n0 * (-fx * X0 / z ** 2) + n1 * (-fy * X1 / z ** 2)
+        g0 = _dot3(m0, m1, m2, R_cw[0, 0], R_cw[1, 0], R_cw[2, 0])
+        g1 = _dot3(m0, m1, m2, R_cw[0, 1], R_cw[1, 1], R_cw[2, 1])
+        g2 = _dot3(m0, m1, m2, R_cw[0, 2], R_cw[1, 2], R_cw[2, 2])
+        p = sample_p[idx[i]]
+        _pose_row(p[0], p[1], p[2], g0, g1, g2, R_wo, J, i)
+    return ok, sstar, c_peak, c0, dens, lost, edge_len, J
+
+
+@njit
+def _solve_edges(J, r, dens, eid, f_scale, edge_outlier_px):
+    """The Gauss-Newton step of a :func:`refine_subpixel` round, compiled: Huber weights
+    (``f_scale``) times the samples' ``dens``; ``(J^T W J + 1e-6 diag) step = -J^T W r``;
+    with ``edge_outlier_px``, edges the step leaves more than that off on average (weighted)
+    out and the step solved again (twice at most, keeping four edges). Sums run in sample
+    order (NumPy's matrix products and pairwise sums round differently: the step agrees
+    with the NumPy formulation to rounding).
+
+    Returns ``(step, A, n_keep, rms, n_edges, weight, GtG)``: ``A = J^T W J`` of the last
+    solve, the samples kept, their weighted residual RMS, the edges they lie on, their
+    summed ``dens``, and ``G^T G`` with ``G`` the per-edge sums of the weighted rows.
+    """
+    N = r.shape[0]
+    w = np.empty(N)
+    for i in range(N):
+        a = abs(r[i])
+        w[i] = dens[i] * (1.0 if a <= f_scale else f_scale / max(a, 1e-12))
+    # Edges: the sorted distinct ids, and each sample's index among them.
+    order = np.argsort(eid, kind="mergesort")
+    inv = np.empty(N, np.int64)
+    n_u = 0
+    for k in range(N):
+        i = order[k]
+        if k > 0 and eid[i] != eid[order[k - 1]]:
+            n_u += 1
+        inv[i] = n_u
+    n_u = n_u + 1 if N else 0
+    keep = np.ones(N, np.bool_)
+    A = np.zeros((6, 6))
+    b = np.zeros(6)
+    step = np.zeros(6)
+    for drops in range(3):
+        A[:] = 0.0
+        b[:] = 0.0
+        for i in range(N):
+            wi = w[i]
+            if wi == 0.0:
+                continue
+            for j in range(6):
+                jw = J[i, j] * wi
+                b[j] -= jw * r[i]
+                for k in range(6):
+                    A[j, k] += jw * J[i, k]
+        M = A.copy()
+        for j in range(6):
+            M[j, j] += 1e-6 * (A[j, j] + 1e-9)
+        step = np.linalg.solve(M, b)
+        if edge_outlier_px <= 0 or drops == 2:
+            break
+        wsum = np.zeros(n_u)
+        msum = np.zeros(n_u)
+        for i in range(N):
+            res = r[i]
+            for k in range(6):
+                res += J[i, k] * step[k]
+            wsum[inv[i]] += w[i]
+            msum[inv[i]] += w[i] * res
+        n_out = 0
+        n_in = 0
+        out = np.zeros(n_u, np.bool_)
+        for e in range(n_u):
+            if wsum[e] > 0:
+                if abs(msum[e] / max(wsum[e], 1e-12)) > edge_outlier_px:
+                    out[e] = True
+                    n_out += 1
+                else:
+                    n_in += 1
+        if n_out == 0 or n_in < 4:
+            break
+        for i in range(N):
+            if out[inv[i]]:
+                keep[i] = False
+                w[i] = 0.0
+    n_keep = 0
+    weight = 0.0
+    wrr = 0.0
+    wtot = 0.0
+    G = np.zeros((n_u, 6))
+    seen = np.zeros(n_u, np.bool_)
+    for i in range(N):
+        wtot += w[i]
+        wrr += w[i] * r[i] * r[i]
+        for k in range(6):
+            G[inv[i], k] += J[i, k] * w[i]
+        if keep[i]:
+            n_keep += 1
+            weight += dens[i]
+            seen[inv[i]] = True
+    GtG = np.zeros((6, 6))
+    for e in range(n_u):
+        for j in range(6):
+            for k in range(6):
+                GtG[j, k] += G[e, j] * G[e, k]
+    rms = np.sqrt(wrr / wtot) if wtot > 0 else np.nan
+    return step, A, n_keep, rms, int(seen.sum()), weight, GtG
+
+
 def refine_subpixel(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFeatures, tree=None,
                     rounds: int = 4, search_px: float = 3.0, min_grad: float = 40.0, f_scale: float = 0.7,
                     shared_edge_px: float = 1.5, spacing_px: float = 0.0, edge_outlier_px: float = 0.0,
@@ -972,6 +1200,7 @@ def refine_subpixel(T_world_object: np.ndarray, views: list[CameraView], mf: Mod
         n_searched = 0
         w_searched = w_shared = 0.0  # summed sample weights: searched; found but lost to a parallel edge
         contrast = []
+        R = np.ascontiguousarray(T[:3, :3])
         for iv, v in enumerate(views):
             T_cw = invert_transform(v.T_world_camera)
             T_co = T_cw @ T
@@ -981,51 +1210,31 @@ def refine_subpixel(T_world_object: np.ndarray, views: list[CameraView], mf: Mod
                 continue
             n_searched += idx.size
             K = v.feat.K
-            ua, _ = _project(K, T_co, mf.edge_a)
-            ub, _ = _project(K, T_co, mf.edge_b)
+            exp = np.full(idx.size, np.nan) if expect is None or expect[iv] is None else \
+                np.asarray(expect[iv], float)[idx]
+            ok, sstar, c_peak, c0, dens, lost, edge_len, Jv = _subpixel_view_kernel(
+                v.feat.grad, K[0, 0], K[1, 1], K[0, 2], K[1, 2], T_co, R, np.ascontiguousarray(T_cw[:3, :3]), idx,
+                mf.sample_p, mf.sample_edge, mf.edge_a, mf.edge_b, offs, float(min_grad), float(near_peak_frac), exp,
+                float(contrast_ratio[0]), float(contrast_ratio[1]), float(spacing_px), float(shared_edge_px),
+                _COS_PARALLEL)
             se = mf.sample_edge[idx]
-            edge_len = np.linalg.norm(ub - ua, axis=1)
-            dens = np.ones(idx.size)
-            if spacing_px > 0:
-                per_edge = np.bincount(se, minlength=len(mf.edge_a))
-                dens = np.minimum(1.0, edge_len[se] / (spacing_px * per_edge[se]))
             w_searched += float(dens.sum())
-            d = (ub - ua)[se]
-            n = np.stack([-d[:, 1], d[:, 0]], 1)
-            n /= np.linalg.norm(n, axis=1, keepdims=True) + 1e-12
-            P = mf.sample_p[idx]
-            X = P @ T_co[:3, :3].T + T_co[:3, 3]
-            z = X[:, 2]
-            uv = X[:, :2] / z[:, None] * K[[0, 1], [0, 1]] + K[:2, 2]
-            exp = None if expect is None or expect[iv] is None else np.asarray(expect[iv], float)[idx]
-            sstar, ok, c_peak, c0 = _normal_search(v.feat.grad, uv, n, offs, float(min_grad), float(near_peak_frac),
-                                                   exp, float(contrast_ratio[0]), float(contrast_ratio[1]))
             if info:
                 contrast[-1][idx] = c0
+            if lost.any():
+                # A face seen edge on shows its two edges as one image edge: there, the
+                # sample that lost it still found its outline.
+                thin = face_widths_px(T_co, K, mf, edge_len) < 2.0 * shared_edge_px
+                ef = mf.edge_faces[se[lost]]
+                w_shared += float(dens[lost][np.any(thin[ef], axis=1)].sum())
             if not ok.any():
                 continue
-            if shared_edge_px > 0:
-                k_ok = np.flatnonzero(ok)
-                tgt = uv[k_ok] + sstar[k_ok, None] * n[k_ok]
-                lost = k_ok[shared_edge_losers(tgt, se[k_ok], ub - ua, np.abs(sstar[k_ok]), shared_edge_px)]
-                ok[lost] = False
-                if lost.size:
-                    # A face seen edge on shows its two edges as one image edge: there, the
-                    # sample that lost it still found its outline.
-                    thin = face_widths_px(T_co, K, mf, edge_len) < 2.0 * shared_edge_px
-                    ef = mf.edge_faces[se[lost]]
-                    w_shared += float(dens[lost][np.any(thin[ef], axis=1)].sum())
             if info:
                 contrast[-1][idx[ok]] = c_peak[ok]  # the image edge a sample took (or, above, none near it)
-            # Residual: n . (uv - target) = -s*; Jacobian n^T d(uv)/dx.
-            X, z, n, sstar, P = X[ok], z[ok], n[ok], sstar[ok], P[ok]
+            # Residual: n . (uv - target) = -s*; Jacobian n^T d(uv)/dx (the kernel's rows).
             rows_d.append(dens[ok])
-            du = np.stack([K[0, 0] / z, 0 * z, -K[0, 0] * X[:, 0] / z ** 2], 1)
-            dv = np.stack([0 * z, K[1, 1] / z, -K[1, 1] * X[:, 1] / z ** 2], 1)
-            g_w = (n[:, :1] * du + n[:, 1:] * dv) @ T_cw[:3, :3]
-            R = T[:3, :3]
-            rows_J.append(np.concatenate([np.cross(P @ R.T, g_w) @ R, g_w], 1))
-            rows_r.append(-sstar)
+            rows_J.append(Jv[ok])
+            rows_r.append(-sstar[ok])
             rows_e.append(se[ok] + len(mf.edge_a) * len(rows_e))
         if not rows_J:
             break
@@ -1035,32 +1244,13 @@ def refine_subpixel(T_world_object: np.ndarray, views: list[CameraView], mf: Mod
             break
         dens = np.concatenate(rows_d)
         eid = np.concatenate(rows_e)
-        w = dens * np.where(np.abs(r) <= f_scale, 1.0, f_scale / np.maximum(np.abs(r), 1e-12))
-        keep = np.ones(len(r), bool)
-        u, inv = np.unique(eid, return_inverse=True)
-        for drops in range(3):
-            JW = J * w[:, None]
-            A = JW.T @ J
-            step = np.linalg.solve(A + 1e-6 * np.diag(np.diag(A) + 1e-9), -(JW.T @ r))
-            if edge_outlier_px <= 0 or drops == 2:
-                break
-            # Edges the fitted pose leaves off on average found a neighbouring image edge: out,
-            # and the step solved again without them (twice at most).
-            wsum = np.bincount(inv, w, len(u))
-            mean = np.bincount(inv, w * (r + J @ step), len(u)) / np.maximum(wsum, 1e-12)
-            out = (np.abs(mean) > edge_outlier_px) & (wsum > 0)
-            if not out.any() or np.count_nonzero(~out & (wsum > 0)) < 4:
-                break
-            keep &= ~out[inv]
-            w = np.where(keep, w, 0.0)
-        if keep.sum() < 12:
+        step, A, n_keep, rms, n_edges, weight, GtG = _solve_edges(J, r, dens, eid, float(f_scale),
+                                                                 float(edge_outlier_px))
+        if n_keep < 12:
             break
         if info:  # the record of the round (what the caller asked for; not needed for the pose)
-            # Per-edge sums of the weighted rows (JW is the last solve's, with the final weights).
-            G = np.stack([np.bincount(inv, JW[:, j], len(u)) for j in range(6)], 1)
-            fit = EdgeFit(A, float(np.sqrt(np.sum(w * r * r) / np.sum(w))), int(keep.sum()),
-                          len(np.unique(eid[keep])), n_searched, float(np.sum(dens[keep])),
-                          float(np.sum(dens[keep])) + w_shared, w_searched, G.T @ G, tuple(contrast))
+            fit = EdgeFit(A, rms, n_keep, n_edges, n_searched, weight, weight + w_shared, w_searched, GtG,
+                          tuple(contrast))
         T = _perturbed(T, step)
         if np.linalg.norm(step[:3]) < 1e-5 and np.linalg.norm(step[3:]) < 1e-6:
             break

@@ -295,17 +295,19 @@ class SimCell:
                                                self.data.qpos[:6])
         return fs
 
-    def render_frameset(self, index: int, t_ns: int, t: float) -> FrameSet:
+    def render_frameset(self, index: int, t_ns: int, t: float, skip=()) -> FrameSet:
         """Render every camera from the current (forwarded) state.
 
-        ``t`` (s since the start) decides camera dropouts; ``t_ns`` stamps the set.
+        ``t`` (s since the start) decides camera dropouts; ``t_ns`` stamps the set. Cameras
+        named in ``skip`` are not rendered (their images None).
         """
         q_meas = self.measured_joints()
         images, poses = {}, {}
         for cam in self.config.rig:
             if not cam.is_fixed:
                 poses[cam.name] = self.link_pose(cam.link, q_meas) @ cam.T_link_camera
-            if any(d.camera == cam.name and d.t_start <= t < d.t_end for d in self.config.dropouts):
+            if cam.name in skip or any(d.camera == cam.name and d.t_start <= t < d.t_end
+                                       for d in self.config.dropouts):
                 images[cam.name] = None
                 continue
             rintr, mj_name = self._render_info[cam.name]
