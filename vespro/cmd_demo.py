@@ -8,6 +8,8 @@ from pathlib import Path
 
 
 def add_parser(sub) -> None:
+    from .cmd_track import add_symmetry_option
+
     p = sub.add_parser(
         "demo", help="run the whole cell: simulated plant, pose server and servo as three processes",
         description=(
@@ -33,6 +35,7 @@ def add_parser(sub) -> None:
     p.add_argument("--kill-server-at", type=float, help="kill the pose server after this many seconds (failure test)")
     p.add_argument("--lockstep", action="store_true",
                    help="run everything on one simulated clock in one process (slow machines, exact reproducibility)")
+    add_symmetry_option(p)
     p.set_defaults(func=run)
 
 
@@ -46,7 +49,7 @@ def run(args) -> int:
     cfg = DemoConfig(out=args.out, object=args.object, cameras=args.cameras, duration=args.duration,
                      speed=args.speed, stop_time=args.stop_time, noise_px=args.noise, link=args.link,
                      baud=args.baud, video=not args.no_video, kill_server_at=args.kill_server_at,
-                     lockstep=args.lockstep)
+                     lockstep=args.lockstep, symmetry=args.symmetry)
     s = run_demo(cfg, log=lambda m: print(m, flush=True))
     e, te, sv = s["estimation"], s["tracking_error"], s.get("servo", {})
     vis = s.get("vision", {})

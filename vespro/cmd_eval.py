@@ -62,7 +62,7 @@ def run(args) -> int:
     if args.recording is None:
         print("vespro eval: give a recording folder or --suite SUITE.yaml", file=sys.stderr)
         return 2
-    from .cmd_track import initializer_for, tracker_config
+    from .cmd_track import initializer_for, say_symmetry, tracker_config
     from .evaluate import overlay_video, plot_errors, pnp_baseline, score
     from .groundtruth import read_groundtruth
     from .recording import Recording, RecordingError
@@ -86,6 +86,7 @@ def run(args) -> int:
         if tracker.initializer is None:
             print("vespro eval: an initial pose is needed (--init-pose, or --gt-init)", file=sys.stderr)
             return 2
+    say_symmetry("vespro eval", tracker, init_pose is not None, tracker.initializer is not None)
     outs = track_recording(rec, tracker, init_pose, progress=not args.no_progress)
     write_track(out / "poses.csv", rec, outs)
     model = tracker.model

@@ -18,12 +18,29 @@ def add_tracker_options(p: argparse.ArgumentParser) -> None:
                    help="the part's faces carry texture or markings: image edges inside its faces do not count "
                         "against a pose found by one camera (by default faces are taken as plain, as CAD parts "
                         "of one material are; see InitOptions.plain_faces)")
+    add_symmetry_option(p)
+
+
+def add_symmetry_option(p: argparse.ArgumentParser) -> None:
+    from .symmetry import HELP, RULES
+
+    p.add_argument("--symmetry", choices=RULES, default=RULES[0], help=HELP)
+
+
+def say_symmetry(prog: str, tracker, given: bool, reacquires: bool) -> None:
+    """On stderr: the part is symmetric, and which rule picks its frame (nothing otherwise)."""
+    from .symmetry import describe
+
+    line = describe(tracker.model.name, len(tracker.symmetries), tracker.config.symmetry, given, reacquires)
+    if line:
+        print(f"{prog}: {line}", file=sys.stderr, flush=True)
 
 
 def tracker_config(args):
     from .tracker import TrackerConfig
 
-    return TrackerConfig(features_per_camera=args.features, selection=args.selection, sigma_px=args.sigma_px)
+    return TrackerConfig(features_per_camera=args.features, selection=args.selection, sigma_px=args.sigma_px,
+                         symmetry=args.symmetry)
 
 
 def init_options(args) -> dict:
@@ -81,6 +98,7 @@ def run(args) -> int:
         print("vespro track: an initial pose is needed: pass --init-pose x,y,z,qw,qx,qy,qz "
               "(the object's pose in the world at the first frame)", file=sys.stderr)
         return 2
+    say_symmetry("vespro track", tracker, init_pose is not None, tracker.initializer is not None)
     outs = track_recording(rec, tracker, init_pose, progress=not args.no_progress)
     write_track(args.output, rec, outs)
     n = sum(o.status == "tracking" for o in outs)

@@ -65,6 +65,10 @@ class DemoConfig:
     video : bool
     kill_server_at : float or None
         Kill the pose server this many seconds into the run (a failure test).
+    lockstep : bool
+    symmetry : str
+        How the tracker picks among a symmetric part's equivalent poses
+        (``TrackerConfig.symmetry``).
     """
 
     out: Path = Path("out/demo")
@@ -80,6 +84,7 @@ class DemoConfig:
     video: bool = True
     kill_server_at: float | None = None
     lockstep: bool = False
+    symmetry: str = "continuity"
 
 
 def _free_port() -> int:
@@ -237,7 +242,7 @@ def run_demo(cfg: DemoConfig, log=print) -> dict:
                                   # The vision PC's live loop owns a core (other work on it waits), the
                                   # software renderer's thread with it (spread over both cores it
                                   # stalled on the servo's: 30 ms wall for 15 ms of work).
-                                  "--cpu", "0", "--fifo", "10"],
+                                  "--cpu", "0", "--fifo", "10", "--symmetry", cfg.symmetry],
                                  out / "vision.log", LP_NUM_THREADS="1")
         # The plant (the world's clock) starts once the pose server is ready to capture: it
         # builds its tracker, initialiser and worker first (a second or two), and the cell's
@@ -376,7 +381,8 @@ def run_demo_lockstep(cfg: DemoConfig, log=print) -> dict:
     from .sim.plant import Plant, WorldShm
     from .sim.rigs import CAMERAS_DIR
     from .sources import WorldSource
-    from .tracker import Tracker
+    from .symmetry import describe as describe_symmetry
+    from .tracker import Tracker, TrackerConfig
     from .wire import HelloMsg
 
     out = Path(cfg.out)
@@ -391,7 +397,10 @@ def run_demo_lockstep(cfg: DemoConfig, log=print) -> dict:
     cell_cfg = CellConfig(mesh, rig, effects=ImageEffects(noise_px=cfg.noise_px), mono=True)  # the cell's cameras are monochrome
     source = WorldSource(world_shm.name, cell_cfg, clock)
     model = load_model(mesh, name=cfg.object)
-    tracker = Tracker(rig, model)
+    tracker = Tracker(rig, model, TrackerConfig(symmetry=cfg.symmetry))
+    note = describe_symmetry(model.name, len(tracker.symmetries), cfg.symmetry, False, True)
+    if note:
+        log(f"demo: {note}")
     try:
         from .init import make_initializer
 

@@ -40,7 +40,8 @@ def track_recording(rec: Recording, tracker: Tracker, init_pose: np.ndarray | No
     """Track every frame set of a recording, in order.
 
     ``init_pose`` (T_world_object at frame 0), when given, starts the filter at
-    the first frame; otherwise the tracker's initializer decides.
+    the first frame, exactly as given (a symmetric part's frame included);
+    otherwise the tracker's initializer decides.
     """
     outs = []
     it = range(len(rec))
@@ -51,7 +52,7 @@ def track_recording(rec: Recording, tracker: Tracker, init_pose: np.ndarray | No
     for i in it:
         fs = rec.frameset(i)  # images decoded here, outside the timed processing
         if i == 0 and init_pose is not None:
-            tracker.start(InitResult(init_pose), fs.t_ns)
+            tracker.start(InitResult(init_pose, given=True), fs.t_ns)
         outs.append(tracker.process(fs))
     return outs
 
