@@ -20,9 +20,13 @@ from __future__ import annotations
 
 import numba
 
-__all__ = ["njit"]
+__all__ = ["njit", "KERNELS"]
+
+KERNELS: list = []  # every kernel made here, in the order its module was imported (vespro.warmup)
 
 
 def njit(fn):
     """``numba.njit`` with ``cache=True``, strict IEEE arithmetic and NumPy's error model."""
-    return numba.njit(cache=True, nogil=True, error_model="numpy")(fn)
+    kernel = numba.njit(cache=True, nogil=True, error_model="numpy")(fn)
+    KERNELS.append(kernel)
+    return kernel
