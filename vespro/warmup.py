@@ -55,25 +55,19 @@ def uncompiled_kernels() -> list[str]:
                   if not k.signatures and k.py_func.__name__ not in inner)
 
 
-def _frame_sets(part: str, rig_name: str, n: int):
+def _frame_sets(part: str, rig_name: str, n: int, mono: bool):
     from .cmd_record import object_mesh_path
+    from .rig import load_rig
     from .sim.cell import CellConfig, SimCell
     from .sim.imaging import ImageEffects
     from .sim.motion import Conveyor
-    from .rig import load_rig
     from .sim.rigs import CAMERAS_DIR
 
     rig = load_rig(CAMERAS_DIR / f"{rig_name}.yaml")
-    cfg = CellConfig(object_mesh_path(part), rig, effects=ImageEffects(noise_px=0.5))
+    cfg = CellConfig(object_mesh_path(part), rig, effects=ImageEffects(noise_px=0.5), mono=mono)
     with SimCell(cfg, Conveyor(speed=0.05, y0=-0.1)) as cell:
         cell.settle_arm()
         return rig, object_mesh_path(part), [cell.next_frameset() for _ in range(n)]
-
-
-def _grey(img):
-    import cv2
-
-    return cv2.cvtColor(img, cv2.COLOR_BGR2GRAY) if img is not None and img.ndim == 3 else img
 
 
 def _track(rig, model, frame_sets, selection: str) -> int:
@@ -99,16 +93,19 @@ def warm_up(log=print) -> list[str]:
         body.visible_mask(model.bounds[1] + model.diameter)  # one body's corners alone (a viewpoint off a corner)
     log(f"  visibility structures of {', '.join(CELL_PARTS)} ready ({time.monotonic() - t0:.0f} s)")
     runs = []
-    for part, sel in (("bracket", "quality"), ("box", "information")):  # not convex, and convex
+    # The demo's cell (the bracket, not convex; two fixed cameras and one on the arm, grey
+    # images), and a convex part on colour images with the other feature selection; each
+    # also with one camera alone (the one-camera rules of the initialiser and tracker).
+    for part, rig_name, mono, sel in (("bracket", "hybrid", True, "quality"), ("box", "fixed2", False, "information")):
         try:
-            rig, mesh, sets = _frame_sets(part, "fixed2", FRAMES)
+            rig, mesh, sets = _frame_sets(part, rig_name, FRAMES, mono)
         except Exception as e:  # no offscreen rendering here: the rest compiles on first use
             log(f"  the simulated cell does not render here ({type(e).__name__}: {e}); skipped")
             break
         model = load_model(mesh, name=part)
-        grey = [replace(fs, images={k: _grey(v) for k, v in fs.images.items()}) for fs in sets]
-        runs += [(f"{part}, two colour cameras, {sel} selection", rig, model, sets, sel),
-                 (f"{part}, one grey camera", replace(rig, cameras=rig.cameras[:1]), model, grey, sel)]
+        images = "grey" if mono else "colour"
+        runs += [(f"{part}, cameras {', '.join(rig.names)}, {images}, {sel} selection", rig, model, sets, sel),
+                 (f"{part}, camera {rig.names[0]} alone", replace(rig, cameras=rig.cameras[:1]), model, sets, sel)]
     for what, rig, model, frame_sets, sel in runs:
         t = time.monotonic()
         n = _track(rig, model, frame_sets, sel)
