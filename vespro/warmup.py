@@ -35,7 +35,7 @@ def kernel_modules() -> list[str]:
     root = Path(__file__).resolve().parent
     names = []
     for p in sorted(root.rglob("*.py")):
-        if "import njit" in p.read_text(encoding="utf-8", errors="replace") and p.name != "jit.py":
+        if re.search(r"^from (\.+|vespro\.)jit import njit", p.read_text(encoding="utf-8"), re.M):
             names.append(".".join(("vespro", *p.relative_to(root).with_suffix("").parts)))
     return names
 
