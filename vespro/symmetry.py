@@ -30,9 +30,10 @@ RULES = ("continuity", "up")
 
 HELP = ("how the tracker picks among a symmetric part's equivalent poses (a box looks the same turned "
         "half a turn) when it chooses by itself; a pose given with --init-pose is always kept as given. "
-        "continuity: at the first automatic start the one with z most nearly up in the world, after a "
-        "loss the one nearest the last good track (the frame stays on the same faces); up: always z most "
-        "nearly up, then x most nearly along the world's x (the frame follows the world)")
+        "Upright means: z most nearly up in the world, then x most nearly along the world's x. "
+        "continuity: upright at the first automatic start, after a loss the one nearest the last good "
+        "track (the frame stays on the same faces, as a grasp by a marked face needs); up: always upright "
+        "(the frame follows the world)")
 
 _TIE = 1e-9  # z components this close are alike (the candidates are exact axis permutations)
 
