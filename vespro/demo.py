@@ -199,6 +199,7 @@ def _warm_up(cfg: DemoConfig, rig_name: str, log) -> None:
     ready in well under a second instead of missing the first tens of seconds of the cell.
     """
     from .cmd_record import object_mesh_path
+    from .jit import compiled_count
     from .model import load_model
     from .rig import load_rig
     from .sim.rigs import CAMERAS_DIR
@@ -206,8 +207,9 @@ def _warm_up(cfg: DemoConfig, rig_name: str, log) -> None:
 
     t = time.monotonic()
     Tracker(load_rig(CAMERAS_DIR / f"{rig_name}.yaml"), load_model(object_mesh_path(cfg.object), name=cfg.object))
-    if time.monotonic() - t > 2.0:
-        log(f"demo: compiled the tracker's kernels once ({time.monotonic() - t:.0f} s; cached for later runs)")
+    if compiled_count()[0]:
+        log(f"demo: compiled the tracker's kernels once ({time.monotonic() - t:.0f} s; cached for later runs; "
+            f"set-up does it: python3 -m vespro.warmup)")
 
 
 def run_demo(cfg: DemoConfig, log=print) -> dict:

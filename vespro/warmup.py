@@ -114,6 +114,8 @@ def warm_up(log=print) -> list[str]:
 
 
 def main(argv=None) -> int:
+    from .jit import compiled_count
+
     argparse.ArgumentParser(prog="python3 -m vespro.warmup", description=__doc__.split("\n\n")[0]).parse_args(argv)
     t0 = time.monotonic()
     print("vespro: compiling the tracker's kernels once (20-60 s; cached for every later run)", flush=True)
@@ -121,7 +123,9 @@ def main(argv=None) -> int:
     if left:
         print(f"vespro: not compiled here (they will compile on first use): {', '.join(left)}", file=sys.stderr,
               flush=True)
-    print(f"vespro: kernels ready ({time.monotonic() - t0:.0f} s)", flush=True)
+    compiled, loaded = compiled_count()
+    print(f"vespro: kernels ready: {compiled} compiled, {loaded} loaded from the cache ({time.monotonic() - t0:.0f} s)",
+          flush=True)
     return 0
 
 
