@@ -10,7 +10,7 @@ It runs what those commands run, on a few simulated frame sets of the cell (its
 renderer, colour and grey images): the automatic initialiser, the tracker with either
 feature selection and with one camera and two, and the visibility structure (BSP) of
 each of the cell's parts, built and written to its cache. Then it checks that every
-kernel was compiled, and names any that was not.
+kernel called from Python was compiled (or loaded), and names any that was not.
 """
 
 from __future__ import annotations
