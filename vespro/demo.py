@@ -182,34 +182,19 @@ def search_q0(cameras: str) -> np.ndarray | None:
     return q
 
 
-def _wait_ready(proc: subprocess.Popen, log: Path, line: str, timeout_s: float) -> bool:
-    """Wait until ``log`` holds ``line`` (the process is ready), it exits, or ``timeout_s``."""
-    t_end = time.monotonic() + timeout_s
-    while time.monotonic() < t_end and proc.poll() is None:
+def _wait_ready(proc: subprocess.Popen, log: Path, line: str, timeout_s: float, note=None,
+                note_after_s: float = 15.0) -> bool:
+    """Wait until ``log`` holds ``line`` (the process is ready), it exits, or ``timeout_s``;
+    ``note()`` is called once if that takes longer than ``note_after_s``."""
+    t0 = time.monotonic()
+    while time.monotonic() < t0 + timeout_s and proc.poll() is None:
         if log.exists() and line in log.read_text(errors="replace"):
             return True
+        if note is not None and time.monotonic() > t0 + note_after_s:
+            note()
+            note = None
         time.sleep(0.05)
     return False
-
-
-def _warm_up(cfg: DemoConfig, rig_name: str, log) -> None:
-    """Compile (first run after an install) or load the tracker's kernels and the BSP once here.
-
-    The pose server builds the same tracker when it starts; with the caches warm it is
-    ready in well under a second instead of missing the first tens of seconds of the cell.
-    """
-    from .cmd_record import object_mesh_path
-    from .jit import compiled_count
-    from .model import load_model
-    from .rig import load_rig
-    from .sim.rigs import CAMERAS_DIR
-    from .tracker import Tracker
-
-    t = time.monotonic()
-    Tracker(load_rig(CAMERAS_DIR / f"{rig_name}.yaml"), load_model(object_mesh_path(cfg.object), name=cfg.object))
-    if compiled_count()[0]:
-        log(f"demo: compiled the tracker's kernels once ({time.monotonic() - t:.0f} s; cached for later runs; "
-            f"set-up does it: python3 -m vespro.warmup)")
 
 
 def run_demo(cfg: DemoConfig, log=print) -> dict:
@@ -224,7 +209,6 @@ def run_demo(cfg: DemoConfig, log=print) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     rig = CAMERA_SETS[cfg.cameras]
     q0 = search_q0(cfg.cameras)
-    _warm_up(cfg, rig, log)
     robot = RobotShm(None)
     world = WorldShm(None)
     bridge = SerialBridge(cfg.baud) if cfg.link == "serial" else None
@@ -249,7 +233,11 @@ def run_demo(cfg: DemoConfig, log=print) -> dict:
         # The plant (the world's clock) starts once the pose server is ready to capture: it
         # builds its tracker, initialiser and worker first (a second or two), and the cell's
         # first seconds would go by unseen.
-        _wait_ready(procs["vision"], out / "vision.log", "vespro serve: world source", timeout_s=120.0)
+        # Its kernels are compiled at set-up (python3 -m vespro.warmup); without that the first
+        # run compiles them here, which can take a minute.
+        _wait_ready(procs["vision"], out / "vision.log", "vespro serve: world source", timeout_s=120.0,
+                    note=lambda: log("demo: waiting for the pose server (a first run without set-up's "
+                                     "python3 -m vespro.warmup compiles its kernels: up to a minute)"))
         procs["plant"] = _spawn([py, "-m", "vespro.sim.plant", "--robot-shm", robot.name, "--world-shm", world.name,
                                  "--object", cfg.object, "--duration", str(cfg.duration), "--speed", str(cfg.speed),
                                  "--y0", str(cfg.y0), "--stop-time", str(cfg.stop_time),
