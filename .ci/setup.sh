@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Set up a fresh Debian 12 machine (or a user's) for VESPRO: system libraries for
-# MuJoCo's offscreen EGL rendering (Mesa, CPU), then the Python package itself.
+# MuJoCo's offscreen EGL rendering (Mesa, CPU), the Python package itself (with the
+# benches' extra), then the tracker's compiled kernels, once (cached on disk).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 need=()
@@ -16,5 +17,6 @@ if [ ${#need[@]} -gt 0 ]; then
     echo "setup: please install these system packages: ${need[*]}" >&2
   fi
 fi
-python3 -m pip install -q --disable-pip-version-check -e '.[interop,view]' 2>&1 | grep -v "Running pip as the 'root' user" || true
-python3 -c "import vespro, servo" 
+python3 -m pip install -q --disable-pip-version-check -e '.[interop,view,bench]' 2>&1 | grep -v "Running pip as the 'root' user" || true
+python3 -c "import vespro, servo"
+python3 -m vespro.warmup

@@ -128,6 +128,8 @@ def main(argv=None):
     ap.add_argument("--fifo", type=int, default=80, help="SCHED_FIFO priority (0: do not ask)")
     ap.add_argument("--no-busy", action="store_true", help="do not load the other core")
     a = ap.parse_args(argv)
+    if a.virtual_seconds <= 1:
+        ap.error("--virtual-seconds must be more than 1 (its first second is not timed)")
 
     fifo = a.fifo if a.fifo > 0 else None
     with warnings.catch_warnings(record=True) as w:

@@ -5,8 +5,8 @@
 Models: unions of randomly placed and rotated boxes (real corners, large and
 small coplanar faces, self-occlusion), sized to about the requested number of
 triangles; the 12-triangle model is a plain box. Needs manifold3d for the
-booleans (``pip install manifold3d``, a bench-only dependency, as for
-models/objects/make_objects.py).
+booleans: the benches' extra ``vespro[bench]``, which set-up (.ci/setup.sh) installs
+(as for models/objects/make_objects.py).
 
 For each model: BSP build time, the set-up of the corner/plane distance table
 (``SceneBody``), and the time of one full visibility query (all corners, one

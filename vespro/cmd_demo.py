@@ -8,6 +8,8 @@ from pathlib import Path
 
 
 def add_parser(sub) -> None:
+    from .cmd_track import add_symmetry_option
+
     p = sub.add_parser(
         "demo", help="run the whole cell: simulated plant, pose server and servo as three processes",
         description=(
@@ -40,6 +42,7 @@ def add_parser(sub) -> None:
     from .viewer import add_view_options
 
     add_view_options(p)
+    add_symmetry_option(p)
     p.set_defaults(func=run)
 
 
@@ -58,7 +61,7 @@ def run(args) -> int:
                      speed=args.speed, stop_time=args.stop_time, noise_px=args.noise, link=args.link,
                      baud=args.baud, video=not args.no_video, kill_server_at=args.kill_server_at,
                      lockstep=args.lockstep, view=args.view, view_connect=args.view_connect,
-                     view_save=args.view_save, view_image_every=args.view_image_every)
+                     view_save=args.view_save, view_image_every=args.view_image_every, symmetry=args.symmetry)
     s = run_demo(cfg, log=lambda m: print(m, flush=True))
     e, te, sv = s["estimation"], s["tracking_error"], s.get("servo", {})
     vis = s.get("vision", {})

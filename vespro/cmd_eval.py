@@ -66,7 +66,7 @@ def run(args) -> int:
     if args.recording is None:
         print("vespro eval: give a recording folder or --suite SUITE.yaml", file=sys.stderr)
         return 2
-    from .cmd_track import initializer_for, open_recording, report_images, tracker_config
+    from .cmd_track import initializer_for, open_recording, report_images, say_symmetry, tracker_config
     from .errors import warn
     from .evaluate import overlay_video, plot_errors, pnp_baseline, score
     from .groundtruth import truth_per_frame
@@ -91,6 +91,7 @@ def run(args) -> int:
         if tracker.initializer is None:
             print("vespro eval: an initial pose is needed (--init-pose, or --gt-init)", file=sys.stderr)
             return 2
+    say_symmetry("vespro eval", tracker, init_pose is not None, tracker.initializer is not None)
     out.mkdir(parents=True, exist_ok=True)  # after the inputs are checked: bad input leaves nothing behind
     outs = track_recording(rec, tracker, init_pose, progress=not args.no_progress)
     write_track(out / "poses.csv", rec, outs)

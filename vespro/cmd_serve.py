@@ -124,7 +124,7 @@ def run(args) -> int:
     from .tracker import InitResult, Tracker
     from .wire import HelloMsg
 
-    from .cmd_track import tracker_config
+    from .cmd_track import say_symmetry, tracker_config
     from .frames import FrameSet
 
     camera_rate = args.rate
@@ -196,7 +196,7 @@ def run(args) -> int:
             if fired:
                 return None
             fired.append(True)
-            return InitResult(T0)
+            return InitResult(T0, given=True)
     else:
         try:
             from functools import partial
@@ -211,6 +211,7 @@ def run(args) -> int:
         except ImportError:
             print("vespro serve: automatic initialisation is not available; pass --init-pose", file=sys.stderr)
             return 2
+    say_symmetry("vespro serve", tracker, bool(args.init_pose), not args.init_pose)
 
     hello = HelloMsg(rate_hz=float(source.rate_hz), object_names=(model.name,))
     clock_ns = clock.now_ns

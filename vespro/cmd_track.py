@@ -60,13 +60,29 @@ def add_tracker_options(p: argparse.ArgumentParser) -> None:
                    help="what decides the published status: the confirmation rules, or the hypothesis bank "
                         "weighing the initialiser's poses by the image likelihood (texture counts as clutter "
                         "there: the initialiser then takes every part as textured)")
+    add_symmetry_option(p)
+
+
+def add_symmetry_option(p: argparse.ArgumentParser) -> None:
+    from .symmetry import HELP, RULES
+
+    p.add_argument("--symmetry", choices=RULES, default=RULES[0], help=HELP)
+
+
+def say_symmetry(prog: str, tracker, given: bool, reacquires: bool) -> None:
+    """On stderr: the part is symmetric, and which rule picks its frame (nothing otherwise)."""
+    from .symmetry import describe
+
+    line = describe(tracker.model.name, len(tracker.symmetries), tracker.config.symmetry, given, reacquires)
+    if line:
+        print(f"{prog}: {line}", file=sys.stderr, flush=True)
 
 
 def tracker_config(args):
     from .tracker import TrackerConfig
 
     return TrackerConfig(features_per_camera=args.features, selection=args.selection, sigma_px=args.sigma_px,
-                         decision=getattr(args, "decision", "rules"))
+                         decision=getattr(args, "decision", "rules"), symmetry=args.symmetry)
 
 
 def init_options(args) -> dict:
@@ -127,6 +143,7 @@ def run(args) -> int:
         print("vespro track: an initial pose is needed: pass --init-pose x,y,z,qw,qx,qy,qz "
               "(the object's pose in the world at the first frame)", file=sys.stderr)
         return 2
+    say_symmetry("vespro track", tracker, init_pose is not None, tracker.initializer is not None)
     from .viewer import view_from_args
 
     view = view_from_args(args, rec.rig, tracker.model, block=True, name="vespro track")

@@ -69,6 +69,9 @@ class DemoConfig:
         The Rerun view (:mod:`vespro.viewer`): spawn a viewer, stream to one at
         a URL, save a ``.rrd``; every n-th image. In lockstep the view also shows
         the true pose, the arm's end effector and its target, and the servo's series.
+    symmetry : str
+        How the tracker picks among a symmetric part's equivalent poses
+        (``TrackerConfig.symmetry``).
     """
 
     out: Path = Path("out/demo")
@@ -88,6 +91,7 @@ class DemoConfig:
     view_connect: str | None = None
     view_save: Path | None = None
     view_image_every: int = 1
+    symmetry: str = "continuity"
 
 
 def _free_port() -> int:
@@ -185,32 +189,19 @@ def search_q0(cameras: str) -> np.ndarray | None:
     return q
 
 
-def _wait_ready(proc: subprocess.Popen, log: Path, line: str, timeout_s: float) -> bool:
-    """Wait until ``log`` holds ``line`` (the process is ready), it exits, or ``timeout_s``."""
-    t_end = time.monotonic() + timeout_s
-    while time.monotonic() < t_end and proc.poll() is None:
+def _wait_ready(proc: subprocess.Popen, log: Path, line: str, timeout_s: float, note=None,
+                note_after_s: float = 15.0) -> bool:
+    """Wait until ``log`` holds ``line`` (the process is ready), it exits, or ``timeout_s``;
+    ``note()`` is called once if that takes longer than ``note_after_s``."""
+    t0 = time.monotonic()
+    while time.monotonic() < t0 + timeout_s and proc.poll() is None:
         if log.exists() and line in log.read_text(errors="replace"):
             return True
+        if note is not None and time.monotonic() > t0 + note_after_s:
+            note()
+            note = None
         time.sleep(0.05)
     return False
-
-
-def _warm_up(cfg: DemoConfig, rig_name: str, log) -> None:
-    """Compile (first run after an install) or load the tracker's kernels and the BSP once here.
-
-    The pose server builds the same tracker when it starts; with the caches warm it is
-    ready in well under a second instead of missing the first tens of seconds of the cell.
-    """
-    from .cmd_record import object_mesh_path
-    from .model import load_model
-    from .rig import load_rig
-    from .sim.rigs import CAMERAS_DIR
-    from .tracker import Tracker
-
-    t = time.monotonic()
-    Tracker(load_rig(CAMERAS_DIR / f"{rig_name}.yaml"), load_model(object_mesh_path(cfg.object), name=cfg.object))
-    if time.monotonic() - t > 2.0:
-        log(f"demo: compiled the tracker's kernels once ({time.monotonic() - t:.0f} s; cached for later runs)")
 
 
 def _view_args(cfg: DemoConfig) -> list[str]:
@@ -233,7 +224,6 @@ def run_demo(cfg: DemoConfig, log=print) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     rig = CAMERA_SETS[cfg.cameras]
     q0 = search_q0(cfg.cameras)
-    _warm_up(cfg, rig, log)
     robot = RobotShm(None)
     world = WorldShm(None)
     bridge = SerialBridge(cfg.baud) if cfg.link == "serial" else None
@@ -253,7 +243,7 @@ def run_demo(cfg: DemoConfig, log=print) -> dict:
                                   # The vision PC's live loop owns a core (other work on it waits), the
                                   # software renderer's thread with it (spread over both cores it
                                   # stalled on the servo's: 30 ms wall for 15 ms of work).
-                                  "--cpu", "0", "--fifo", "10",
+                                  "--cpu", "0", "--fifo", "10", "--symmetry", cfg.symmetry,
                                   # The initialiser's worker ahead of the machine's other normal work
                                   # (behind the real-time loops): the first track waits for it.
                                   "--init-nice", "-10"],
@@ -261,7 +251,11 @@ def run_demo(cfg: DemoConfig, log=print) -> dict:
         # The plant (the world's clock) starts once the pose server is ready to capture: it
         # builds its tracker, initialiser and worker first (a second or two), and the cell's
         # first seconds would go by unseen.
-        _wait_ready(procs["vision"], out / "vision.log", "vespro serve: world source", timeout_s=120.0)
+        # Its kernels are compiled at set-up (python3 -m vespro.warmup); without that the first
+        # run compiles them here, which can take a minute.
+        _wait_ready(procs["vision"], out / "vision.log", "vespro serve: world source", timeout_s=120.0,
+                    note=lambda: log("demo: waiting for the pose server (a first run without set-up's "
+                                     "python3 -m vespro.warmup compiles its kernels: up to a minute)"))
         procs["plant"] = _spawn([py, "-m", "vespro.sim.plant", "--robot-shm", robot.name, "--world-shm", world.name,
                                  "--object", cfg.object, "--duration", str(cfg.duration), "--speed", str(cfg.speed),
                                  "--y0", str(cfg.y0), "--stop-time", str(cfg.stop_time),
@@ -396,8 +390,9 @@ def run_demo_lockstep(cfg: DemoConfig, log=print) -> dict:
     from .sim.plant import Plant, WorldShm
     from .sim.rigs import CAMERAS_DIR
     from .sources import WorldSource
-    from .tracker import Tracker
     from .se3 import transform_from_pq
+    from .symmetry import describe as describe_symmetry
+    from .tracker import Tracker, TrackerConfig
     from .wire import HelloMsg
 
     out = Path(cfg.out)
@@ -412,7 +407,10 @@ def run_demo_lockstep(cfg: DemoConfig, log=print) -> dict:
     cell_cfg = CellConfig(mesh, rig, effects=ImageEffects(noise_px=cfg.noise_px), mono=True)  # the cell's cameras are monochrome
     source = WorldSource(world_shm.name, cell_cfg, clock)
     model = load_model(mesh, name=cfg.object)
-    tracker = Tracker(rig, model)
+    tracker = Tracker(rig, model, TrackerConfig(symmetry=cfg.symmetry))
+    note = describe_symmetry(model.name, len(tracker.symmetries), cfg.symmetry, False, True)
+    if note:
+        log(f"demo: {note}")
     try:
         from .init import make_initializer
 

@@ -20,9 +20,20 @@ from __future__ import annotations
 
 import numba
 
-__all__ = ["njit"]
+__all__ = ["njit", "KERNELS", "compiled_count"]
+
+KERNELS: list = []  # every kernel made here, in the order its module was imported (vespro.warmup)
 
 
 def njit(fn):
     """``numba.njit`` with ``cache=True``, strict IEEE arithmetic and NumPy's error model."""
-    return numba.njit(cache=True, nogil=True, error_model="numpy")(fn)
+    kernel = numba.njit(cache=True, nogil=True, error_model="numpy")(fn)
+    KERNELS.append(kernel)
+    return kernel
+
+
+def compiled_count() -> tuple[int, int]:
+    """(compiled, loaded): kernel signatures compiled in this process (not found in the
+    on-disk cache) and loaded from it."""
+    compiled = sum(sum(k.stats.cache_misses.values()) for k in KERNELS)
+    return compiled, sum(sum(k.stats.cache_hits.values()) for k in KERNELS)

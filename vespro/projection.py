@@ -32,7 +32,9 @@ MIN_DEPTH = 1e-6
 
 
 def _check_T(T, name):
-    T = np.asarray(T, dtype=float)
+    # A copy: the kernel then always sees a writeable array (a fixed camera's pose is
+    # read-only, an arm camera's is not), one compiled signature for both.
+    T = np.array(T, dtype=float, order="C")
     if T.shape != (4, 4):
         raise ValueError(f"{name}: expected shape (4, 4), got {T.shape}")
     return T

@@ -28,6 +28,10 @@ class InitResult:
         looser limits of a part with plain faces): the tracker tracks it but
         publishes it only once the initialiser confirms it
         (``vespro.tracker.Tracker.offer``).
+    given : bool
+        The user's pose (``--init-pose``): the tracker starts from it exactly, even
+        for a symmetric part, whose equivalent poses it otherwise chooses among
+        (:mod:`vespro.symmetry`).
     """
 
     T_world_object: np.ndarray
@@ -35,3 +39,4 @@ class InitResult:
     velocity: np.ndarray | None = None
     hidden: tuple = ()
     provisional: bool = False
+    given: bool = False

@@ -64,7 +64,8 @@ def track_recording(rec: Recording, tracker: Tracker, init_pose: np.ndarray | No
     """Track every frame set of a recording, in order.
 
     ``init_pose`` (T_world_object at frame 0), when given, starts the filter at
-    the first frame; otherwise the tracker's initializer decides.
+    the first frame, exactly as given (a symmetric part's frame included);
+    otherwise the tracker's initializer decides.
     ``on_output(frameset, output)``, when given, observes each frame (a viewer).
     """
     outs = []
@@ -76,7 +77,7 @@ def track_recording(rec: Recording, tracker: Tracker, init_pose: np.ndarray | No
     for i in it:
         fs = rec.frameset(i)  # images decoded here, outside the timed processing
         if i == 0 and init_pose is not None:
-            tracker.start(InitResult(init_pose), fs.t_ns)
+            tracker.start(InitResult(init_pose, given=True), fs.t_ns)
         outs.append(tracker.process(fs))
         if on_output is not None:
             on_output(fs, outs[-1])

@@ -49,6 +49,8 @@ from .rig import Rig
 from .se3 import check_transform
 from .selection import eligible_mask, select_information_joint, select_quality
 from .startpose import InitResult
+from .symmetry import RULES as SYMMETRY_RULES
+from .symmetry import choose as choose_equivalent
 from .visibility import SceneBody, VisibilityScene
 
 __all__ = ["TrackerConfig", "CameraObservation", "TrackerOutput", "InitResult", "Tracker"]
@@ -417,6 +419,11 @@ class TrackerConfig:
         every frame, :mod:`vespro.likelihood`; the best is published while its
         probability is at least ``1 - BankOptions.wrong_lock_rate``, and its
         probability goes out with every frame, :attr:`TrackerOutput.probability`).
+    symmetry : str
+        How the tracker picks among a symmetric part's equivalent poses when it
+        chooses by itself (a start from the initialiser, a re-acquisition):
+        ``continuity`` or ``up`` (:mod:`vespro.symmetry`). A given start pose
+        (:attr:`InitResult.given`) is kept as given.
     """
 
     features_per_camera: int = 8
@@ -478,6 +485,7 @@ class TrackerConfig:
     feature_noise_rate: float = 0.3
     feature_noise_max: float = 9.0
     decision: str = "rules"
+    symmetry: str = "continuity"
 
     def __post_init__(self):
         if self.selection not in ("information", "quality"):
@@ -486,6 +494,8 @@ class TrackerConfig:
             raise ValueError(f"decision must be 'rules' or 'bank', got {self.decision!r}")
         if self.edge_aid not in ("single", "always", "off"):
             raise ValueError(f"edge_aid must be 'single', 'always' or 'off', got {self.edge_aid!r}")
+        if self.symmetry not in SYMMETRY_RULES:
+            raise ValueError(f"symmetry must be one of {', '.join(SYMMETRY_RULES)}, got {self.symmetry!r}")
         if self.features_per_camera < 3:
             raise ValueError("need at least 3 features per camera")
         for name in ("edge_offset_px", "start_edge_offset_px"):
@@ -635,7 +645,8 @@ class Tracker:
         self._edge_veto = False  # this frame's edge fits found far less than this filter's first (veto_found_ratio)
         self._vetoes = 0  # vetoed frames since the start (or its confirmation by the initialiser)
         self._start_found: dict[str, float] = {}  # per camera, the found fraction of this filter's first edge fit
-        # A symmetric part (a box) looks the same in several poses: pick one by a stated rule.
+        # A symmetric part (a box) looks the same in several poses: the tracker picks one by
+        # the rule config.symmetry where it chooses by itself (vespro.symmetry).
         self.symmetries = discrete_symmetries(model.vertices)
         self.ekf: PoseEKF | None = None
         self.status = STATUS_INITIALIZING
@@ -700,37 +711,23 @@ class Tracker:
 
     # -- starting and stopping ----------------------------------------------
     def canonical_pose(self, T_world_object: np.ndarray) -> np.ndarray:
-        """Among a symmetric part's equivalent poses ``T @ S``, the one to track.
-
-        No image tells them apart, so the rule is a convention: the one closest in
-        orientation to the last good track (continuity after a loss), otherwise the
-        one whose z axis points most nearly up in the world. Parts without symmetry
-        are returned unchanged.
-        """
-        if len(self.symmetries) < 2:
-            return T_world_object
-        cands = [T_world_object @ S for S in self.symmetries]
-        if self.last_good is not None:
-            R0 = self.last_good[0][:3, :3]
-            return max(cands, key=lambda T: np.trace(R0.T @ T[:3, :3]))
-        return max(cands, key=lambda T: T[2, 2])
+        """Among a symmetric part's equivalent poses ``T @ S``, the one to track when the
+        tracker chooses by itself, by the rule ``TrackerConfig.symmetry``
+        (:func:`vespro.symmetry.choose`: continuity with the last good track, or z up).
+        Parts without symmetry are returned unchanged."""
+        T_last = self.last_good[0] if self.last_good is not None else None
+        return choose_equivalent(T_world_object, self.symmetries, self.config.symmetry, T_last)
 
     def start(self, init: InitResult, t_ns: int) -> None:
-        """Start (or restart) the filter from a pose at capture time ``t_ns``."""
-        c = self.config
-        init = replace(init, T_world_object=self.canonical_pose(init.T_world_object))
+        """Start (or restart) the filter from a pose at capture time ``t_ns``: the user's
+        exactly as given (:attr:`InitResult.given`), another among a symmetric part's
+        equivalent poses as :meth:`canonical_pose` chooses."""
+        if not init.given:
+            init = replace(init, T_world_object=self.canonical_pose(init.T_world_object))
         self._start_hidden = frozenset(init.hidden)
         self.provisional = bool(init.provisional)
         self._recent.clear()
-        P0 = np.diag(np.r_[np.full(3, c.init_sigma_pos**2), np.full(3, c.init_sigma_rot**2),
-                           np.full(3, c.init_sigma_vel**2), np.full(3, c.init_sigma_angvel**2)])
-        if init.cov6 is not None:
-            P0[:6, :6] = init.cov6
-        v = w = None
-        if init.velocity is not None:
-            v, w = init.velocity[:3], init.velocity[3:]
-        self.ekf = PoseEKF(init.T_world_object, P0, q_acc=c.q_acc, q_alpha=c.q_alpha, sigma_px=c.sigma_px,
-                           gate_prob=c.gate_prob, v=v, w=w, robust_nis=c.robust_nis)
+        self.ekf = self._filter_at(init.T_world_object, init.cov6, init.velocity)
         self._contrast = {}  # camera -> EdgeContrast: what the part's edges look like, learnt from this start on
         self._t_ns = t_ns
         self._bad = 0
@@ -1264,7 +1261,12 @@ class Tracker:
     # -- the hypothesis bank (decision "bank") -----------------------------------
     def _new_filter(self, T_world_object: np.ndarray, cov6: np.ndarray | None = None,
                     velocity: np.ndarray | None = None) -> PoseEKF:
-        """A filter started at a pose, as :meth:`start` starts one."""
+        """A bank hypothesis's filter: at the pose :meth:`canonical_pose` picks among its equivalents."""
+        return self._filter_at(self.canonical_pose(T_world_object), cov6, velocity)
+
+    def _filter_at(self, T_world_object: np.ndarray, cov6: np.ndarray | None = None,
+                   velocity: np.ndarray | None = None) -> PoseEKF:
+        """A filter started at exactly this pose, with the start's uncertainty (or ``cov6``)."""
         c = self.config
         P0 = np.diag(np.r_[np.full(3, c.init_sigma_pos**2), np.full(3, c.init_sigma_rot**2),
                            np.full(3, c.init_sigma_vel**2), np.full(3, c.init_sigma_angvel**2)])
@@ -1273,7 +1275,7 @@ class Tracker:
         v = w = None
         if velocity is not None:
             v, w = velocity[:3], velocity[3:]
-        return PoseEKF(self.canonical_pose(T_world_object), P0, q_acc=c.q_acc, q_alpha=c.q_alpha,
+        return PoseEKF(T_world_object, P0, q_acc=c.q_acc, q_alpha=c.q_alpha,
                        sigma_px=c.sigma_px, gate_prob=c.gate_prob, v=v, w=w, robust_nis=c.robust_nis)
 
     def _process_bank(self, fs: FrameSet) -> TrackerOutput:

@@ -772,3 +772,71 @@ def test_a_camera_that_finds_nothing_does_not_count_against_a_confirmed_track(re
     # ...but not when a seeing camera rejects half its corners.
     tr, out = run([[ob("cam_left", 8, 8), ob("cam_right", 8, 3), ob("cam_top", 1, 1)]] * 3)
     assert "tracking" not in out and not tr.confirmed
+
+
+def test_a_given_pose_of_a_symmetric_part_is_tracked_in_the_given_frame(recs, capsys):
+    """``--init-pose`` with the box turned half a turn about its x axis (z down: an
+    equivalent pose the rule ``up`` would never choose): every frame is reported in that
+    frame, not flipped, and the command says that the part is symmetric and the pose is kept."""
+    from vespro.cli import main
+    from vespro.metrics import discrete_symmetries
+    from vespro.model import load_model
+    from vespro.poses import read_poses
+    from vespro.se3 import pq_from_transform, rotation_angle
+
+    rec = Recording(recs["box_conveyor"])
+    _, _, T = read_groundtruth(recs["box_conveyor"])
+    syms = discrete_symmetries(load_model(rec.model_path).vertices)
+    S = next(S for S in syms if S[2, 2] < -0.5 and S[0, 0] > 0.5)  # half turn about x
+    given = T[0] @ S
+    assert given[2, 2] < 0  # z down
+    out = rec.path.parent / "given_flipped.csv"
+    pose = ",".join(f"{v:.9f}" for v in pq_from_transform(given))
+    assert main(["track", str(rec.path), "-o", str(out), "--init-pose", pose, "--no-progress"]) == 0
+    err = capsys.readouterr().err
+    assert "box is symmetric: 4 poses look alike; the start pose given is kept as given" in err
+    rows = [r for r in read_poses(out) if r.status == "tracking"]
+    assert len(rows) >= 30
+    for r in rows:
+        Tt = T[r.index] @ S
+        assert np.linalg.norm(r.T_world_object[:3, 3] - Tt[:3, 3]) < 2e-3
+        assert rotation_angle(r.T_world_object[:3, :3].T @ Tt[:3, :3]) < math.radians(2)
+
+
+def test_the_tracker_chooses_among_equivalent_poses_by_the_symmetry_option():
+    from vespro.model import box_model
+    from vespro.rig import Rig
+    from vespro.se3 import exp_so3
+    from vespro.tracker import InitResult, Tracker
+
+    flip = transform_from_rt(exp_so3([np.pi, 0, 0]), np.zeros(3))
+    T = transform_from_rt(exp_so3([0, 0, 0.3]), [0.9, 0.0, 0.6])  # upright, yaw 0.3
+    last = T @ flip  # the last good track had the box's z down
+    for rule, restart_z_up in (("continuity", False), ("up", True)):
+        tr = Tracker(Rig(()), box_model([0.12, 0.08, 0.06]), TrackerConfig(symmetry=rule))
+        tr.start(InitResult(last), 0)  # the initialiser's start: upright under either rule
+        assert np.allclose(tr.ekf.pose, T)
+        tr.last_good = (last, np.zeros(6), 0)  # then lost; found again as the flipped pose
+        tr.start(InitResult(T @ flip), 1)
+        assert bool(tr.ekf.pose[2, 2] > 0.99) is restart_z_up, rule
+        tr.start(InitResult(last, given=True), 2)  # a pose the user gives: as given
+        assert np.allclose(tr.ekf.pose, last)
+    with pytest.raises(ValueError, match="symmetry"):
+        TrackerConfig(symmetry="nearest")
+
+
+def test_up_picks_one_frame_among_a_cubes_quarter_turns():
+    from vespro.se3 import exp_so3
+    from vespro.symmetry import choose, describe
+    from vespro.metrics import discrete_symmetries
+    from vespro.model import box_model
+
+    syms = discrete_symmetries(box_model([0.1, 0.1, 0.1]).vertices)
+    assert len(syms) == 24
+    T = transform_from_rt(exp_so3([0, 0, 0.3]), [0.5, 0.1, 0.2])
+    for S in syms:  # whichever equivalent pose comes in, the same one comes out
+        assert np.allclose(choose(T @ S, syms, "up"), T)
+    assert describe("cube", 24, "up", False, True) == \
+        "cube is symmetric: 24 poses look alike; the tracker reports the one with z most nearly up in the world " \
+        "(--symmetry up)"
+    assert describe("bracket", 1, "up", False, True) is None
