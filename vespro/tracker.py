@@ -661,6 +661,7 @@ class Tracker:
         self._recover_t_ns: int | None = None  # a confirmed track coasted from here; not yet strong again
         self._disagree = 0
         self.reassociations = 0
+        self.researches = 0  # frames searched again with wider windows (the first windows missed)
         self.confirmed = False
         self.sigma_px = config.sigma_px
         # Per (camera, corner) noise variance factor, learnt from the residuals (see TrackerConfig).
@@ -952,6 +953,7 @@ class Tracker:
             ekf.widen_velocity(c.init_sigma_pos / dt, c.init_sigma_rot / dt)
             ekf.predict(dt)
             again = self._measure_twice(fs, stage)
+            self.researches += 1
             if again[2] > n_acc:
                 obs, n_found, n_acc, mean_nis, max_half, ok = result = again
             else:
