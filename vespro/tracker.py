@@ -72,7 +72,8 @@ class TrackerConfig:
     sigma_px : float
         Measurement noise std of a corner, px.
     q_acc, q_alpha : float
-        Process noise spectral densities (m^2/s^3, rad^2/s^3).
+        Process noise spectral densities (m^2/s^3, rad^2/s^3); with
+        ``adaptive_motion`` the least the filter uses.
     gate_prob : float
         Innovation gate probability (chi-square, 2 dof per point).
     robust_nis : float
@@ -143,7 +144,9 @@ class TrackerConfig:
         is confirmed by two seeing cameras, not by one while another finds
         nothing (the start may be wrong in that camera), unless the initialiser
         judged it without that camera (``InitResult.hidden``): then by the one,
-        under the one-camera rules. 0 turns it off.
+        under the one-camera rules. 0 turns it off. A frame whose cameras together
+        found fewer than this fraction of the corners selected is searched again
+        (see ``Tracker._track``): the windows missed.
     max_pos_std : float
         Position std (m) beyond which the track is lost.
     confirm_frames : int
