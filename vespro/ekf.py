@@ -715,6 +715,13 @@ class PoseEKF:
         """Back to a :meth:`snapshot`."""
         self.x, self.P, self.P_pub = snap[0], snap[1], snap[2]
 
+    def widen_velocity(self, sigma_vel: float, sigma_angvel: float) -> None:
+        """Add independent linear (m/s) and angular (rad/s) velocity variance to ``P`` (and ``P_pub``)."""
+        for M in (self.P, self.P_pub):
+            if M is not None:
+                M[6:9, 6:9] += np.eye(3) * sigma_vel**2
+                M[9:12, 9:12] += np.eye(3) * sigma_angvel**2
+
     def widen_pose(self, sigma_pos: float, sigma_rot: float) -> None:
         """Add independent position (m) and orientation (rad) variance to ``P`` (and ``P_pub``)."""
         for M in (self.P, self.P_pub):
