@@ -76,12 +76,13 @@ def _worker_ping() -> None:
 
 
 def _init_call(initializer, fs: FrameSet, seed=None, pending=None) -> tuple:
-    """One initialiser call (seeded first when there is a seed): ``(result, why not)``.
+    """One initialiser call (seeded first when there is a seed): ``(result, why not, candidates)``.
 
     ``pending``: ``(T_world_object, t_ns)`` of the tracker's provisional start, for the
     call to confirm (:meth:`vespro.tracker.Tracker.offer`). ``why not`` is the
     initialiser's reason for returning no pose (its ``last_report.reason``, e.g. an
-    accidental view or an ambiguity), or "".
+    accidental view or an ambiguity), or "". ``candidates``: the poses it ranked besides
+    its answer, best first (for the hypothesis bank: :meth:`vespro.tracker.Tracker.propose`).
     """
     if seed is not None and hasattr(initializer, "reseed"):
         initializer.reseed(seed[0], velocity=seed[1], t_ns=seed[2])
@@ -89,7 +90,8 @@ def _init_call(initializer, fs: FrameSet, seed=None, pending=None) -> tuple:
         initializer.await_confirmation(*pending)
     res = initializer(fs)
     report = getattr(initializer, "last_report", None)
-    return res, ("" if res is not None or report is None else str(getattr(report, "reason", "") or ""))
+    cands = tuple(T for T, _ in getattr(report, "candidates", ()))
+    return res, ("" if res is not None or report is None else str(getattr(report, "reason", "") or "")), cands
 
 
 def _worker_run(fs: FrameSet, seed=None, pending=None):
@@ -186,6 +188,7 @@ class PoseServer:
         self.source = source
         self.tracker = tracker
         self.tracker.initializer = None
+        self._bank = getattr(tracker, "bank", None)  # decision "bank": the hypotheses the initialiser feeds
         self._blind_logged = 0  # Tracker.blind_frames at the last status line
         self.publisher = publisher
         self.clock = clock
@@ -249,23 +252,41 @@ class PoseServer:
         self._stop.set()
 
     # -- initialisation ---------------------------------------------------------
+    def _searching(self) -> bool:
+        """Whether the initialiser is wanted: while there is no filter, or the filter holds a
+        provisional start (the initialiser confirms or replaces it: :meth:`Tracker.offer`);
+        with the hypothesis bank, while nothing is published and no catch-up is under way (its
+        answers are hypotheses beside those held: :meth:`Tracker.propose`)."""
+        tr = self.tracker
+        if self._bank is not None:  # (not while catching up: the answer would join hypotheses mid-way)
+            return not tr.confirmed and self._catching is None
+        return tr.ekf is None or tr.provisional
+
+    def _holding(self) -> bool:
+        """Whether the tracker holds a pose to track (a filter, or the bank's hypotheses)."""
+        tr = self.tracker
+        return tr.ekf is not None or (self._bank is not None and bool(self._bank.hypotheses))
+
     def _maybe_start(self, fs: FrameSet) -> None:
-        """Run the initialiser while there is no filter, or the filter holds a provisional
-        start (the initialiser confirms or replaces it: :meth:`Tracker.offer`)."""
-        if (self.tracker.ekf is not None and not self.tracker.provisional) or \
-                (self.initializer is None and self._pool is None):
+        """Run the initialiser while it is wanted (:meth:`_searching`)."""
+        if not self._searching() or (self.initializer is None and self._pool is None):
             return
         if not self.background_init:
             self.stats.init_attempts += 1
             # After a loss the initialiser first tries near the last good pose.
-            res, _ = _init_call(self.initializer, fs, self.tracker.recovery_seed(), self.tracker.provisional_pose())
+            res, _, cands = _init_call(self.initializer, fs, self.tracker.recovery_seed(),
+                                       self.tracker.provisional_pose())
             if res is not None:
                 self.stats.init_successes += 1
-                self._start(res, fs.t_ns)
+                if self._bank is not None:
+                    self.tracker.propose(res, fs.t_ns, cands)
+                else:
+                    self._start(res, fs.t_ns)
             return
         if self._job is not None and self._job.done():
+            cands = ()
             try:
-                res, why = self._job.result()
+                res, why, cands = self._job.result()
             except Exception as e:  # an initialiser bug must not kill the server
                 res, why = None, ""
                 if self.log:
@@ -287,8 +308,20 @@ class PoseServer:
                 self.stale_inits += 1
                 res = None
                 self._note("discarded", "  discarded: the frames right after it are gone (no catch-up across the gap)")
+            if res is not None and self._bank is not None and self._bank.hypotheses:
+                # Hypotheses are held at the present: the new ones are carried through the
+                # frames since theirs and join them.
+                self.stats.init_successes += 1
+                self.tracker.propose(res, job_t, cands, newer)
+                self._backlog.clear()
+                return
             if res is not None:
                 self.stats.init_successes += 1
+                if self._bank is not None:
+                    self.tracker.propose(res, job_t, cands)
+                    self._catching = deque(newer)
+                    self._backlog.clear()
+                    return
                 if not self._start(res, job_t):
                     return  # the provisional start confirmed (or kept): tracked on as it is
                 # Catch up: the part moved while the initialiser worked. The frames that came
@@ -326,7 +359,7 @@ class PoseServer:
         q.append(fs)
         t_end = self.clock.now_ns() + int(CATCH_UP_SHARE * 1e9 / self._rate)
         n = 0
-        while q and self.tracker.ekf is not None and (n < CATCH_UP_MIN or self.clock.now_ns() < t_end):
+        while q and self._holding() and (n < CATCH_UP_MIN or self.clock.now_ns() < t_end):
             f = q.popleft()
             if not q:  # the live frame set: confirmed again on live frames before publishing
                 self._catching = None
@@ -335,7 +368,7 @@ class PoseServer:
             self.tracker.process(f)
             self.caught_up_frames += 1
             n += 1
-        if self.tracker.ekf is None:  # lost (or not confirmed in time) on the way: the initialiser starts over
+        if not self._holding():  # lost (or not confirmed in time) on the way: the initialiser starts over
             self._catching = None
             return TrackerOutput(fs.index, fs.t_ns, self.tracker.status)
         return TrackerOutput(fs.index, fs.t_ns, "initializing")
@@ -346,7 +379,7 @@ class PoseServer:
         try:
             self._maybe_start(fs)
             out = self._catch_up(fs) if self._catching is not None else self.tracker.process(fs)
-            if (self.tracker.ekf is None or self.tracker.provisional) and self._pool is not None:
+            if self._searching() and self._pool is not None:
                 # Kept in grey (what the tracker uses): a third of the memory.
                 self._backlog.append(FrameSet(fs.index, fs.t_ns, {k: fs.grey(k) for k in fs.images},
                                               fs.T_world_camera))
