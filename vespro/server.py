@@ -19,7 +19,8 @@ gap starts the filter again from its last pose. When the source ends, ``lost``
 is published once more and :meth:`PoseServer.run` returns.
 
 Once a second the server logs one line: frame rate, tracker time, vision
-latency (capture to send), status and link statistics. Lines of a kind that
+latency (capture to send), status (with the tracker's probability when it
+states one: ``tracking p=0.998``) and link statistics. Lines of a kind that
 repeats (an initialisation that finds nothing) go out at most once a second.
 Statistics are kept in memory that does not grow with the run's length.
 """
@@ -106,7 +107,8 @@ def pose_message(out: TrackerOutput, seq: int, t_send_ns: int, object_id: int = 
 
     A frame that is not tracking still carries a pose (the last good one, or
     identity) so the message is well formed; its status tells the receiver not
-    to use it.
+    to use it. The tracker's probability goes out with every frame (NaN: not
+    stated, as with the confirmation rules).
     """
     if out.status == "tracking" and out.T_world_object is not None:
         T = out.T_world_object
@@ -118,7 +120,8 @@ def pose_message(out: TrackerOutput, seq: int, t_send_ns: int, object_id: int = 
         cov = np.zeros((6, 6))
     return PoseMsg(seq=seq, t_capture_ns=int(out.t_ns), t_send_ns=int(t_send_ns), object_id=object_id,
                    status=_STATUS[out.status], p_world_object=T[:3, 3], q_world_object=quat_from_matrix(T[:3, :3]),
-                   v_world_object=vel[:3], w_world_object=vel[3:], cov=cov)
+                   v_world_object=vel[:3], w_world_object=vel[3:], cov=cov,
+                   probability=min(max(float(out.probability), 0.0), 1.0) if np.isfinite(out.probability) else np.nan)
 
 
 @dataclass
@@ -429,7 +432,9 @@ class PoseServer:
             link += f" refused {st.clients_refused}" if st.clients_refused else ""
         images = getattr(self.source, "images", None)  # an ImageTally: images not used, per camera and reason
         rejected = f" | {images.status()}" if images is not None and images.status() else ""
-        self.log(f"{len(w) / dt:5.1f} Hz | {w[-1].status:12s} | tracker {np.median(tm):5.2f} ms "
+        p = w[-1].probability
+        status = f"{w[-1].status} p={p:.3f}" if np.isfinite(p) else w[-1].status
+        self.log(f"{len(w) / dt:5.1f} Hz | {status:12s} | tracker {np.median(tm):5.2f} ms "
                  f"(max {tm.max():5.2f}) | latency {np.median(lat):6.2f} ms | features {w[-1].n_accepted:2d}"
                  f"{f' (a camera blind in {blind} frames)' if blind else ''}{link}{rejected}")
 

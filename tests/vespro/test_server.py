@@ -16,7 +16,7 @@ from vespro.model import load_model
 from vespro.recording import Recording
 from vespro.rig import load_rig
 from vespro.se3 import pq_from_transform
-from vespro.server import PoseServer
+from vespro.server import PoseServer, pose_message
 from vespro.sim.cell import CellConfig
 from vespro.sim.imaging import ImageEffects
 from vespro.sim.motion import Conveyor
@@ -441,7 +441,8 @@ def test_with_the_bank_the_initialisers_candidates_are_weighed_beside_its_answer
     clock = SimClock()
     ini = _WrongAnswerRightCandidate(T)
     tracker = Tracker(rec.rig, load_model(rec.model_path), TrackerConfig(decision="bank"))
-    server = PoseServer(ReplaySource(rec, clock), tracker, None, clock, ini, background_init=mode, log=None)
+    lines = []
+    server = PoseServer(ReplaySource(rec, clock), tracker, None, clock, ini, background_init=mode, log=lines.append)
     outs = []
     server.on_output = lambda fs, o: (outs.append(o), mode and time.sleep(0.02))
     server.run()
@@ -450,6 +451,9 @@ def test_with_the_bank_the_initialisers_candidates_are_weighed_beside_its_answer
     for o in tracking:
         assert np.linalg.norm(o.T_world_object[:3, 3] - T[o.index][:3, 3]) < 5e-3
         assert o.probability >= 0.99
+        # ... and it goes out on the wire with the pose, at the byte's precision.
+        assert abs(pose_message(o, 0, o.t_ns).probability - o.probability) <= 0.5 / 254
+    assert any(" | tracking p=0.99" in ln or " | tracking p=1.000" in ln for ln in lines), lines
     if not mode:  # lockstep: called on every frame set until one is published, not after
         first = tracking[0].index
         assert ini.calls == list(range(len(ini.calls))) and max(ini.calls) <= first, (ini.calls, first)
