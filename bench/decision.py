@@ -15,6 +15,10 @@ says ``gt``) and scored on what was *published* (frames with status
 - distractor: frames published at a pose whose model centre is nearer the
   centre of a distractor (``distractors.csv``, evaluator-only) than the
   part's true centre;
+- NEES in 95%: the fraction of published frames whose error (to the
+  nearest symmetric equivalent of the true pose) over the published
+  covariance falls in the two-sided 95% chi-square band of 6 dof (a
+  consistent covariance: 0.95);
 - ms/frame median and p99: the tracker's own per-frame time (with
   ``init: auto`` the initialiser runs inside the frames it is called on, as
   replayed here, and its time counts there).
@@ -46,6 +50,7 @@ import numpy as np  # noqa: E402
 from bench._table import print_table, stats_ms  # noqa: E402
 from vespro.camera import project_points  # noqa: E402
 from vespro.groundtruth import read_distractors  # noqa: E402
+from vespro.metrics import add, discrete_symmetries, nees, nees_band  # noqa: E402
 from vespro.se3 import invert_transform  # noqa: E402
 from vespro.sim.distractors import NEAR_HEIGHT_SCALE  # noqa: E402
 from vespro.suite import load_suite, score_published, track_scenario  # noqa: E402
@@ -89,6 +94,24 @@ def write_outputs(out: Path, r: dict, distractors: dict) -> None:
     cv2.imwrite(str(out / "overlay.png"), np.hstack(views))
 
 
+def published_nees(outs, T_true, model) -> list:
+    """NEES of each published frame with a covariance, against the true pose's nearest symmetric equivalent."""
+    syms = discrete_symmetries(model.vertices)
+    out = []
+    for i, o in enumerate(outs):
+        if o.status != "tracking" or o.cov6 is None:
+            continue
+        Ts = min((T_true[i] @ S for S in syms), key=lambda T: add(o.T_world_object, T, model.vertices))
+        out.append(nees(o.T_world_object, Ts, o.cov6))
+    return out
+
+
+def _in_band(values) -> float:
+    lo, hi = nees_band(6)
+    v = np.asarray(values, float)
+    return float(np.mean((v >= lo) & (v <= hi))) if v.size else float("nan")
+
+
 def _overrides(items) -> dict:
     out = {}
     for s in items or []:
@@ -110,12 +133,12 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     overrides = _overrides(args.set)
     headers = ["scenario", "init", "frames", "tracked %", "max err %D", ">=5%", ">=10%", "first", "distractor",
-               "ms med", "ms p99"]
+               "NEES in 95%", "ms med", "ms p99"]
     for path in args.suites:
         name, scenarios = load_suite(path)
         if args.only:
             scenarios = [s for s in scenarios if args.only in s["name"]]
-        rows, total, times = [], [], []
+        rows, total, times, all_nees = [], [], [], []
         for sc in scenarios:
             r = track_scenario(sc, args.cache, log=lambda m: print(m, file=sys.stderr), overrides=overrides)
             dist = read_distractors(r["rec_path"])
@@ -123,9 +146,11 @@ def main(argv=None) -> int:
             if args.out:
                 write_outputs(args.out / name / sc["name"], r, dist)
             med, p99 = stats_ms(f["times_s"])
+            ne = published_nees(r["outs"], r["T_true"], r["tracker"].model)
+            all_nees += ne
             rows.append([sc["name"], sc["init"], f["frames"], 100.0 * f["published"] / f["frames"],
                          100.0 * f["max_err"], f["ge5"], f["ge10"], "-" if f["first"] is None else f["first"],
-                         f["on_distractor"] if sc["distractors"] else "-", med, p99])
+                         f["on_distractor"] if sc["distractors"] else "-", _in_band(ne), med, p99])
             total.append(f)
             times += f["times_s"]
         if not total:
@@ -135,7 +160,7 @@ def main(argv=None) -> int:
         errs = [f["max_err"] for f in total if np.isfinite(f["max_err"])]
         rows.append(["total", "", frames, 100.0 * sum(f["published"] for f in total) / frames,
                      100.0 * max(errs) if errs else float("nan"), sum(f["ge5"] for f in total), sum(f["ge10"] for f in total), "",
-                     sum(f["on_distractor"] for f in total), med, p99])
+                     sum(f["on_distractor"] for f in total), _in_band(all_nees), med, p99])
         title = f"suite {name} ({path}){'; ' + ', '.join(args.set) if args.set else ''}"
         print_table(headers, rows, title=title)
         print()

@@ -44,6 +44,10 @@ it is counted in ``ReceiverStats.pose_rejected`` under its reason
 - ``duplicate``: the same ``seq`` as the last pose used;
 - ``out_of_order``: a ``seq`` behind the last pose used (modulo 2**32).
 
+A POSE carries the sender's probability that its pose is the object's
+(``PoseMsg.probability``, NaN when the sender states none); the status alone
+decides whether a pose is used.
+
 A server that restarts sends a HELLO first and starts its ``seq`` over: after
 a HELLO the next pose may have any ``seq`` but the last one (counted in
 ``ReceiverStats.seq_restarts`` when it goes back). A new connection starts a

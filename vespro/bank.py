@@ -12,10 +12,20 @@ frame. A hypothesis's probability is its share of ``exp(score)`` over the
 null and all hypotheses.
 
 The likelihood of one frame treats its lines as independent, which they are
-not: the samples along one straight edge move together when the pose is off,
-and measure about two numbers (an offset and an angle). Each camera's log
-ratio is therefore scaled to ``edges_independent`` numbers per model edge
-observed (the tempered likelihood of composite-likelihood inference).
+not: the samples along one projected edge move together when the pose is
+off (a pose a little off shifts and turns a whole edge at once), so a frame's
+log ratio counts the same evidence many times over. The lines already weigh
+one per ``spacing_px`` (2 px) of projected edge (:mod:`vespro.likelihood`);
+a pose error moves each edge's image by about two numbers (an offset and a
+turn), and the parts' projected edges are 40-100 px long in the benches'
+views (a one-camera box: 9 edges, 256 weighed lines), so the lines are
+independent about once per 20 px of edge: one line weighed in ten.
+Every frame's log ratio is therefore scaled by one constant,
+``evidence_weight`` (0.1 = 2 px / 20 px: the tempered likelihood of
+composite-likelihood inference). One constant for every pose and camera keeps
+the ranking of the raw likelihood: a pose that explains more edge by more
+evidence (a near, large projection) stays ahead of one that explains less (a
+small, far copy of the part), which a weight per edge or per pose would not.
 
 Equivalent poses of a symmetric part and poses within ``merge_frac`` of the
 diameter of each other (ADD over the part's symmetries) are one hypothesis:
@@ -40,7 +50,7 @@ from .ekf import PoseEKF
 from .likelihood import ImageLikelihood, PoseLikelihood
 from .metrics import add_sym
 
-__all__ = ["BankOptions", "Hypothesis", "HypothesisBank", "tempered_log_lik"]
+__all__ = ["BankOptions", "Hypothesis", "HypothesisBank"]
 
 
 @dataclass(frozen=True)
@@ -53,8 +63,9 @@ class BankOptions:
         A hypothesis is published when its probability is at least one minus this.
     forget : float
         Weight of a hypothesis's past score in each new frame's (0: the last frame alone).
-    edges_independent : float
-        Independent numbers one observed model edge's samples count for.
+    evidence_weight : float
+        Scale of every frame's log-likelihood ratio: independent lines per line weighed
+        (``spacing_px`` over the correlation length along an edge, 2 px / 20 px).
     new_prior : float
         Prior probability of a proposed pose against the hypotheses already held
         (its score starts at the log of this plus the best current score, at most 0).
@@ -69,7 +80,7 @@ class BankOptions:
 
     wrong_lock_rate: float = 0.01
     forget: float = 0.6
-    edges_independent: float = 2.0
+    evidence_weight: float = 0.1
     new_prior: float = 0.1
     merge_frac: float = 0.05
     prune_prob: float = 1e-4
@@ -81,6 +92,8 @@ class BankOptions:
             raise ValueError(f"wrong_lock_rate must be in (0, 1), got {self.wrong_lock_rate}")
         if not 0 <= self.forget < 1:
             raise ValueError(f"forget must be in [0, 1), got {self.forget}")
+        if not self.evidence_weight > 0:
+            raise ValueError(f"evidence_weight must be > 0, got {self.evidence_weight}")
         if self.max_hypotheses < 1:
             raise ValueError(f"max_hypotheses must be >= 1, got {self.max_hypotheses}")
 
@@ -94,19 +107,7 @@ class Hypothesis:
     t_ns: int  # the filter's stamp
     frames: int = 0
     last: PoseLikelihood | None = None
-    last_log_lik: float = 0.0  # this frame's tempered log ratio
-
-
-def tempered_log_lik(pl: PoseLikelihood, edges_independent: float) -> float:
-    """A pose likelihood's log ratio with each camera's scaled to ``edges_independent`` numbers per
-    observed model edge (never scaled up)."""
-    out = 0.0
-    for c in pl.cameras:
-        if c.weight <= 0:
-            continue
-        n_edges = int(np.count_nonzero(np.isfinite(c.edge_found)))
-        out += c.log_lik * min(1.0, edges_independent * n_edges / c.weight)
-    return out
+    last_log_lik: float = 0.0  # this frame's log ratio times evidence_weight
 
 
 class HypothesisBank:
@@ -178,7 +179,7 @@ class HypothesisBank:
         for h in self.hypotheses:
             pl = self.likelihood(h.ekf.pose, views)
             h.last = pl
-            h.last_log_lik = tempered_log_lik(pl, self.options.edges_independent)
+            h.last_log_lik = self.options.evidence_weight * pl.log_lik
             h.score = g * h.score + h.last_log_lik
             h.frames += 1
 

@@ -20,6 +20,7 @@ topic                          type                                 one message 
                                Stamped
 ``/vespro/velocity``           geometry_msgs/TwistStamped           tracked frame set with a velocity
 ``/vespro/status``             std_msgs/String                      row of poses.csv
+``/vespro/probability``        std_msgs/Float64                     row of poses.csv stating a probability
 ``/servo/joint_states``        sensor_msgs/JointState (q_meas)      servo tick
 ``/servo/joint_command``       sensor_msgs/JointState (q, qd cmd)   servo tick
 ``/servo/reference``           geometry_msgs/PoseStamped            servo tick (TCP reference, world)
@@ -223,6 +224,8 @@ def export_mcap(recording: str | Path, out: str | Path, poses: str | Path | None
             r = by_index.get(i)
             if r is not None:
                 w.write("/vespro/status", ros2.string_msg(r.status), t)
+                if r.probability is not None and np.isfinite(r.probability):
+                    w.write("/vespro/probability", ros2.scalar_msg("std_msgs/msg/Float64", float(r.probability)), t)
             if r is not None and r.status == "tracking":
                 pq = pq_from_transform(r.T_world_object)
                 cov = r.cov if r.cov is not None else np.zeros((6, 6))

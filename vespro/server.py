@@ -19,7 +19,8 @@ gap starts the filter again from its last pose. When the source ends, ``lost``
 is published once more and :meth:`PoseServer.run` returns.
 
 Once a second the server logs one line: frame rate, tracker time, vision
-latency (capture to send), status and link statistics. Lines of a kind that
+latency (capture to send), status (with the tracker's probability when it
+states one: ``tracking p=0.998``) and link statistics. Lines of a kind that
 repeats (an initialisation that finds nothing) go out at most once a second.
 Statistics are kept in memory that does not grow with the run's length.
 """
@@ -85,12 +86,13 @@ def _worker_ping() -> None:
 
 
 def _init_call(initializer, fs: FrameSet, seed=None, pending=None) -> tuple:
-    """One initialiser call (seeded first when there is a seed): ``(result, why not)``.
+    """One initialiser call (seeded first when there is a seed): ``(result, why not, candidates)``.
 
     ``pending``: ``(T_world_object, t_ns)`` of the tracker's provisional start, for the
     call to confirm (:meth:`vespro.tracker.Tracker.offer`). ``why not`` is the
     initialiser's reason for returning no pose (its ``last_report.reason``, e.g. an
-    accidental view or an ambiguity), or "".
+    accidental view or an ambiguity), or "". ``candidates``: the poses it ranked besides
+    its answer, best first (for the hypothesis bank: :meth:`vespro.tracker.Tracker.propose`).
     """
     if seed is not None and hasattr(initializer, "reseed"):
         initializer.reseed(seed[0], velocity=seed[1], t_ns=seed[2])
@@ -98,7 +100,8 @@ def _init_call(initializer, fs: FrameSet, seed=None, pending=None) -> tuple:
         initializer.await_confirmation(*pending)
     res = initializer(fs)
     report = getattr(initializer, "last_report", None)
-    return res, ("" if res is not None or report is None else str(getattr(report, "reason", "") or ""))
+    cands = tuple(T for T, _ in getattr(report, "candidates", ()))
+    return res, ("" if res is not None or report is None else str(getattr(report, "reason", "") or "")), cands
 
 
 def _worker_run(fs: FrameSet, seed=None, pending=None):
@@ -113,7 +116,8 @@ def pose_message(out: TrackerOutput, seq: int, t_send_ns: int, object_id: int = 
 
     A frame that is not tracking still carries a pose (the last good one, or
     identity) so the message is well formed; its status tells the receiver not
-    to use it.
+    to use it. The tracker's probability goes out with every frame (NaN: not
+    stated, as with the confirmation rules).
     """
     if out.status == "tracking" and out.T_world_object is not None:
         T = out.T_world_object
@@ -125,7 +129,8 @@ def pose_message(out: TrackerOutput, seq: int, t_send_ns: int, object_id: int = 
         cov = np.zeros((6, 6))
     return PoseMsg(seq=seq, t_capture_ns=int(out.t_ns), t_send_ns=int(t_send_ns), object_id=object_id,
                    status=_STATUS[out.status], p_world_object=T[:3, 3], q_world_object=quat_from_matrix(T[:3, :3]),
-                   v_world_object=vel[:3], w_world_object=vel[3:], cov=cov)
+                   v_world_object=vel[:3], w_world_object=vel[3:], cov=cov,
+                   probability=min(max(float(out.probability), 0.0), 1.0) if np.isfinite(out.probability) else np.nan)
 
 
 @dataclass
@@ -218,6 +223,7 @@ class PoseServer:
         self.source = source
         self.tracker = tracker
         self.tracker.initializer = None
+        self._bank = getattr(tracker, "bank", None)  # decision "bank": the hypotheses the initialiser feeds
         self._blind_logged = 0  # Tracker.blind_frames at the last status line
         self.publisher = publisher
         self.clock = clock
@@ -285,25 +291,43 @@ class PoseServer:
         self._stop.set()
 
     # -- initialisation ---------------------------------------------------------
+    def _searching(self) -> bool:
+        """Whether the initialiser is wanted: while there is no filter, or the filter holds a
+        provisional start (the initialiser confirms or replaces it: :meth:`Tracker.offer`);
+        with the hypothesis bank, while nothing is published and no catch-up is under way (its
+        answers are hypotheses beside those held: :meth:`Tracker.propose`)."""
+        tr = self.tracker
+        if self._bank is not None:  # (not while catching up: the answer would join hypotheses mid-way)
+            return not tr.confirmed and self._catching is None
+        return tr.ekf is None or tr.provisional
+
+    def _holding(self) -> bool:
+        """Whether the tracker holds a pose to track (a filter, or the bank's hypotheses)."""
+        tr = self.tracker
+        return tr.ekf is not None or (self._bank is not None and bool(self._bank.hypotheses))
+
     def _maybe_start(self, fs: FrameSet) -> None:
-        """Run the initialiser while there is no filter, or the filter holds a provisional
-        start (the initialiser confirms or replaces it: :meth:`Tracker.offer`)."""
-        if (self.tracker.ekf is not None and not self.tracker.provisional) or \
-                (self.initializer is None and self._pool is None):
+        """Run the initialiser while it is wanted (:meth:`_searching`)."""
+        if not self._searching() or (self.initializer is None and self._pool is None):
             return
         if not self.background_init:
             self.stats.init_attempts += 1
             t = time.perf_counter()
             # After a loss the initialiser first tries near the last good pose.
-            res, _ = _init_call(self.initializer, fs, self.tracker.recovery_seed(), self.tracker.provisional_pose())
+            res, _, cands = _init_call(self.initializer, fs, self.tracker.recovery_seed(),
+                                       self.tracker.provisional_pose())
             self.stats.add_stage("init", (time.perf_counter() - t) * 1e3)
             if res is not None:
                 self.stats.init_successes += 1
-                self._start(res, fs.t_ns)
+                if self._bank is not None:
+                    self.tracker.propose(res, fs.t_ns, cands)
+                else:
+                    self._start(res, fs.t_ns)
             return
         if self._job is not None and self._job.done():
+            cands = ()
             try:
-                res, why = self._job.result()
+                res, why, cands = self._job.result()
             except Exception as e:  # an initialiser bug must not kill the server
                 res, why = None, ""
                 if self.log:
@@ -326,8 +350,20 @@ class PoseServer:
                 self.stale_inits += 1
                 res = None
                 self._note("discarded", "  discarded: the frames right after it are gone (no catch-up across the gap)")
+            if res is not None and self._bank is not None and self._bank.hypotheses:
+                # Hypotheses are held at the present: the new ones are carried through the
+                # frames since theirs and join them.
+                self.stats.init_successes += 1
+                self.tracker.propose(res, job_t, cands, newer)
+                self._backlog.clear()
+                return
             if res is not None:
                 self.stats.init_successes += 1
+                if self._bank is not None:
+                    self.tracker.propose(res, job_t, cands)
+                    self._catching = deque(newer)
+                    self._backlog.clear()
+                    return
                 if not self._start(res, job_t):
                     return  # the provisional start confirmed (or kept): tracked on as it is
                 # Catch up: the part moved while the initialiser worked. The frames that came
@@ -366,7 +402,7 @@ class PoseServer:
         q.append(fs)
         t_end = self.clock.now_ns() + int(CATCH_UP_SHARE * 1e9 / self._rate)
         n = 0
-        while q and self.tracker.ekf is not None and (n < CATCH_UP_MIN or self.clock.now_ns() < t_end):
+        while q and self._holding() and (n < CATCH_UP_MIN or self.clock.now_ns() < t_end):
             f = q.popleft()
             if not q:  # the live frame set: confirmed again on live frames before publishing
                 self._catching = None
@@ -375,7 +411,7 @@ class PoseServer:
             self.tracker.process(f)
             self.caught_up_frames += 1
             n += 1
-        if self.tracker.ekf is None:  # lost (or not confirmed in time) on the way: the initialiser starts over
+        if not self._holding():  # lost (or not confirmed in time) on the way: the initialiser starts over
             self._catching = None
             return TrackerOutput(fs.index, fs.t_ns, self.tracker.status)
         return TrackerOutput(fs.index, fs.t_ns, "initializing")
@@ -412,7 +448,7 @@ class PoseServer:
             self._maybe_start(fs)
             out = self._catch_up(fs) if self._catching is not None else self.tracker.process(fs)
             t1 = time.perf_counter()
-            if (self.tracker.ekf is None or self.tracker.provisional) and self._pool is not None:
+            if self._searching() and self._pool is not None:
                 # Kept in grey (what the tracker uses): a third of the memory.
                 self._backlog.append(FrameSet(fs.index, fs.t_ns, {k: fs.grey(k) for k in fs.images},
                                               fs.T_world_camera))
@@ -469,7 +505,9 @@ class PoseServer:
             link += f" refused {st.clients_refused}" if st.clients_refused else ""
         images = getattr(self.source, "images", None)  # an ImageTally: images not used, per camera and reason
         rejected = f" | {images.status()}" if images is not None and images.status() else ""
-        self.log(f"{len(w) / dt:5.1f} Hz | {w[-1].status:12s} | tracker {np.median(tm):5.2f} ms "
+        p = w[-1].probability
+        status = f"{w[-1].status} p={p:.3f}" if np.isfinite(p) else w[-1].status
+        self.log(f"{len(w) / dt:5.1f} Hz | {status:12s} | tracker {np.median(tm):5.2f} ms "
                  f"(max {tm.max():5.2f}) | latency {np.median(lat):6.2f} ms | features {w[-1].n_accepted:2d}"
                  f"{f' (a camera blind in {blind} frames)' if blind else ''}{link}{rejected}")
 

@@ -1367,15 +1367,8 @@ class Tracker:
                 self.initializer.reseed(seed[0], velocity=seed[1], t_ns=seed[2])
             init = self.initializer(fs)
             rep = getattr(self.initializer, "last_report", None)
-            if init is not None:
-                bank.propose(init.T_world_object, fs.t_ns, init.cov6, init.velocity)
-                if rep is not None and rep is not self._bank_report:
-                    # Its other candidates stand beside its answer as rivals. Not without an
-                    # answer: the bank weighs the poses it holds against each other and
-                    # clutter, not against poses it does not hold, and with the part's pose
-                    # missing, the best of the rest (a face matched to another) would win.
-                    for T, _ in rep.candidates[:bank.options.proposals]:
-                        bank.propose(T, fs.t_ns)
+            fresh = rep is not None and rep is not self._bank_report
+            self.propose(init, fs.t_ns, [T for T, _ in rep.candidates] if fresh else ())
             self._bank_report = rep
         best = bank.best()
         if best is None:
@@ -1395,26 +1388,55 @@ class Tracker:
         out = self._track(fs)
         return replace(out, time_ms=(time.perf_counter() - t0) * 1e3)
 
+    def propose(self, init: InitResult | None, t_ns: int, candidates=(), frames=()) -> None:
+        """Decision ``"bank"``: an initialiser's answer on the frame set of ``t_ns`` and, beside it,
+        its first ``BankOptions.proposals`` other candidate poses, as hypotheses (each merged with
+        one held at the same pose). ``frames``: the frame sets captured since ``t_ns``, oldest
+        first; the new hypotheses are carried through them by their edge fits (the held ones are
+        at the present already).
+
+        The candidates stand beside an answer as its rivals, never without one: the bank
+        weighs the poses it holds against each other and clutter, not against poses it does
+        not hold, and with the part's pose missing, the best of the rest (a face matched to
+        another) would win."""
+        if init is None or self.bank is None:
+            return
+        bank = self.bank
+        held = set(map(id, bank.hypotheses))
+        bank.propose(init.T_world_object, t_ns, init.cov6, init.velocity)
+        for T in list(candidates)[:bank.options.proposals]:
+            bank.propose(T, t_ns)
+        new = [h for h in bank.hypotheses if id(h) not in held]
+        for fs in frames:
+            for h in new:
+                self._advance(h, fs)
+
     def _advance_others(self, fs: FrameSet) -> None:
         """Predict the hypotheses not tracked to the frame and update them with their edge fits."""
         for h in list(self.bank.hypotheses):
-            if h.ekf is self.ekf:
-                continue
-            dt = (fs.t_ns - h.t_ns) * 1e-9
-            if dt > 0:
-                h.ekf.predict(dt)
-                h.t_ns = fs.t_ns
-            if self.edge_aid is not None:
-                for cam in self.rig:
-                    img = fs.grey(cam.name)
-                    T_wc = self._camera_pose(fs, cam.name)
-                    if img is None or T_wc is None:
-                        continue
-                    m = self.edge_aid.measure(cam.name, img, T_wc, h.ekf.pose)
-                    if m is not None:
-                        h.ekf.update_pose(m.T_world_object, m.cov6)
-            if not (np.all(np.isfinite(h.ekf.pose)) and np.all(np.isfinite(h.ekf.pose_covariance))):
-                self.bank.remove(h)
+            if h.ekf is not self.ekf:
+                self._advance(h, fs)
+
+    def _advance(self, h, fs: FrameSet) -> None:
+        """Predict one hypothesis to the frame and update it with its edge fits (dropped if it
+        diverges)."""
+        if h not in self.bank.hypotheses:
+            return
+        dt = (fs.t_ns - h.t_ns) * 1e-9
+        if dt > 0:
+            h.ekf.predict(dt)
+            h.t_ns = fs.t_ns
+        if self.edge_aid is not None:
+            for cam in self.rig:
+                img = fs.grey(cam.name)
+                T_wc = self._camera_pose(fs, cam.name)
+                if img is None or T_wc is None:
+                    continue
+                m = self.edge_aid.measure(cam.name, img, T_wc, h.ekf.pose)
+                if m is not None:
+                    h.ekf.update_pose(m.T_world_object, m.cov6)
+        if not (np.all(np.isfinite(h.ekf.pose)) and np.all(np.isfinite(h.ekf.pose_covariance))):
+            self.bank.remove(h)
 
     def _bank_views(self, fs: FrameSet) -> list:
         """(T_world_camera, EdgeImage) of each camera with an image, over the box that holds every

@@ -39,7 +39,12 @@ POSE body (packet offsets; L = 188, packet 196 B, frame 198 B on the wire)::
                       error rotation vector (rad)]
     188  2   u16      object_id, index into HELLO's object names
     190  1   u8       status (PoseStatus)
-    191  1   u8       reserved, sent as 0, ignored on receive
+    191  1   u8       probability that the pose is the object's: 0 = not
+                      stated, b = 1..255 is p = (b - 1) / 254 (steps of 0.004)
+
+A sender that states no probability sends 0 there, and a decoder that does
+not read the byte decodes every message the same: the byte needs no other
+layout or protocol version, and either side may leave it out.
 
 Position and quaternion are float64; velocities and covariance are float32:
 float32's relative rounding (6e-8) is far below the relative uncertainty of a
@@ -128,7 +133,7 @@ PROTOCOL_VERSION = 1
 
 _HEADER = struct.Struct("<BBH")
 _CRC = struct.Struct("<I")
-_POSE_BODY = struct.Struct("<Iqq3d4d3f3f21fHBx")
+_POSE_BODY = struct.Struct("<Iqq3d4d3f3f21fHBB")
 _HEARTBEAT_BODY = struct.Struct("<Iq")
 _HELLO_HEAD = struct.Struct("<HdB")
 
@@ -178,6 +183,23 @@ def _check_int(name: str, v, lo: int, hi: int) -> int:
     if not lo <= v <= hi:
         raise ValueError(f"{name}: {v} outside [{lo}, {hi}]")
     return v
+
+
+def _probability_byte(p) -> int:
+    """A probability's wire byte (0: not stated, NaN)."""
+    try:
+        p = float(p)
+    except (TypeError, ValueError):
+        raise ValueError(f"probability: expected a number, got {type(p).__name__}") from None
+    if math.isnan(p):
+        return 0
+    if not 0.0 <= p <= 1.0:
+        raise ValueError(f"probability: {p} outside [0, 1]")
+    return 1 + int(round(p * 254))
+
+
+def _probability_from_byte(b: int) -> float:
+    return math.nan if b == 0 else (b - 1) / 254
 
 
 def _frozen_array(name: str, a, shape: tuple[int, ...], dtype) -> np.ndarray:
@@ -311,6 +333,9 @@ class PoseMsg:
         orientation error is the rotation vector ``e`` with
         ``R_world_object = exp([e]x) @ R_est`` (world frame, left). Symmetrised
         on construction as ``(C + C.T) / 2``; only the upper triangle is sent.
+    probability : float
+        Probability that the pose is the object's, in [0, 1], or NaN (not
+        stated). Stored at its wire precision (the nearest of 255 levels).
     """
 
     seq: int
@@ -323,9 +348,11 @@ class PoseMsg:
     v_world_object: np.ndarray = field(default_factory=lambda: np.zeros(3))
     w_world_object: np.ndarray = field(default_factory=lambda: np.zeros(3))
     cov: np.ndarray = field(default_factory=lambda: np.zeros((6, 6)))
+    probability: float = math.nan
 
     def __post_init__(self):
         s = object.__setattr__
+        s(self, "probability", _probability_from_byte(_probability_byte(self.probability)))
         s(self, "seq", _check_int("seq", self.seq, 0, _U32 - 1))
         s(self, "t_capture_ns", _check_int("t_capture_ns", self.t_capture_ns, _I64_MIN, _I64_MAX))
         s(self, "t_send_ns", _check_int("t_send_ns", self.t_send_ns, _I64_MIN, _I64_MAX))
@@ -368,6 +395,7 @@ class PoseMsg:
             and _arrays_equal(self.v_world_object, other.v_world_object)
             and _arrays_equal(self.w_world_object, other.w_world_object)
             and _arrays_equal(self.cov, other.cov)
+            and _probability_byte(self.probability) == _probability_byte(other.probability)
         )
 
     __hash__ = None
@@ -465,6 +493,7 @@ def _body(msg: Message, t_send_ns: int | None) -> tuple[int, bytes]:
             *floats,
             msg.object_id,
             int(msg.status),
+            _probability_byte(msg.probability),
         )
         return MsgType.POSE, body
     if isinstance(msg, HeartbeatMsg):
@@ -539,7 +568,8 @@ def _decode_pose(body: bytes) -> PoseMsg:
     msg = object.__new__(PoseMsg)
     s = object.__setattr__
     for name, val in (("seq", seq), ("t_capture_ns", t_cap), ("t_send_ns", t_send),
-                      ("object_id", object_id), ("status", PoseStatus(status))):
+                      ("object_id", object_id), ("status", PoseStatus(status)),
+                      ("probability", _probability_from_byte(v[39]))):
         s(msg, name, val)
     for name, arr in (("p_world_object", p), ("q_world_object", q), ("v_world_object", lin),
                       ("w_world_object", ang), ("cov", cov)):

@@ -28,7 +28,7 @@ def make_poses(n: int, seed: int = 0, seq0: int = 0) -> list[PoseMsg]:
         t_cap = int(rng.integers(0, 2**60))
         out.append(PoseMsg(seq0 + i, t_cap, t_cap + int(rng.integers(0, 10**8)), 0, PoseStatus.TRACKING,
                            rng.normal(size=3), rng.normal(size=4), rng.normal(size=3), rng.normal(size=3),
-                           A @ A.T * 1e-6))
+                           A @ A.T * 1e-6, probability=np.nan if i % 3 == 0 else rng.uniform()))
     return out
 
 
@@ -106,7 +106,8 @@ def test_loop_url():
     rx._transport.port.write(b"".join(wire.encode(p) for p in poses))
     got: list = []
     assert poll_until(rx, lambda: len(got) >= 20, got)
-    assert got == poses
+    assert got == poses  # the probability too (NaN: not stated)
+    assert np.isnan(got[0].probability) and 0.0 <= got[1].probability <= 1.0
     rx.close()
 
 

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from trial_frames import trial_frames
 
-from vespro.bank import BankOptions, HypothesisBank, tempered_log_lik
+from vespro.bank import BankOptions, HypothesisBank
 from vespro.ekf import PoseEKF
 from vespro.likelihood import CameraLikelihood, PoseLikelihood
 from vespro.metrics import add, discrete_symmetries
@@ -42,7 +42,7 @@ def _at(x, R=np.eye(3)):
 def box_bank():
     model = box_model([0.2, 0.1, 0.05])
     lk = _ScriptedLikelihood()
-    opt = BankOptions(forget=0.5, new_prior=0.1, merge_frac=0.05, prune_prob=1e-4, max_hypotheses=3)
+    opt = BankOptions(evidence_weight=1.0, forget=0.5, new_prior=0.1, merge_frac=0.05, prune_prob=1e-4, max_hypotheses=3)
     return model, lk, HypothesisBank(model.vertices, model.diameter, discrete_symmetries(model.vertices), lk,
                                      _filter, opt)
 
@@ -92,13 +92,33 @@ def test_probabilities_follow_the_evidence_and_forget_it(box_bank):
     assert bank.probability(b) < 0.5
 
 
-def test_tempering_counts_two_numbers_per_edge():
-    """A camera's log ratio is scaled to ``edges_independent`` numbers per observed edge when its
-    samples weigh more (never scaled up)."""
-    cam = CameraLikelihood(100.0, 200, 200, 150, 50.0, 0.75, np.zeros(4), np.array([1.0, 0.5, np.nan, 1.0]), 0.0)
-    assert tempered_log_lik(PoseLikelihood(100.0, (cam,)), 2.0) == pytest.approx(100.0 * 6 / 50)
-    few = CameraLikelihood(10.0, 5, 5, 5, 4.0, 1.0, np.zeros(4), np.array([1.0, 0.5, np.nan, 1.0]), 0.0)
-    assert tempered_log_lik(PoseLikelihood(10.0, (few,)), 2.0) == 10.0
+class _Fixed:
+    """Each pose's log ratio and weighed lines by its x position (mm), as one camera's."""
+
+    def __init__(self, table):
+        self.table = table
+
+    def __call__(self, T, views):
+        v, w = self.table[round(float(T[0, 3]) * 1e3)]
+        cam = CameraLikelihood(v, int(w), int(w), int(w), w, 1.0, np.zeros(9), np.ones(9), 0.0)
+        return PoseLikelihood(v, (cam,))
+
+
+def test_evidence_weight_keeps_the_raw_ranking():
+    """One camera's frame as measured on a one-camera box trial (bench/init.py seed 4602, frame
+    1): the part's pose reads a log ratio of 104 over 256 weighed lines, a copy of the part 8
+    diameters further off 56 over 120 (fewer, but each supporting more). Scaled by one
+    evidence weight, the part's pose stays ahead, by 0.1 of the raw difference."""
+    model = box_model([0.2, 0.1, 0.05])
+    lk = _Fixed({0: (104.1, 256.0), 800: (56.1, 120.1)})
+    bank = HypothesisBank(model.vertices, model.diameter, discrete_symmetries(model.vertices), lk, _filter)
+    part = bank.propose(_at(0.0), 0)
+    far = bank.propose(_at(0.8), 0)
+    bank.weigh([])
+    assert bank.best() is part
+    assert part.last_log_lik - far.last_log_lik == pytest.approx(0.1 * (104.1 - 56.1))
+    with pytest.raises(ValueError, match="evidence_weight"):
+        BankOptions(evidence_weight=0.0)
 
 
 @pytest.fixture(scope="module")

@@ -50,7 +50,8 @@ def _run(tmp_path):
             status = "lost" if k == 4 else "tracking"
             T = transform_from_rt(exp_so3(rng.normal(size=3)), rng.normal(size=3))
             rows.append(PoseRow(k, k / 26.0, status, T if status == "tracking" else None, 1.5,
-                                rng.normal(size=6), A @ A.T * 1e-6 if status == "tracking" else None))
+                                rng.normal(size=6), A @ A.T * 1e-6 if status == "tracking" else None,
+                                probability=None if k == 0 else 0.25 * (k % 4)))
     write_poses(tmp_path / "vision" / "poses.csv", rows)
     (tmp_path / "vision" / "server.json").write_text(json.dumps({"t0_ns": T0_NS}))
     rec = Recorder(10)
@@ -77,7 +78,7 @@ def test_mcap_holds_every_frame_and_round_trips_pose_and_covariance(tmp_path):
     count = {t: len(v) for t, v in msgs.items()}
     assert count == {
         "/a/image_raw": N, "/a/camera_info": N, "/h/image_raw": N - 1, "/h/camera_info": N - 1,
-        "/tf_static": 1, "/tf": N, "/vespro/status": N, "/vespro/pose": len(tracked),
+        "/tf_static": 1, "/tf": N, "/vespro/status": N, "/vespro/probability": N - 1, "/vespro/pose": len(tracked),
         "/vespro/velocity": len(tracked),
         **{t: 8 for t in ("/servo/joint_states", "/servo/joint_command", "/servo/reference",
                           "/servo/reference_velocity", "/servo/status", "/servo/flags", "/servo/compute_time")},
@@ -101,6 +102,8 @@ def test_mcap_holds_every_frame_and_round_trips_pose_and_covariance(tmp_path):
         assert [p.x, p.y, p.z, o.w, o.x, o.y, o.z] == pq.tolist()
         assert list(m.pose.covariance) == r.cov.reshape(36).tolist()
         assert t == rec_t[r.index]
+    # The probability where poses.csv states one (not on frame 0).
+    assert [(t, m.data) for _, t, m in msgs["/vespro/probability"]] == [(rec_t[k], 0.25 * (k % 4)) for k in range(1, N)]
     # Servo ticks on the recording's time line; the two before frame 0 are left out.
     js = msgs["/servo/joint_states"]
     assert [t for _, t, _ in js] == [i * 2_000_000 for i in range(8)]

@@ -17,7 +17,7 @@ from vespro.model import load_model
 from vespro.recording import Recording
 from vespro.rig import load_rig
 from vespro.se3 import pq_from_transform
-from vespro.server import PoseServer
+from vespro.server import PoseServer, pose_message
 from vespro.sim.cell import CellConfig
 from vespro.sim.imaging import ImageEffects
 from vespro.sim.motion import Conveyor
@@ -181,7 +181,7 @@ def test_the_log_says_why_an_initialisation_found_no_pose(rec_path):
     inits = [ln for ln in lines if "initialisation on the frame" in ln]
     assert any(ln.endswith("no pose (one camera, accidental view (1 faces seen openly))") for ln in inits), inits
     assert any(ln.endswith("a pose") for ln in inits), inits
-    assert _init_call(lambda fs: None, rec.frameset(0)) == (None, "")  # no report: no reason
+    assert _init_call(lambda fs: None, rec.frameset(0)) == (None, "", ())  # no report: no reason
 
 
 class _ProvisionalFirst:
@@ -487,3 +487,50 @@ def test_missed_deadlines_step_the_load_down_and_the_log_says_so(rec_path):
     after = [fs for fs in seen if fs.t_ns > shedder.steps[1].t_ns]
     assert after and all(fs.images[rec.rig.names[-1]] is None for fs in after)
     assert all(fs.images[rec.rig.names[0]] is not None for fs in after)
+
+
+class _WrongAnswerRightCandidate:
+    """A fake initialiser whose answer is 5 cm off the part, with the part's pose among its
+    other candidates."""
+
+    def __init__(self, T):
+        self.T, self.calls, self.last_report = T, [], None
+
+    def __call__(self, fs):
+        from types import SimpleNamespace
+
+        self.calls.append(fs.index)
+        T_far = self.T[fs.index].copy()
+        T_far[2, 3] += 0.05
+        self.last_report = SimpleNamespace(reason="", candidates=((self.T[fs.index], 1.0),))
+        return InitResult(T_far)
+
+
+@pytest.mark.parametrize("mode", [False, "thread"])
+def test_with_the_bank_the_initialisers_candidates_are_weighed_beside_its_answer(rec_path, mode):
+    """Decision "bank": the server offers the bank the initialiser's answer and its other
+    candidates, and calls it on while nothing is published. An answer 5 cm off with the part's
+    pose as a candidate: the part's pose is published, never the answer."""
+    from vespro.tracker import TrackerConfig
+
+    rec = Recording(rec_path)
+    _, _, T = read_groundtruth(rec_path)
+    clock = SimClock()
+    ini = _WrongAnswerRightCandidate(T)
+    tracker = Tracker(rec.rig, load_model(rec.model_path), TrackerConfig(decision="bank"))
+    lines = []
+    server = PoseServer(ReplaySource(rec, clock), tracker, None, clock, ini, background_init=mode, log=lines.append)
+    outs = []
+    server.on_output = lambda fs, o: (outs.append(o), mode and time.sleep(0.02))
+    server.run()
+    tracking = [o for o in outs if o.status == "tracking"]
+    assert len(tracking) >= 10, [o.status for o in outs]
+    for o in tracking:
+        assert np.linalg.norm(o.T_world_object[:3, 3] - T[o.index][:3, 3]) < 5e-3
+        assert o.probability >= 0.99
+        # ... and it goes out on the wire with the pose, at the byte's precision.
+        assert abs(pose_message(o, 0, o.t_ns).probability - o.probability) <= 0.5 / 254
+    assert any(" | tracking p=0.99" in ln or " | tracking p=1.000" in ln for ln in lines), lines
+    if not mode:  # lockstep: called on every frame set until one is published, not after
+        first = tracking[0].index
+        assert ini.calls == list(range(len(ini.calls))) and max(ini.calls) <= first, (ini.calls, first)

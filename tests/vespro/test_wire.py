@@ -60,6 +60,7 @@ def random_pose(rng: np.random.Generator, seq: int | None = None) -> PoseMsg:
         v_world_object=rng.normal(size=3),
         w_world_object=rng.normal(size=3),
         cov=A @ A.T * 10.0 ** rng.integers(-12, 2),
+        probability=float(rng.choice([np.nan, 0.0, 1.0, rng.uniform()])),
     )
 
 
@@ -76,6 +77,8 @@ def pose_packet_body(msg: PoseMsg) -> bytes:
     tri = [msg.cov[i, j] for i in range(6) for j in range(i, 6)]
     struct.pack_into("<21f", body, 100, *tri)
     struct.pack_into("<HB", body, 184, msg.object_id, int(msg.status))
+    p = msg.probability
+    struct.pack_into("<B", body, 187, 0 if np.isnan(p) else 1 + round(p * 254))
     return bytes(body)
 
 
@@ -155,6 +158,23 @@ def test_pose_layout_matches_documented_offsets():
     for _ in range(50):
         msg = random_pose(rng)
         assert encode(msg) == frame_from(1, 2, pose_packet_body(msg))
+
+
+def test_pose_probability_byte():
+    """Packet offset 191: 0 = not stated (NaN), b = 1..255 is p = (b - 1) / 254; a probability is
+    kept at that precision, so what is constructed is what is decoded. A frame whose byte is
+    0 (a sender that states none) decodes as before with the probability NaN."""
+    for p, b in ((float("nan"), 0), (0.0, 1), (1.0, 255), (0.998, 254), (0.5, 128)):
+        m = PoseMsg(7, 1, 2, 0, PoseStatus.TRACKING, np.zeros(3), np.array([1.0, 0, 0, 0]), probability=p)
+        assert encode(m) == frame_from(1, 2, pose_packet_body(m))
+        assert pose_packet_body(m)[187] == b
+        (out,) = Decoder().feed(encode(m))
+        assert out == m and (np.isnan(out.probability) if b == 0 else out.probability == (b - 1) / 254)
+    assert PoseMsg(7, 1, 2, 0, PoseStatus.TRACKING, np.zeros(3), np.array([1.0, 0, 0, 0]),
+                   probability=0.998).probability == pytest.approx(0.998, abs=0.5 / 254)
+    for bad in (-0.1, 1.5, "high"):
+        with pytest.raises(ValueError, match="probability"):
+            PoseMsg(7, 1, 2, 0, PoseStatus.TRACKING, np.zeros(3), np.array([1.0, 0, 0, 0]), probability=bad)
 
 
 def test_hello_round_trip_and_layout():
