@@ -54,6 +54,9 @@ def add_parser(sub) -> None:
     p.add_argument("--clock-tolerance", type=float,
                    help="a pose captured after it was sent, or stamped after the tick, by more than this is "
                         "rejected (future_stamp / future), s (loop config safety.max_future_s, default 0.005)")
+    from .view import add_view_options
+
+    add_view_options(p)
     p.set_defaults(func=run)
 
 
@@ -192,6 +195,13 @@ def run(args) -> int:
     else:
         print(f"servo run: unknown robot {args.robot!r} (mujoco or shm:NAME)", file=sys.stderr)
         return 2
+    from .view import ViewUnavailable, view_from_args
+
+    try:  # before the loop goes real-time: the view's process and thread must not inherit its core and class
+        view = view_from_args(args, cfg.model_path, cfg.site)
+    except ViewUnavailable as e:
+        print(f"servo run: {e}", file=sys.stderr)
+        return 2
     state = LoopState(cfg)
     ticks_per_s = int(round(1e9 / cfg.period_ns))
     recorder = Recorder(int(args.record_seconds * ticks_per_s)) if args.record else None
@@ -205,11 +215,15 @@ def run(args) -> int:
         rec = state.record
         if rec.stops.n != logged["events"]:
             for e in rec.stops_since(logged["events"]):
-                print(f"servo run: t={e['t_s']:.6f} {e['kind']} {e['cause']} value {e['value']} "
-                      f"limit {e['limit']}", flush=True)
+                line = f"t={e['t_s']:.6f} {e['kind']} {e['cause']} value {e['value']} limit {e['limit']}"
+                print(f"servo run: {line}", flush=True)
+                if view is not None:
+                    view.event(t_ns, line, "ERROR" if e["kind"] == "fault" else "WARN")
             logged["events"] = rec.stops.n
         if st != logged["status"]:
             print(f"servo run: t={t_ns * 1e-9:.6f} status {st.name}", flush=True)
+            if view is not None:
+                view.event(t_ns, f"status {st.name}")
             logged["status"] = st
 
     t_end = [None]
@@ -217,6 +231,8 @@ def run(args) -> int:
     def on_tick(t_ns, out):
         st = Status(state.status)
         log_changes(t_ns, st)
+        if view is not None:
+            view.tick(t_ns, out, state, sched.q_meas, sched.last_compute_ns, sched.overruns, cfg.period_ns)
         if args.duration:  # wall time: late ticks are skipped, so the tick count alone would run longer
             if t_end[0] is None:
                 t_end[0] = t_ns + int(args.duration * 1e9)
@@ -251,6 +267,8 @@ def run(args) -> int:
         for s, h in old.items():
             signal.signal(s, h)
         receiver.close()
+        if view is not None and (line := view.close()):
+            print(line, flush=True)
     if recorder is not None:
         args.record.mkdir(parents=True, exist_ok=True)
         npz, csv = recorder.save(args.record / "servo")

@@ -33,7 +33,7 @@ import numpy as np
 
 from .errors import InputError
 
-__all__ = ["RerunView", "STATUS_CODE", "add_view_options", "view_from_args", "COLORS"]
+__all__ = ["RerunView", "STATUS_CODE", "add_view_options", "view_from_args", "COLORS", "merge_rrd"]
 
 STATUS_CODE = {"tracking": 2.0, "initializing": 1.0, "lost": 0.0}
 _GREEN, _ORANGE, _BLUE, _GREY = (40, 200, 60), (255, 140, 0), (60, 140, 255), (170, 170, 170)
@@ -41,7 +41,8 @@ _GREEN, _ORANGE, _BLUE, _GREY = (40, 200, 60), (255, 140, 0), (60, 140, 255), (1
 COLORS = {"green": _GREEN, "orange": _ORANGE, "blue": _BLUE, "grey": _GREY}
 
 
-def add_view_options(p) -> None:
+def add_view_options(p, join: bool = True) -> None:
+    """The view's options; ``join``: also those that join a recording other processes log into."""
     g = p.add_argument_group("live view (pip install 'vespro[view]')")
     g.add_argument("--view", action="store_true", help="stream to a Rerun viewer (spawned unless one is running)")
     g.add_argument("--view-connect", metavar="URL",
@@ -50,6 +51,13 @@ def add_view_options(p) -> None:
                    help="write the view to this file (open with: rerun RUN.rrd)")
     g.add_argument("--view-image-every", type=int, default=1, metavar="N",
                    help="log every N-th camera image (overlays and 3D every frame)")
+    if not join:
+        return
+    g.add_argument("--view-recording-id", metavar="ID",
+                   help="log into this Rerun recording (one the servo also logs into: servo run --view-recording-id)")
+    g.add_argument("--view-app-id", metavar="NAME", help="Rerun application id (default: the command's name)")
+    g.add_argument("--view-t0-ns", type=int, metavar="NS",
+                   help="time zero of the capture_time line on the capture clock, ns (default: the first frame)")
 
 
 def view_from_args(args, rig, model, block: bool, name: str = "vespro") -> "RerunView | None":
@@ -57,7 +65,24 @@ def view_from_args(args, rig, model, block: bool, name: str = "vespro") -> "Reru
     if not (args.view or args.view_connect or args.view_save):
         return None
     return RerunView(rig, model, spawn=args.view, connect=args.view_connect, save=args.view_save, block=block,
-                     image_every=args.view_image_every, name=name)
+                     image_every=args.view_image_every, name=getattr(args, "view_app_id", None) or name,
+                     recording_id=getattr(args, "view_recording_id", None), t0_ns=getattr(args, "view_t0_ns", None))
+
+
+def merge_rrd(parts: list, out) -> None:
+    """Join ``.rrd`` files into ``out`` (which may be one of them) with Rerun's ``rrd merge``:
+    one recording logged by several processes (same recording id) becomes one file."""
+    import subprocess
+    import sys
+
+    out = Path(out)
+    tmp = out.with_name(out.name + ".merging")
+    r = subprocess.run([sys.executable, "-m", "rerun", "rrd", "merge", *map(str, parts), "-o", str(tmp)],
+                       capture_output=True, text=True)
+    if r.returncode != 0 or not tmp.exists():
+        tmp.unlink(missing_ok=True)
+        raise RuntimeError(f"rerun rrd merge failed: {(r.stderr or r.stdout).strip()[-300:]}")
+    tmp.replace(out)
 
 
 def _rr():
@@ -94,6 +119,11 @@ class RerunView:
         False: a frame that finds the queue full is not logged (``dropped``).
     image_every : int
         Log every n-th camera image.
+    name, recording_id : str
+        Rerun's application and recording ids (a given recording id: another
+        process, the servo's, may log into the same recording).
+    t0_ns : int, optional
+        Time zero of ``capture_time`` (default: the first frame set's stamp).
 
     The logging (Rerun's archetypes, JPEG encoding, projections) costs about as
     much as tracking a frame; in a thread it would hold the interpreter lock
@@ -103,7 +133,8 @@ class RerunView:
     """
 
     def __init__(self, rig, model, *, spawn: bool = False, connect: str | None = None, save=None,
-                 block: bool = False, image_every: int = 1, max_queue: int = 16, name: str = "vespro"):
+                 block: bool = False, image_every: int = 1, max_queue: int = 16, name: str = "vespro",
+                 recording_id: str | None = None, t0_ns: int | None = None):
         import multiprocessing as mp
 
         _rr()  # a missing package is the caller's one-line error, not the child's
@@ -115,7 +146,7 @@ class RerunView:
         self._q = ctx.Queue(maxsize=max_queue)
         self._result, child = ctx.Pipe(duplex=False)
         opts = dict(spawn=spawn, connect=connect, save=None if save is None else str(save),
-                    image_every=max(1, int(image_every)), name=name)
+                    image_every=max(1, int(image_every)), name=name, recording_id=recording_id, t0_ns=t0_ns)
         self._proc = ctx.Process(target=_view_process, args=(rig, model, opts, self._q, child), daemon=True,
                                  name="vespro-view")
         self._proc.start()
@@ -184,9 +215,17 @@ class RerunView:
 
 def _view_process(rig, model, opts: dict, q, result) -> None:
     """The view's process: log what arrives until None, then report (errors, last error)."""
+    import os
     import signal
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle; it then closes us
+    try:  # a live loop's core and real-time class, inherited from the caller, are not the view's
+        if os.sched_getscheduler(0) != os.SCHED_OTHER:
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+        os.sched_setaffinity(0, range(os.cpu_count() or 1))
+        os.nice(10)
+    except (OSError, AttributeError):
+        pass
     logger = _Logger(rig, model, **opts)
     result.send("ready")
     while True:
@@ -210,20 +249,20 @@ class _Logger:
     """The Rerun logging itself (in the view's process)."""
 
     def __init__(self, rig, model, *, spawn: bool, connect: str | None, save: str | None, image_every: int,
-                 name: str):
+                 name: str, recording_id: str | None, t0_ns: int | None):
         rr = _rr()
         self.rr = rr
         self.rig = rig
         self.model = model
         self.image_every = image_every
-        self.rec = rr.RecordingStream(name)
+        self.rec = rr.RecordingStream(name, recording_id=recording_id)
         if save is not None:
             self.rec.save(save)
         if connect:
             self.rec.connect_grpc(connect)
         elif spawn:
             self.rec.spawn(connect=True)
-        self._t0_ns = None
+        self._t0_ns = t0_ns
         self._mesh_shown = self._truth_shown = False
         self.errors = 0
         self.last_error = ""
@@ -239,11 +278,13 @@ class _Logger:
         series = [("tracking", ["series/status", "series/features_used"]),
                   ("time, ms", ["series/tracker_ms", "series/latency_ms"]),
                   ("error against the truth (mm, deg)", ["series/error_mm", "series/error_deg"]),
-                  ("servo", ["series/servo_status", "series/servo_error_mm"])]
+                  ("servo", ["series/servo_status", "series/servo_error_mm", "series/servo_target_error_mm"]),
+                  ("servo loop, us", ["series/servo_compute_us", "series/servo_period_error_us"])]
         return rrb.Blueprint(
             rrb.Vertical(
                 rrb.Horizontal(rrb.Spatial3DView(origin="world", name="cell"), rrb.Grid(*cams), column_shares=[2, 3]),
-                rrb.Horizontal(*[rrb.TimeSeriesView(origin="series", contents=c, name=n) for n, c in series]),
+                rrb.Horizontal(*[rrb.TimeSeriesView(origin="series", contents=c, name=n) for n, c in series],
+                               rrb.TextLogView(origin="servo/events", name="servo events")),
                 row_shares=[3, 2]),
             rrb.TimePanel(timeline="capture_time"), collapse_panels=True)
 
