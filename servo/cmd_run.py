@@ -142,13 +142,9 @@ def status_line(state, receiver, t_ns: int) -> str:
 def run(args) -> int:
     import yaml
 
-    from .clock import WallClock
     from .link_source import LinkSource
-    from .loop import LoopConfig, LoopState, Scheduler
+    from .loop import LoopConfig
     from .receiver import PoseReceiver
-    from .recorder import Recorder
-    from .robot import MujocoArm
-    from .safety import Status
 
     try:
         cfg = LoopConfig.from_dict(yaml.safe_load(args.config.read_text()) or {}) if args.config else LoopConfig()
@@ -172,7 +168,6 @@ def run(args) -> int:
             print("servo run: --clock-tolerance: expected a time >= 0 in seconds", file=sys.stderr)
             return 2
         cfg = LoopConfig(**{**cfg.__dict__, "safety": {**cfg.safety, "max_future_s": args.clock_tolerance}})
-    clock = WallClock()
     try:
         receiver = PoseReceiver(args.connect, baudrate=args.baud,
                                 future_tolerance_s=cfg.safety.get("max_future_s", 0.005))
@@ -180,6 +175,30 @@ def run(args) -> int:
         print(f"servo run: --connect: {e}", file=sys.stderr)
         return 2
     source = LinkSource(receiver)
+    from .view import ViewUnavailable, view_from_args
+
+    try:  # before the loop goes real-time (its process and thread must not inherit the loop's core
+        # and class), and while a plant starts (it takes a second or two)
+        view = view_from_args(args, cfg.model_path, cfg.site)
+    except ViewUnavailable as e:
+        receiver.close()
+        print(f"servo run: {e}", file=sys.stderr)
+        return 2
+    try:
+        robot = _robot(args, cfg)
+    except ValueError as e:
+        receiver.close()
+        if view is not None:
+            view.close()
+        print(f"servo run: {e}", file=sys.stderr)
+        return 2
+    return _run(args, cfg, receiver, source, robot, view)
+
+
+def _robot(args, cfg):
+    """The arm the options name (ValueError: a line for the user)."""
+    from .robot import MujocoArm
+
     if args.robot.startswith("shm:"):
         from .shm_robot import ShmArm
 
@@ -188,20 +207,21 @@ def run(args) -> int:
         while not robot.plant_alive and time.monotonic() < t_end:
             time.sleep(0.01)
         if not robot.plant_alive:
-            print("servo run: the plant did not start", file=sys.stderr)
-            return 2
-    elif args.robot == "mujoco":
-        robot = MujocoArm(cfg.model_path)
-    else:
-        print(f"servo run: unknown robot {args.robot!r} (mujoco or shm:NAME)", file=sys.stderr)
-        return 2
-    from .view import ViewUnavailable, view_from_args
+            raise ValueError("the plant did not start")
+        return robot
+    if args.robot == "mujoco":
+        return MujocoArm(cfg.model_path)
+    raise ValueError(f"unknown robot {args.robot!r} (mujoco or shm:NAME)")
 
-    try:  # before the loop goes real-time: the view's process and thread must not inherit its core and class
-        view = view_from_args(args, cfg.model_path, cfg.site)
-    except ViewUnavailable as e:
-        print(f"servo run: {e}", file=sys.stderr)
-        return 2
+
+def _run(args, cfg, receiver, source, robot, view) -> int:
+    """The loop on the wall clock until SIGINT, the duration or the plant's end."""
+    from .clock import WallClock
+    from .loop import LoopState, Scheduler
+    from .recorder import Recorder
+    from .safety import Status
+
+    clock = WallClock()
     state = LoopState(cfg)
     ticks_per_s = int(round(1e9 / cfg.period_ns))
     recorder = Recorder(int(args.record_seconds * ticks_per_s)) if args.record else None

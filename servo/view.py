@@ -77,6 +77,14 @@ def _rr():
     return rr
 
 
+def _check_rr() -> None:
+    """A missing package is the user's one-line error (checked without importing it here)."""
+    import importlib.util
+
+    if importlib.util.find_spec("rerun") is None:
+        _rr()
+
+
 class ServoView:
     """Queues the loop's state every ``every`` ticks to a process that logs it to Rerun.
 
@@ -98,10 +106,10 @@ class ServoView:
 
     def __init__(self, model_path, site: str, *, connect: str | None = None, save=None,
                  recording_id: str | None = None, application_id: str = "vespro servo", t0_ns: int | None = None,
-                 every: int = 10, max_queue: int = 256):
+                 every: int = 10, max_queue: int = 1024):
         import multiprocessing as mp
 
-        _rr()
+        _check_rr()
         self.every = max(1, int(every))
         self.dropped = 0
         self._k = 0
@@ -117,14 +125,10 @@ class ServoView:
         self._proc = ctx.Process(target=_view_process, args=(opts, self._q, child), daemon=True, name="servo-view")
         self._proc.start()
         child.close()
-        self._q.put(("hello",))  # starts the queue's feeder thread now, before the loop goes real-time
-        try:
-            msg = self._result.recv() if self._result.poll(120) else "the view process did not answer"
-        except EOFError:
-            msg = "the view process ended on start"
-        if msg != "ready":
-            self._proc.terminate()
-            raise ViewUnavailable(f"the view did not start: {msg}")
+        # Starts the queue's feeder thread now, before the loop goes real-time. The loop does not
+        # wait for the process to be set up (seconds on a machine busy with real-time work): the
+        # queue holds the first samples meanwhile; a failure to set up is reported at close.
+        self._q.put(("hello",))
 
     def tick(self, t_ns: int, out, state, q_meas, compute_ns: int, overruns: int, period_ns: int) -> None:
         """Called after each tick (outside its timed part): cheap except every ``every``-th tick."""
@@ -166,11 +170,10 @@ class ServoView:
             self._q.put(None, timeout=30)
         except queue.Full:
             pass
-        if self._result.poll(60):
-            try:
-                errors, last = self._result.recv()
-            except EOFError:
-                errors, last = -1, "the view process ended early"
+        try:
+            errors, last = self._result.recv() if self._result.poll(60) else (-1, "the view process did not finish")
+        except EOFError:
+            errors, last = -1, "the view process ended early"
         self._proc.join(timeout=10)
         if self._proc.is_alive():
             self._proc.terminate()
@@ -178,7 +181,7 @@ class ServoView:
         if self.dropped:
             lost.append(f"{self.dropped} samples not logged (the view fell behind)")
         if errors:
-            lost.append(f"{errors} samples failed to log (last: {last})")
+            lost.append(last if errors < 0 else f"{errors} samples failed to log (last: {last})")
         return "servo view: " + "; ".join(lost) if lost else ""
 
 
@@ -196,9 +199,8 @@ def _view_process(opts: dict, q, result) -> None:
     try:
         logger = _Logger(**opts)
     except Exception as e:  # reported to the caller as one line
-        result.send(repr(e))
+        result.send((-1, f"the view did not start: {e!r}"))
         return
-    result.send("ready")
     errors, last = 0, ""
     while True:
         item = q.get()
@@ -208,7 +210,7 @@ def _view_process(opts: dict, q, result) -> None:
             if item[0] == "tick":
                 logger.log_tick(*item[1:])
             elif item[0] == "event":
-                logger.log_event(*item[1:])
+                logger.log_event(*item[1:])  # ("hello",): nothing to log
         except Exception as e:  # a viewer problem must never stop the logging
             errors += 1
             last = repr(e)

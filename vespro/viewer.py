@@ -219,11 +219,11 @@ def _view_process(rig, model, opts: dict, q, result) -> None:
     import signal
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle; it then closes us
-    try:  # a live loop's core and real-time class, inherited from the caller, are not the view's
+    try:  # a live loop's core and real-time class, inherited from the caller, are not the view's: it
+        # runs below any real-time loop and drops frames rather than delay one
         if os.sched_getscheduler(0) != os.SCHED_OTHER:
             os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
         os.sched_setaffinity(0, range(os.cpu_count() or 1))
-        os.nice(10)
     except (OSError, AttributeError):
         pass
     logger = _Logger(rig, model, **opts)
