@@ -212,7 +212,7 @@ VIEWER_URL = "rerun+http://127.0.0.1:9876/proxy"
 VIEW_APP_ID = "vespro demo"
 
 
-def _view_args(cfg: DemoConfig, recording_id: str, t0_ns: int) -> tuple[list[str], list[str]]:
+def view_options(cfg: DemoConfig, recording_id: str, t0_ns: int) -> tuple[list[str], list[str]]:
     """The view options of the pose server and of the servo (the real-time demo): both log into
     one recording (same application and recording ids, same time zero on the shared monotonic
     clock); each saves its own file (``--view-save``), joined at the end (:func:`_merge_view`)."""
@@ -266,7 +266,7 @@ def run_demo(cfg: DemoConfig, log=print) -> dict:
     procs = {}
     t_start = time.monotonic()
     events = []
-    view_vision, view_servo = _view_args(cfg, str(uuid.uuid4()), time.monotonic_ns())
+    view_vision, view_servo = view_options(cfg, str(uuid.uuid4()), time.monotonic_ns())
     try:
         link_args = ["--serial", bridge.path_a, "--baud", str(cfg.baud)] if bridge else ["--tcp", str(port)]
         procs["vision"] = _spawn([py, "-m", "vespro", "serve", "--source", "world", "--world-shm", world.name,
