@@ -31,7 +31,6 @@ the loop's core or real-time class.
 
 from __future__ import annotations
 
-import queue
 from pathlib import Path
 
 __all__ = ["ServoView", "add_view_options", "view_from_args", "ViewUnavailable"]
@@ -102,33 +101,31 @@ class ServoView:
         Time zero of ``capture_time`` on the loop's clock (default: the first tick logged).
     every : int
         Log every n-th tick.
+
+    The loop does not wait for the process to be set up (seconds on a machine
+    busy with real-time work): the queue holds the first samples meanwhile, and
+    a failure to set up is reported by :meth:`close`.
     """
 
     def __init__(self, model_path, site: str, *, connect: str | None = None, save=None,
                  recording_id: str | None = None, application_id: str = "vespro servo", t0_ns: int | None = None,
                  every: int = 10, max_queue: int = 1024):
-        import multiprocessing as mp
+        from .logproc import QueuedProcess
 
         _check_rr()
         self.every = max(1, int(every))
-        self.dropped = 0
         self._k = 0
         self._t_prev = None
         self._per_max = 0
         self._comp_max = 0
-        self._closed = False
-        ctx = mp.get_context("spawn")
-        self._q = ctx.Queue(maxsize=max_queue)
-        self._result, child = ctx.Pipe(duplex=False)
         opts = dict(model_path=str(model_path), site=site, connect=connect, save=None if save is None else str(save),
                     recording_id=recording_id, application_id=application_id, t0_ns=t0_ns)
-        self._proc = ctx.Process(target=_view_process, args=(opts, self._q, child), daemon=True, name="servo-view")
-        self._proc.start()
-        child.close()
-        # Starts the queue's feeder thread now, before the loop goes real-time. The loop does not
-        # wait for the process to be set up (seconds on a machine busy with real-time work): the
-        # queue holds the first samples meanwhile; a failure to set up is reported at close.
-        self._q.put(("hello",))
+        self._proc = QueuedProcess(_Logger, (opts,), name="servo view", max_queue=max_queue)
+
+    @property
+    def dropped(self) -> int:
+        """Samples not logged because the queue was full."""
+        return self._proc.dropped
 
     def tick(self, t_ns: int, out, state, q_meas, compute_ns: int, overruns: int, period_ns: int) -> None:
         """Called after each tick (outside its timed part): cheap except every ``every``-th tick."""
@@ -144,85 +141,32 @@ class ServoView:
             return
         pl = state.planner
         tgt = pl.tgt_p.tolist() if pl.have_sample else None
-        self._put(("tick", t_ns, int(out.status), q_meas.tolist(), out.ref.p.tolist(), tgt,
-                   self._comp_max * 1e-3, self._per_max * 1e-3, overruns, state.n_used))
+        self._proc.put(("tick", t_ns, int(out.status), q_meas.tolist(), out.ref.p.tolist(), tgt,
+                        self._comp_max * 1e-3, self._per_max * 1e-3, overruns, state.n_used))
         self._per_max = self._comp_max = 0
 
     def event(self, t_ns: int, text: str, level: str = "INFO") -> None:
         """A text line (a stop, a fault, a status change) at ``t_ns``."""
-        self._put(("event", t_ns, text, level))
-
-    def _put(self, item) -> None:
-        if self._closed:
-            return
-        try:
-            self._q.put_nowait(item)
-        except queue.Full:
-            self.dropped += 1
+        self._proc.put(("event", t_ns, text, level))
 
     def close(self) -> str:
         """Log what is queued, flush, close; returns a line on what was not logged, or ""."""
-        if self._closed:
-            return ""
-        self._closed = True
-        errors, last = 0, ""
-        try:
-            self._q.put(None, timeout=30)
-        except queue.Full:
-            pass
-        try:
-            errors, last = self._result.recv() if self._result.poll(60) else (-1, "the view process did not finish")
-        except EOFError:
-            errors, last = -1, "the view process ended early"
-        self._proc.join(timeout=10)
-        if self._proc.is_alive():
-            self._proc.terminate()
-        lost = []
-        if self.dropped:
-            lost.append(f"{self.dropped} samples not logged (the view fell behind)")
-        if errors:
-            lost.append(last if errors < 0 else f"{errors} samples failed to log (last: {last})")
-        return "servo view: " + "; ".join(lost) if lost else ""
-
-
-def _view_process(opts: dict, q, result) -> None:
-    """The view's process: log what arrives until None, then report (errors, last error)."""
-    import os
-    import signal
-
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the loop's process handles Ctrl-C, then closes us
-    signal.signal(signal.SIGTERM, signal.SIG_IGN)
-    try:
-        os.nice(10)  # behind the loop and the cell's live work
-    except OSError:
-        pass
-    try:
-        logger = _Logger(**opts)
-    except Exception as e:  # reported to the caller as one line
-        result.send((-1, f"the view did not start: {e!r}"))
-        return
-    errors, last = 0, ""
-    while True:
-        item = q.get()
-        if item is None:
-            break
-        try:
-            if item[0] == "tick":
-                logger.log_tick(*item[1:])
-            elif item[0] == "event":
-                logger.log_event(*item[1:])  # ("hello",): nothing to log
-        except Exception as e:  # a viewer problem must never stop the logging
-            errors += 1
-            last = repr(e)
-    logger.rec.flush()
-    logger.rec.disconnect()
-    result.send((errors, last))
+        return self._proc.close("samples")
 
 
 class _Logger:
     """The Rerun logging itself (in the view's process)."""
 
-    def __init__(self, model_path: str, site: str, connect, save, recording_id, application_id, t0_ns):
+    def __init__(self, opts: dict):
+        import os
+
+        try:
+            os.nice(10)  # behind the loop and the cell's live work
+        except OSError:
+            pass
+        self._setup(**opts)
+
+    def _setup(self, model_path: str, site: str, connect, save, recording_id, application_id, t0_ns) -> None:
         from .kinematics import ArmKinematics
 
         rr = _rr()
@@ -236,6 +180,16 @@ class _Logger:
         self.t0_ns = t0_ns
         self.rec.log("series/servo_status", rr.SeriesLines(
             names="servo status (0 tracking, 1 hold, 2 stopping, 3 stopped, 4 finished)"), static=True)
+
+    def handle(self, item) -> None:
+        if item[0] == "tick":
+            self.log_tick(*item[1:])
+        else:
+            self.log_event(*item[1:])
+
+    def close(self) -> None:
+        self.rec.flush()
+        self.rec.disconnect()
 
     def _time(self, t_ns: int) -> None:
         if self.t0_ns is None:

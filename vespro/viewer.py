@@ -26,7 +26,6 @@ every frame is logged.
 
 from __future__ import annotations
 
-import queue
 from pathlib import Path
 
 import numpy as np
@@ -135,76 +134,37 @@ class RerunView:
     def __init__(self, rig, model, *, spawn: bool = False, connect: str | None = None, save=None,
                  block: bool = False, image_every: int = 1, max_queue: int = 16, name: str = "vespro",
                  recording_id: str | None = None, t0_ns: int | None = None):
-        import multiprocessing as mp
+        from servo.logproc import QueuedProcess  # the mechanism both sides' views share
 
         _rr()  # a missing package is the caller's one-line error, not the child's
         self.block = block
-        self.dropped = 0
-        self.errors = 0
-        self.last_error = ""
-        ctx = mp.get_context("spawn")
-        self._q = ctx.Queue(maxsize=max_queue)
-        self._result, child = ctx.Pipe(duplex=False)
         opts = dict(spawn=spawn, connect=connect, save=None if save is None else str(save),
                     image_every=max(1, int(image_every)), name=name, recording_id=recording_id, t0_ns=t0_ns)
-        self._proc = ctx.Process(target=_view_process, args=(rig, model, opts, self._q, child), daemon=True,
-                                 name="vespro-view")
-        self._proc.start()
-        child.close()
-        self._closed = False
         # Wait for the process to be set up (imports, viewer connection: a second or more), so the
         # first frames are not dropped for a queue nobody reads yet.
         try:
-            ready = self._result.poll(120) and self._result.recv() == "ready"
-        except EOFError:  # the process died on start
-            ready = False
-        if not ready:
-            self._proc.terminate()
-            raise InputError("--view: the view process did not start (is the Rerun viewer reachable?)")
+            self._proc = QueuedProcess(_start_logger, (rig, model, opts), name="view", block=block,
+                                       max_queue=max_queue, wait_ready=120)
+        except RuntimeError:
+            raise InputError("--view: the view process did not start (is the Rerun viewer reachable?)") from None
+
+    @property
+    def dropped(self) -> int:
+        """Frames not logged because the queue was full (live)."""
+        return self._proc.dropped
 
     # -- the caller's side (cheap, never touches its arguments) ---------------------
     def observe(self, fs, out, T_true: np.ndarray | None = None, series: dict | None = None) -> None:
         """Queue one frame set and its tracker output (``T_true``: ground truth, evaluators only)."""
-        self._put(("frame", fs, out, T_true, series))
+        self._proc.put(("frame", fs, out, T_true, series))
 
     def log_series(self, t_ns: int, series: dict, points: dict | None = None) -> None:
         """Queue scalar series (``name -> value``) and 3D points (``entity -> ((3,), RGB)``) at capture stamp ``t_ns``."""
-        self._put(("series", t_ns, series, points))
-
-    def _put(self, item) -> None:
-        if self._closed:
-            return
-        try:
-            if self.block:
-                self._q.put(item)
-            else:
-                self._q.put_nowait(item)
-        except queue.Full:
-            self.dropped += 1
+        self._proc.put(("series", t_ns, series, points))
 
     def close(self) -> str:
         """Log what is queued, then flush and close the stream; returns a line on what was not shown, or ""."""
-        if self._closed:
-            return ""
-        self._closed = True
-        try:
-            self._q.put(None, timeout=60)
-        except queue.Full:
-            pass
-        if self._result.poll(120):
-            try:
-                self.errors, self.last_error = self._result.recv()
-            except EOFError:
-                self.errors, self.last_error = -1, "the view process ended early"
-        self._proc.join(timeout=10)
-        if self._proc.is_alive():
-            self._proc.terminate()
-        lost = []
-        if self.dropped:
-            lost.append(f"{self.dropped} frames not shown (the viewer fell behind)")
-        if self.errors:
-            lost.append(f"{self.errors} frames failed to log (last: {self.last_error})")
-        return "view: " + "; ".join(lost) if lost else ""
+        return self._proc.close("frames")
 
     def __enter__(self) -> "RerunView":
         return self
@@ -213,36 +173,18 @@ class RerunView:
         self.close()
 
 
-def _view_process(rig, model, opts: dict, q, result) -> None:
-    """The view's process: log what arrives until None, then report (errors, last error)."""
+def _start_logger(rig, model, opts: dict) -> "_Logger":
+    """The view's process: off a live loop's core and real-time class (inherited from the caller):
+    it runs below any real-time loop and drops frames rather than delay one."""
     import os
-    import signal
 
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle; it then closes us
-    try:  # a live loop's core and real-time class, inherited from the caller, are not the view's: it
-        # runs below any real-time loop and drops frames rather than delay one
+    try:
         if os.sched_getscheduler(0) != os.SCHED_OTHER:
             os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
         os.sched_setaffinity(0, range(os.cpu_count() or 1))
     except (OSError, AttributeError):
         pass
-    logger = _Logger(rig, model, **opts)
-    result.send("ready")
-    while True:
-        item = q.get()
-        if item is None:
-            break
-        try:
-            if item[0] == "frame":
-                logger.log_frame(*item[1:])
-            else:
-                logger.log_series(*item[1:])
-        except Exception as e:  # a viewer problem must never stop the logging
-            logger.errors += 1
-            logger.last_error = repr(e)
-    logger.rec.flush()
-    logger.rec.disconnect()
-    result.send((logger.errors, logger.last_error))
+    return _Logger(rig, model, **opts)
 
 
 class _Logger:
@@ -264,10 +206,18 @@ class _Logger:
             self.rec.spawn(connect=True)
         self._t0_ns = t0_ns
         self._mesh_shown = self._truth_shown = False
-        self.errors = 0
-        self.last_error = ""
         self.rec.send_blueprint(self._blueprint())
         self._static()
+
+    def handle(self, item) -> None:
+        if item[0] == "frame":
+            self.log_frame(*item[1:])
+        else:
+            self.log_series(*item[1:])
+
+    def close(self) -> None:
+        self.rec.flush()
+        self.rec.disconnect()
 
     def _blueprint(self):
         """The cell in 3D beside the cameras' images, the series below, on the capture-time line
