@@ -8,9 +8,9 @@ is handing its references to the queue's feeder thread. A full queue either
 drops the item (counted: ``block=False``, live) or waits (``block=True``:
 offline, every item logged).
 
-The child builds its worker with ``factory(*args)``; the worker has
-``handle(item)`` (an exception is counted, the logging goes on) and
-``close()``. ``close()`` on this side sends the end, waits for the worker to
+The child builds its worker with ``factory(*args)``; an item
+``(method, *args)`` calls ``worker.method(*args)`` (an exception is counted,
+the logging goes on); at the end ``worker.close()``. ``close()`` on this side sends the end, waits for the worker to
 finish what is queued, and returns a line on what was not logged.
 """
 
@@ -68,7 +68,7 @@ class QueuedProcess:
                 raise RuntimeError(f"{name}: the process did not start")
 
     def put(self, item) -> None:
-        """Queue one item (never None) for the worker."""
+        """Queue one call ``(method name, *args)`` of the worker."""
         if self._closed:
             return
         try:
@@ -131,7 +131,7 @@ def _child(factory, args, q, result) -> None:
         if item[0] == "ready?":
             continue
         try:
-            worker.handle(item)
+            getattr(worker, item[0])(*item[1:])
         except Exception as e:  # a viewer problem must never stop the logging
             errors += 1
             last = repr(e)

@@ -141,13 +141,13 @@ class ServoView:
             return
         pl = state.planner
         tgt = pl.tgt_p.tolist() if pl.have_sample else None
-        self._proc.put(("tick", t_ns, int(out.status), q_meas.tolist(), out.ref.p.tolist(), tgt,
+        self._proc.put(("log_tick", t_ns, int(out.status), q_meas.tolist(), out.ref.p.tolist(), tgt,
                         self._comp_max * 1e-3, self._per_max * 1e-3, overruns, state.n_used))
         self._per_max = self._comp_max = 0
 
     def event(self, t_ns: int, text: str, level: str = "INFO") -> None:
         """A text line (a stop, a fault, a status change) at ``t_ns``."""
-        self._proc.put(("event", t_ns, text, level))
+        self._proc.put(("log_event", t_ns, text, level))
 
     def close(self) -> str:
         """Log what is queued, flush, close; returns a line on what was not logged, or ""."""
@@ -180,12 +180,6 @@ class _Logger:
         self.t0_ns = t0_ns
         self.rec.log("series/servo_status", rr.SeriesLines(
             names="servo status (0 tracking, 1 hold, 2 stopping, 3 stopped, 4 finished)"), static=True)
-
-    def handle(self, item) -> None:
-        if item[0] == "tick":
-            self.log_tick(*item[1:])
-        else:
-            self.log_event(*item[1:])
 
     def close(self) -> None:
         self.rec.flush()

@@ -156,11 +156,11 @@ class RerunView:
     # -- the caller's side (cheap, never touches its arguments) ---------------------
     def observe(self, fs, out, T_true: np.ndarray | None = None, series: dict | None = None) -> None:
         """Queue one frame set and its tracker output (``T_true``: ground truth, evaluators only)."""
-        self._proc.put(("frame", fs, out, T_true, series))
+        self._proc.put(("log_frame", fs, out, T_true, series))
 
     def log_series(self, t_ns: int, series: dict, points: dict | None = None) -> None:
         """Queue scalar series (``name -> value``) and 3D points (``entity -> ((3,), RGB)``) at capture stamp ``t_ns``."""
-        self._proc.put(("series", t_ns, series, points))
+        self._proc.put(("log_series", t_ns, series, points))
 
     def close(self) -> str:
         """Log what is queued, then flush and close the stream; returns a line on what was not shown, or ""."""
@@ -176,14 +176,9 @@ class RerunView:
 def _start_logger(rig, model, opts: dict) -> "_Logger":
     """The view's process: off a live loop's core and real-time class (inherited from the caller):
     it runs below any real-time loop and drops frames rather than delay one."""
-    import os
+    from .realtime import leave_realtime
 
-    try:
-        if os.sched_getscheduler(0) != os.SCHED_OTHER:
-            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
-        os.sched_setaffinity(0, range(os.cpu_count() or 1))
-    except (OSError, AttributeError):
-        pass
+    leave_realtime()
     return _Logger(rig, model, **opts)
 
 
@@ -208,12 +203,6 @@ class _Logger:
         self._mesh_shown = self._truth_shown = False
         self.rec.send_blueprint(self._blueprint())
         self._static()
-
-    def handle(self, item) -> None:
-        if item[0] == "frame":
-            self.log_frame(*item[1:])
-        else:
-            self.log_series(*item[1:])
 
     def close(self) -> None:
         self.rec.flush()
