@@ -174,11 +174,18 @@ class RerunView:
 
 
 def _start_logger(rig, model, opts: dict) -> "_Logger":
-    """The view's process: off a live loop's core and real-time class (inherited from the caller):
-    it runs below any real-time loop and drops frames rather than delay one."""
+    """The view's process: off a live loop's core and real-time class (inherited from the caller),
+    and niced behind the live work of normal class (the initialiser's worker): it drops frames
+    rather than delay any."""
+    import os
+
     from .realtime import leave_realtime
 
     leave_realtime()
+    try:
+        os.nice(10)
+    except OSError:
+        pass
     return _Logger(rig, model, **opts)
 
 
