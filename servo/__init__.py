@@ -16,6 +16,8 @@ Modules (dependencies point down the list):
 - ``loop``: ``step(state, sample, t_ns, out) -> Status`` and the ``Scheduler``.
 - ``recorder``: preallocated time histories, saved as NPZ + CSV.
 - ``virtual_target``: a sampled, delayed conveyor part for virtual mode.
+- ``logproc``: a worker in a process of its own fed by a bounded queue (both sides' Rerun views).
+- ``view``: the servo's series in a Rerun recording (``servo run --view-...``).
 """
 
 __version__ = "0.1.0"

@@ -54,6 +54,9 @@ def add_parser(sub) -> None:
     p.add_argument("--clock-tolerance", type=float,
                    help="a pose captured after it was sent, or stamped after the tick, by more than this is "
                         "rejected (future_stamp / future), s (loop config safety.max_future_s, default 0.005)")
+    from .view import add_view_options
+
+    add_view_options(p)
     p.set_defaults(func=run)
 
 
@@ -139,13 +142,9 @@ def status_line(state, receiver, t_ns: int) -> str:
 def run(args) -> int:
     import yaml
 
-    from .clock import WallClock
     from .link_source import LinkSource
-    from .loop import LoopConfig, LoopState, Scheduler
+    from .loop import LoopConfig
     from .receiver import PoseReceiver
-    from .recorder import Recorder
-    from .robot import MujocoArm
-    from .safety import Status
 
     try:
         cfg = LoopConfig.from_dict(yaml.safe_load(args.config.read_text()) or {}) if args.config else LoopConfig()
@@ -169,7 +168,6 @@ def run(args) -> int:
             print("servo run: --clock-tolerance: expected a time >= 0 in seconds", file=sys.stderr)
             return 2
         cfg = LoopConfig(**{**cfg.__dict__, "safety": {**cfg.safety, "max_future_s": args.clock_tolerance}})
-    clock = WallClock()
     try:
         receiver = PoseReceiver(args.connect, baudrate=args.baud,
                                 future_tolerance_s=cfg.safety.get("max_future_s", 0.005))
@@ -177,6 +175,30 @@ def run(args) -> int:
         print(f"servo run: --connect: {e}", file=sys.stderr)
         return 2
     source = LinkSource(receiver)
+    from .view import ViewUnavailable, view_from_args
+
+    try:  # before the loop goes real-time (its process and thread must not inherit the loop's core
+        # and class), and while a plant starts (it takes a second or two)
+        view = view_from_args(args, cfg.model_path, cfg.site)
+    except ViewUnavailable as e:
+        receiver.close()
+        print(f"servo run: {e}", file=sys.stderr)
+        return 2
+    try:
+        robot = _robot(args, cfg)
+    except ValueError as e:
+        receiver.close()
+        if view is not None:
+            view.close()
+        print(f"servo run: {e}", file=sys.stderr)
+        return 2
+    return _run(args, cfg, receiver, source, robot, view)
+
+
+def _robot(args, cfg):
+    """The arm the options name (ValueError: a line for the user)."""
+    from .robot import MujocoArm
+
     if args.robot.startswith("shm:"):
         from .shm_robot import ShmArm
 
@@ -185,13 +207,21 @@ def run(args) -> int:
         while not robot.plant_alive and time.monotonic() < t_end:
             time.sleep(0.01)
         if not robot.plant_alive:
-            print("servo run: the plant did not start", file=sys.stderr)
-            return 2
-    elif args.robot == "mujoco":
-        robot = MujocoArm(cfg.model_path)
-    else:
-        print(f"servo run: unknown robot {args.robot!r} (mujoco or shm:NAME)", file=sys.stderr)
-        return 2
+            raise ValueError("the plant did not start")
+        return robot
+    if args.robot == "mujoco":
+        return MujocoArm(cfg.model_path)
+    raise ValueError(f"unknown robot {args.robot!r} (mujoco or shm:NAME)")
+
+
+def _run(args, cfg, receiver, source, robot, view) -> int:
+    """The loop on the wall clock until SIGINT, the duration or the plant's end."""
+    from .clock import WallClock
+    from .loop import LoopState, Scheduler
+    from .recorder import Recorder
+    from .safety import Status
+
+    clock = WallClock()
     state = LoopState(cfg)
     ticks_per_s = int(round(1e9 / cfg.period_ns))
     recorder = Recorder(int(args.record_seconds * ticks_per_s)) if args.record else None
@@ -205,11 +235,15 @@ def run(args) -> int:
         rec = state.record
         if rec.stops.n != logged["events"]:
             for e in rec.stops_since(logged["events"]):
-                print(f"servo run: t={e['t_s']:.6f} {e['kind']} {e['cause']} value {e['value']} "
-                      f"limit {e['limit']}", flush=True)
+                line = f"t={e['t_s']:.6f} {e['kind']} {e['cause']} value {e['value']} limit {e['limit']}"
+                print(f"servo run: {line}", flush=True)
+                if view is not None:
+                    view.event(t_ns, line, "ERROR" if e["kind"] == "fault" else "WARN")
             logged["events"] = rec.stops.n
         if st != logged["status"]:
             print(f"servo run: t={t_ns * 1e-9:.6f} status {st.name}", flush=True)
+            if view is not None:
+                view.event(t_ns, f"status {st.name}")
             logged["status"] = st
 
     t_end = [None]
@@ -217,6 +251,8 @@ def run(args) -> int:
     def on_tick(t_ns, out):
         st = Status(state.status)
         log_changes(t_ns, st)
+        if view is not None:
+            view.tick(t_ns, out, state, sched.q_meas, sched.last_compute_ns, sched.overruns, cfg.period_ns)
         if args.duration:  # wall time: late ticks are skipped, so the tick count alone would run longer
             if t_end[0] is None:
                 t_end[0] = t_ns + int(args.duration * 1e9)
@@ -251,6 +287,8 @@ def run(args) -> int:
         for s, h in old.items():
             signal.signal(s, h)
         receiver.close()
+        if view is not None and (line := view.close()):
+            print(line, flush=True)
     if recorder is not None:
         args.record.mkdir(parents=True, exist_ok=True)
         npz, csv = recorder.save(args.record / "servo")

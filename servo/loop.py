@@ -688,6 +688,8 @@ class Scheduler:
         self.stats_capacity = 300_000  # ticks of statistics kept: 10 min at 500 Hz
         self.q_meas = np.zeros(state.n)
         self._drives_off = False
+        self.last_compute_ns = 0  # the last tick's compute time, and the overruns so far (for on_tick)
+        self.overruns = 0
 
     @classmethod
     def from_config(cls, config: LoopConfig, clock, robot, source=None, **kw) -> "Scheduler":
@@ -753,7 +755,7 @@ class Scheduler:
         stat = np.zeros(cap, dtype=np.int8)
         for a in (compute, tick, late, per, stat):
             a.fill(0)  # touch every page now: the resident memory stays flat while the ring fills
-        overruns = 0
+        overruns = self.overruns = 0
         rt_msg = None
         saved_aff = saved_pol = None
         drives_off = self._drives_off
@@ -810,11 +812,12 @@ class Scheduler:
                         drives_off = True
                 robot.plant_step()
                 t_end = clock.now_ns()
-                compute[j] = c1 - c0
+                compute[j] = self.last_compute_ns = c1 - c0
                 tick[j] = t_end - t_wake if self.realtime else c1 - c0
                 stat[j] = int(st)
                 if self.realtime and t_end > t_next + period:
                     overruns += 1
+                    self.overruns = overruns
                     # skip the missed deadlines: the next step sees a longer dt
                     while t_next + period < t_end:
                         t_next += period

@@ -41,7 +41,7 @@ def add_parser(sub) -> None:
                    help="run everything on one simulated clock in one process (slow machines, exact reproducibility)")
     from .viewer import add_view_options
 
-    add_view_options(p)
+    add_view_options(p, join=False)  # the demo joins its pose server's and servo's views itself
     add_symmetry_option(p)
     p.set_defaults(func=run)
 

@@ -260,7 +260,7 @@ def run(args) -> int:
             writer.write(fs)
             outputs.append(out)
         if view is not None:
-            view.observe(fs, out, series={"latency_ms": server.stats.latency_ms[-1]})
+            view.observe(fs, out, series={"latency_ms": server.stats.last_latency_ms})
 
     mode = False if args.lockstep else ("process" if factory is not None else "thread")
     server = PoseServer(source, tracker, publisher, clock, initializer, background_init=mode, log=log,

@@ -27,6 +27,7 @@ import subprocess
 import sys
 import threading
 import time
+import uuid
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -67,8 +68,10 @@ class DemoConfig:
         Kill the pose server this many seconds into the run (a failure test).
     view, view_connect, view_save, view_image_every
         The Rerun view (:mod:`vespro.viewer`): spawn a viewer, stream to one at
-        a URL, save a ``.rrd``; every n-th image. In lockstep the view also shows
-        the true pose, the arm's end effector and its target, and the servo's series.
+        a URL, save a ``.rrd``; every n-th image. In real time the pose server and
+        the servo each log into one recording (the servo: its end effector, target,
+        series and events); in lockstep the demo adds the true pose, the arm's end
+        effector and its target, and the servo's status and error against the truth.
     symmetry : str
         How the tracker picks among a symmetric part's equivalent poses
         (``TrackerConfig.symmetry``).
@@ -204,12 +207,43 @@ def _wait_ready(proc: subprocess.Popen, log: Path, line: str, timeout_s: float, 
     return False
 
 
-def _view_args(cfg: DemoConfig) -> list[str]:
-    """The pose server's view options (the real-time demo: the vision process logs)."""
-    a = ["--view"] if cfg.view else []
-    a += ["--view-connect", cfg.view_connect] if cfg.view_connect else []
-    a += ["--view-save", str(cfg.view_save)] if cfg.view_save else []
-    return a + (["--view-image-every", str(cfg.view_image_every)] if a else [])
+#: Where a spawned Rerun viewer listens (the servo connects there when the pose server spawned it).
+VIEWER_URL = "rerun+http://127.0.0.1:9876/proxy"
+VIEW_APP_ID = "vespro demo"
+
+
+def view_options(cfg: DemoConfig, recording_id: str, t0_ns: int) -> tuple[list[str], list[str]]:
+    """The view options of the pose server and of the servo (the real-time demo): both log into
+    one recording (same application and recording ids, same time zero on the shared monotonic
+    clock); each saves its own file (``--view-save``), joined at the end (:func:`_merge_view`)."""
+    if not (cfg.view or cfg.view_connect or cfg.view_save):
+        return [], []
+    common = ["--view-recording-id", recording_id, "--view-app-id", VIEW_APP_ID, "--view-t0-ns", str(t0_ns)]
+    vision = (["--view"] if cfg.view else []) + (["--view-connect", cfg.view_connect] if cfg.view_connect else [])
+    vision += ["--view-save", str(cfg.view_save)] if cfg.view_save else []
+    servo = ["--view-connect", cfg.view_connect or VIEWER_URL] if (cfg.view or cfg.view_connect) else []
+    servo += ["--view-save", str(_servo_rrd(cfg.view_save))] if cfg.view_save else []
+    return vision + ["--view-image-every", str(cfg.view_image_every)] + common, servo + common
+
+
+def _servo_rrd(path: Path) -> Path:
+    return Path(path).with_suffix(".servo.rrd")
+
+
+def _merge_view(cfg: DemoConfig, log) -> None:
+    """Join the servo's saved view into the pose server's file (one recording, one file)."""
+    from .viewer import merge_rrd
+
+    main, servo = Path(cfg.view_save), _servo_rrd(cfg.view_save)
+    if not (main.exists() and servo.exists()):
+        log(f"demo: view: {servo if main.exists() else main} missing; {main} not merged")
+        return
+    try:
+        merge_rrd([main, servo], main)
+    except RuntimeError as e:
+        log(f"demo: view: {e}; the servo's series stay in {servo}")
+        return
+    servo.unlink()
 
 
 def run_demo(cfg: DemoConfig, log=print) -> dict:
@@ -232,6 +266,7 @@ def run_demo(cfg: DemoConfig, log=print) -> dict:
     procs = {}
     t_start = time.monotonic()
     events = []
+    view_vision, view_servo = view_options(cfg, str(uuid.uuid4()), time.monotonic_ns())
     try:
         link_args = ["--serial", bridge.path_a, "--baud", str(cfg.baud)] if bridge else ["--tcp", str(port)]
         procs["vision"] = _spawn([py, "-m", "vespro", "serve", "--source", "world", "--world-shm", world.name,
@@ -239,7 +274,7 @@ def run_demo(cfg: DemoConfig, log=print) -> dict:
                                   # Real time on 2 cores: no multisampling (46 -> 21 ms for three cameras),
                                   # a 0.6 px blur for the pixel integration it provided (0.84 -> 0.96 mm).
                                   "--render-samples", "0", "--blur", "0.6", "--mono",
-                                  "--record", str(out / "vision"), "--record-defer-png", *link_args, *_view_args(cfg),
+                                  "--record", str(out / "vision"), "--record-defer-png", *link_args, *view_vision,
                                   # The vision PC's live loop owns a core (other work on it waits), the
                                   # software renderer's thread with it (spread over both cores it
                                   # stalled on the servo's: 30 ms wall for 15 ms of work).
@@ -271,7 +306,8 @@ def run_demo(cfg: DemoConfig, log=print) -> dict:
                                  # The servo's own timing policy applies: a late tick is counted, a burst
                                  # of them or one over 20 ms stops the arm, one over 100 ms cuts the drives.
                                  "--cpu", "1",
-                                 "--stats-json", str(out / "servo" / "stats.json")], out / "servo.log")
+                                 "--stats-json", str(out / "servo" / "stats.json"), *view_servo],
+                                out / "servo.log")
         log(f"demo: plant, pose server and servo started ({cfg.link} link); {cfg.duration:.0f} s of cell time")
         killed = False
         last = -1
@@ -321,6 +357,8 @@ def run_demo(cfg: DemoConfig, log=print) -> dict:
             bridge.close()
         robot.close()
         world.close()
+    if cfg.view_save:
+        _merge_view(cfg, log)
     log("demo: scoring against the plant's ground truth")
     summary = summarize(out, cfg, events)
     (out / "summary.json").write_text(json.dumps(summary, indent=2, default=str))
@@ -427,7 +465,7 @@ def run_demo_lockstep(cfg: DemoConfig, log=print) -> dict:
         from .viewer import COLORS, RerunView
 
         view = RerunView(rig, model, spawn=cfg.view, connect=cfg.view_connect, save=cfg.view_save, block=True,
-                         image_every=cfg.view_image_every, name="vespro demo")
+                         image_every=cfg.view_image_every, name=VIEW_APP_ID)
 
     def on_output(fs, o):
         writer.write(fs)

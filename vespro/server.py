@@ -152,6 +152,7 @@ class ServerStats:
     source_gaps: int = 0
     tracker_ms: LogHistogram = field(default_factory=LogHistogram)
     latency_ms: LogHistogram = field(default_factory=LogHistogram)
+    last_latency_ms: float = float("nan")  # the last frame's capture-to-publish time
     status_counts: dict = field(default_factory=dict)
     #: Per stage of the live loop, a histogram of its time per frame, ms (wall): ``capture``
     #: (the source's own work: rendering, reading a camera; not its wait for the capture
@@ -467,7 +468,8 @@ class PoseServer:
         t3 = time.perf_counter()
         s.frames += 1
         s.tracker_ms.add(out.time_ms)
-        s.latency_ms.add((t_send - fs.t_ns) * 1e-6)
+        s.last_latency_ms = (t_send - fs.t_ns) * 1e-6
+        s.latency_ms.add(s.last_latency_ms)
         s.status_counts[out.status] = s.status_counts.get(out.status, 0) + 1
         self._window_lat.append((t_send - fs.t_ns) * 1e-6)
         if self.on_output is not None:

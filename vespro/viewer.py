@@ -26,14 +26,13 @@ every frame is logged.
 
 from __future__ import annotations
 
-import queue
 from pathlib import Path
 
 import numpy as np
 
 from .errors import InputError
 
-__all__ = ["RerunView", "STATUS_CODE", "add_view_options", "view_from_args", "COLORS"]
+__all__ = ["RerunView", "STATUS_CODE", "add_view_options", "view_from_args", "COLORS", "merge_rrd"]
 
 STATUS_CODE = {"tracking": 2.0, "initializing": 1.0, "lost": 0.0}
 _GREEN, _ORANGE, _BLUE, _GREY = (40, 200, 60), (255, 140, 0), (60, 140, 255), (170, 170, 170)
@@ -41,7 +40,8 @@ _GREEN, _ORANGE, _BLUE, _GREY = (40, 200, 60), (255, 140, 0), (60, 140, 255), (1
 COLORS = {"green": _GREEN, "orange": _ORANGE, "blue": _BLUE, "grey": _GREY}
 
 
-def add_view_options(p) -> None:
+def add_view_options(p, join: bool = True) -> None:
+    """The view's options; ``join``: also those that join a recording other processes log into."""
     g = p.add_argument_group("live view (pip install 'vespro[view]')")
     g.add_argument("--view", action="store_true", help="stream to a Rerun viewer (spawned unless one is running)")
     g.add_argument("--view-connect", metavar="URL",
@@ -50,6 +50,13 @@ def add_view_options(p) -> None:
                    help="write the view to this file (open with: rerun RUN.rrd)")
     g.add_argument("--view-image-every", type=int, default=1, metavar="N",
                    help="log every N-th camera image (overlays and 3D every frame)")
+    if not join:
+        return
+    g.add_argument("--view-recording-id", metavar="ID",
+                   help="log into this Rerun recording (one the servo also logs into: servo run --view-recording-id)")
+    g.add_argument("--view-app-id", metavar="NAME", help="Rerun application id (default: the command's name)")
+    g.add_argument("--view-t0-ns", type=int, metavar="NS",
+                   help="time zero of the capture_time line on the capture clock, ns (default: the first frame)")
 
 
 def view_from_args(args, rig, model, block: bool, name: str = "vespro") -> "RerunView | None":
@@ -57,7 +64,24 @@ def view_from_args(args, rig, model, block: bool, name: str = "vespro") -> "Reru
     if not (args.view or args.view_connect or args.view_save):
         return None
     return RerunView(rig, model, spawn=args.view, connect=args.view_connect, save=args.view_save, block=block,
-                     image_every=args.view_image_every, name=name)
+                     image_every=args.view_image_every, name=getattr(args, "view_app_id", None) or name,
+                     recording_id=getattr(args, "view_recording_id", None), t0_ns=getattr(args, "view_t0_ns", None))
+
+
+def merge_rrd(parts: list, out) -> None:
+    """Join ``.rrd`` files into ``out`` (which may be one of them) with Rerun's ``rrd merge``:
+    one recording logged by several processes (same recording id) becomes one file."""
+    import subprocess
+    import sys
+
+    out = Path(out)
+    tmp = out.with_name(out.name + ".merging")
+    r = subprocess.run([sys.executable, "-m", "rerun", "rrd", "merge", *map(str, parts), "-o", str(tmp)],
+                       capture_output=True, text=True)
+    if r.returncode != 0 or not tmp.exists():
+        tmp.unlink(missing_ok=True)
+        raise RuntimeError(f"rerun rrd merge failed: {(r.stderr or r.stdout).strip()[-300:]}")
+    tmp.replace(out)
 
 
 def _rr():
@@ -94,6 +118,11 @@ class RerunView:
         False: a frame that finds the queue full is not logged (``dropped``).
     image_every : int
         Log every n-th camera image.
+    name, recording_id : str
+        Rerun's application and recording ids (a given recording id: another
+        process, the servo's, may log into the same recording).
+    t0_ns : int, optional
+        Time zero of ``capture_time`` (default: the first frame set's stamp).
 
     The logging (Rerun's archetypes, JPEG encoding, projections) costs about as
     much as tracking a frame; in a thread it would hold the interpreter lock
@@ -103,77 +132,39 @@ class RerunView:
     """
 
     def __init__(self, rig, model, *, spawn: bool = False, connect: str | None = None, save=None,
-                 block: bool = False, image_every: int = 1, max_queue: int = 16, name: str = "vespro"):
-        import multiprocessing as mp
+                 block: bool = False, image_every: int = 1, max_queue: int = 16, name: str = "vespro",
+                 recording_id: str | None = None, t0_ns: int | None = None):
+        from servo.logproc import QueuedProcess  # the mechanism both sides' views share
 
         _rr()  # a missing package is the caller's one-line error, not the child's
         self.block = block
-        self.dropped = 0
-        self.errors = 0
-        self.last_error = ""
-        ctx = mp.get_context("spawn")
-        self._q = ctx.Queue(maxsize=max_queue)
-        self._result, child = ctx.Pipe(duplex=False)
         opts = dict(spawn=spawn, connect=connect, save=None if save is None else str(save),
-                    image_every=max(1, int(image_every)), name=name)
-        self._proc = ctx.Process(target=_view_process, args=(rig, model, opts, self._q, child), daemon=True,
-                                 name="vespro-view")
-        self._proc.start()
-        child.close()
-        self._closed = False
+                    image_every=max(1, int(image_every)), name=name, recording_id=recording_id, t0_ns=t0_ns)
         # Wait for the process to be set up (imports, viewer connection: a second or more), so the
         # first frames are not dropped for a queue nobody reads yet.
         try:
-            ready = self._result.poll(120) and self._result.recv() == "ready"
-        except EOFError:  # the process died on start
-            ready = False
-        if not ready:
-            self._proc.terminate()
-            raise InputError("--view: the view process did not start (is the Rerun viewer reachable?)")
+            self._proc = QueuedProcess(_start_logger, (rig, model, opts), name="view", block=block,
+                                       max_queue=max_queue, wait_ready=120)
+        except RuntimeError:
+            raise InputError("--view: the view process did not start (is the Rerun viewer reachable?)") from None
+
+    @property
+    def dropped(self) -> int:
+        """Frames not logged because the queue was full (live)."""
+        return self._proc.dropped
 
     # -- the caller's side (cheap, never touches its arguments) ---------------------
     def observe(self, fs, out, T_true: np.ndarray | None = None, series: dict | None = None) -> None:
         """Queue one frame set and its tracker output (``T_true``: ground truth, evaluators only)."""
-        self._put(("frame", fs, out, T_true, series))
+        self._proc.put(("log_frame", fs, out, T_true, series))
 
     def log_series(self, t_ns: int, series: dict, points: dict | None = None) -> None:
         """Queue scalar series (``name -> value``) and 3D points (``entity -> ((3,), RGB)``) at capture stamp ``t_ns``."""
-        self._put(("series", t_ns, series, points))
-
-    def _put(self, item) -> None:
-        if self._closed:
-            return
-        try:
-            if self.block:
-                self._q.put(item)
-            else:
-                self._q.put_nowait(item)
-        except queue.Full:
-            self.dropped += 1
+        self._proc.put(("log_series", t_ns, series, points))
 
     def close(self) -> str:
         """Log what is queued, then flush and close the stream; returns a line on what was not shown, or ""."""
-        if self._closed:
-            return ""
-        self._closed = True
-        try:
-            self._q.put(None, timeout=60)
-        except queue.Full:
-            pass
-        if self._result.poll(120):
-            try:
-                self.errors, self.last_error = self._result.recv()
-            except EOFError:
-                self.errors, self.last_error = -1, "the view process ended early"
-        self._proc.join(timeout=10)
-        if self._proc.is_alive():
-            self._proc.terminate()
-        lost = []
-        if self.dropped:
-            lost.append(f"{self.dropped} frames not shown (the viewer fell behind)")
-        if self.errors:
-            lost.append(f"{self.errors} frames failed to log (last: {self.last_error})")
-        return "view: " + "; ".join(lost) if lost else ""
+        return self._proc.close("frames")
 
     def __enter__(self) -> "RerunView":
         return self
@@ -182,53 +173,47 @@ class RerunView:
         self.close()
 
 
-def _view_process(rig, model, opts: dict, q, result) -> None:
-    """The view's process: log what arrives until None, then report (errors, last error)."""
-    import signal
+def _start_logger(rig, model, opts: dict) -> "_Logger":
+    """The view's process: off a live loop's core and real-time class (inherited from the caller),
+    and niced behind the live work of normal class (the initialiser's worker): it drops frames
+    rather than delay any."""
+    import os
 
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle; it then closes us
-    logger = _Logger(rig, model, **opts)
-    result.send("ready")
-    while True:
-        item = q.get()
-        if item is None:
-            break
-        try:
-            if item[0] == "frame":
-                logger.log_frame(*item[1:])
-            else:
-                logger.log_series(*item[1:])
-        except Exception as e:  # a viewer problem must never stop the logging
-            logger.errors += 1
-            logger.last_error = repr(e)
-    logger.rec.flush()
-    logger.rec.disconnect()
-    result.send((logger.errors, logger.last_error))
+    from .realtime import leave_realtime
+
+    leave_realtime()
+    try:
+        os.nice(10)
+    except OSError:
+        pass
+    return _Logger(rig, model, **opts)
 
 
 class _Logger:
     """The Rerun logging itself (in the view's process)."""
 
     def __init__(self, rig, model, *, spawn: bool, connect: str | None, save: str | None, image_every: int,
-                 name: str):
+                 name: str, recording_id: str | None, t0_ns: int | None):
         rr = _rr()
         self.rr = rr
         self.rig = rig
         self.model = model
         self.image_every = image_every
-        self.rec = rr.RecordingStream(name)
+        self.rec = rr.RecordingStream(name, recording_id=recording_id)
         if save is not None:
             self.rec.save(save)
         if connect:
             self.rec.connect_grpc(connect)
         elif spawn:
             self.rec.spawn(connect=True)
-        self._t0_ns = None
+        self._t0_ns = t0_ns
         self._mesh_shown = self._truth_shown = False
-        self.errors = 0
-        self.last_error = ""
         self.rec.send_blueprint(self._blueprint())
         self._static()
+
+    def close(self) -> None:
+        self.rec.flush()
+        self.rec.disconnect()
 
     def _blueprint(self):
         """The cell in 3D beside the cameras' images, the series below, on the capture-time line
@@ -239,11 +224,13 @@ class _Logger:
         series = [("tracking", ["series/status", "series/features_used"]),
                   ("time, ms", ["series/tracker_ms", "series/latency_ms"]),
                   ("error against the truth (mm, deg)", ["series/error_mm", "series/error_deg"]),
-                  ("servo", ["series/servo_status", "series/servo_error_mm"])]
+                  ("servo", ["series/servo_status", "series/servo_error_mm", "series/servo_target_error_mm"]),
+                  ("servo loop, us", ["series/servo_compute_us", "series/servo_period_error_us"])]
         return rrb.Blueprint(
             rrb.Vertical(
                 rrb.Horizontal(rrb.Spatial3DView(origin="world", name="cell"), rrb.Grid(*cams), column_shares=[2, 3]),
-                rrb.Horizontal(*[rrb.TimeSeriesView(origin="series", contents=c, name=n) for n, c in series]),
+                rrb.Horizontal(*[rrb.TimeSeriesView(origin="series", contents=c, name=n) for n, c in series],
+                               rrb.TextLogView(origin="servo/events", name="servo events")),
                 row_shares=[3, 2]),
             rrb.TimePanel(timeline="capture_time"), collapse_panels=True)
 

@@ -35,6 +35,17 @@ def rrd_rows(path) -> dict:
     return rows
 
 
+def rrd_column(path, entity: str, suffix: str) -> list:
+    """Every value logged to ``entity``'s column ending in ``suffix``, in log order."""
+    out = []
+    for chunk in RrdReader(path).stream():
+        if chunk.entity_path == entity:
+            batch = chunk.to_record_batch()
+            for c in [c for c in batch.schema.names if c.endswith(suffix)]:  # none in a static chunk of names
+                out += [v for v in batch.column(c).to_pylist() if v is not None]
+    return out
+
+
 def _col(row: dict, suffix: str):
     (value,) = [v for c, v in row.items() if c.endswith(suffix)]
     return value
@@ -46,13 +57,24 @@ def rec_path(tmp_path_factory):
     return record(tmp_path_factory.mktemp("view") / "rec", cfg, Conveyor(speed=0.1, y0=-0.2), N, "box")
 
 
-def test_view_save_of_a_track_holds_images_pose_and_series_for_every_frame(rec_path, tmp_path):
+#: A recording other processes may join (the servo's view, below).
+JOIN = ["--view-recording-id", "cell-run-1", "--view-app-id", "vespro cell"]
+
+
+@pytest.fixture(scope="module")
+def tracked(rec_path, tmp_path_factory):
+    """``vespro track --view-save`` of the recording: (the .rrd, the poses file)."""
     _, _, T = read_groundtruth(rec_path)
     pose = ",".join(f"{v:.9f}" for v in pq_from_transform(T[0]))
-    rrd = tmp_path / "run.rrd"
-    out = tmp_path / "poses.csv"
+    tmp = tmp_path_factory.mktemp("tracked")
+    rrd, out = tmp / "run.rrd", tmp / "poses.csv"
     assert main(["track", str(rec_path), "--init-pose", pose, "-o", str(out), "--no-progress",
-                 "--view-save", str(rrd)]) == 0
+                 "--view-save", str(rrd), *JOIN]) == 0
+    return rrd, out
+
+
+def test_view_save_of_a_track_holds_images_pose_and_series_for_every_frame(tracked):
+    rrd, out = tracked
     rows = rrd_rows(rrd)
     frames = set(range(N))
     for cam in ("cam_left", "cam_right"):
@@ -108,3 +130,64 @@ def test_view_save_of_a_lockstep_demo_shows_estimate_truth_and_servo(tmp_path):
     # The servo's series and the arm, at 50 Hz of cell time (on the capture_time timeline only).
     assert len(_col(rows["/series/servo_status"][None], "Scalars:scalars")) >= 1
     assert "/world/arm/tcp" in rows and "/world/arm/target" in rows
+
+
+def test_servo_process_logs_into_the_recording_of_the_pose_servers_view(tracked, tmp_path):
+    """``servo run`` (a process of its own, real time) and ``vespro track`` log into one recording
+    (same application and recording ids); their files, merged, hold both processes' entities."""
+    import subprocess
+    import sys
+
+    from servo.kinematics import ArmKinematics
+    from servo.robot import MujocoArm
+    from vespro.viewer import merge_rrd
+
+    import shutil
+
+    servo_rrd, rrd = tmp_path / "run.servo.rrd", tmp_path / "run.rrd"
+    # One second of the 500 Hz loop on the simulated arm; no pose server answers: it holds.
+    r = subprocess.run([sys.executable, "-m", "servo", "run", "--robot", "mujoco", "--duration", "1",
+                        "--connect", "socket://127.0.0.1:9", "--view-save", str(servo_rrd), *JOIN],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert "not logged" not in r.stdout
+    ticks = int(r.stdout.split(" ticks,")[0].rsplit(" ", 1)[-1])
+    shutil.copy(tracked[0], rrd)  # the pose server's side: the tracker's view in the same recording
+    merge_rrd([rrd, servo_rrd], rrd)
+
+    (store,) = RrdReader(rrd).recordings()  # one recording
+    assert (store.application_id, store.recording_id) == ("vespro cell", "cell-run-1")
+    rows = rrd_rows(rrd)
+    assert set(rows["/world/cameras/cam_left/image"]) >= set(range(N))  # the pose server's side
+    # The servo's side, every 10th tick: its status (1: HOLD), timing, end effector, events.
+    status = rrd_column(rrd, "/series/servo_status", "scalars")
+    assert ticks // 10 - 1 <= len(status) <= ticks // 10 and {tuple(s) for s in status} == {(1.0,)}
+    for name in ("servo_compute_us", "servo_period_error_us", "servo_overruns"):
+        assert len(rrd_column(rrd, f"/series/{name}", "scalars")) == len(status)
+    arm = MujocoArm()
+    q = np.zeros(arm.n)
+    arm.read(q)
+    kin = ArmKinematics()
+    kin.update(q, jacobian=False)
+    tcp = np.array(rrd_column(rrd, "/world/arm/tcp", "positions"), dtype=float).reshape(-1, 3)
+    assert len(tcp) == len(status)
+    np.testing.assert_allclose(tcp, np.repeat(kin.p[None], len(tcp), 0), atol=2e-3)  # held at its start
+    assert "/world/arm/target" not in rows  # no pose, no target
+    assert any("status HOLD" in str(t) for t in rrd_column(rrd, "/servo/events", "text"))
+
+
+def test_real_time_demo_gives_its_pose_server_and_servo_one_recording(tmp_path):
+    """Both processes get the same ids and time zero; each saves its own file, the servo's beside the one asked for."""
+    from servo.cli import build_parser as servo_parser
+    from vespro.cli import build_parser
+    from vespro.demo import DemoConfig, view_options
+
+    rrd = tmp_path / "run.rrd"
+    vision, servo = view_options(DemoConfig(view_save=rrd, view=True), "rid", 123)
+    a = build_parser().parse_args(["serve", *vision])
+    b = servo_parser().parse_args(["run", *servo])
+    for x in (a, b):
+        assert (x.view_recording_id, x.view_app_id, x.view_t0_ns) == ("rid", "vespro demo", 123)
+    assert a.view and a.view_save == rrd
+    assert b.view_save == tmp_path / "run.servo.rrd" and b.view_connect.startswith("rerun+http://127.0.0.1:9876")
+    assert view_options(DemoConfig(), "rid", 123) == ([], [])
