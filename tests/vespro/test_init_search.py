@@ -305,7 +305,8 @@ def test_init_result_has_the_tracker_fields():
 
     from vespro.init import InitResult
 
-    assert [f.name for f in fields(InitResult)] == ["T_world_object", "cov6", "velocity", "hidden", "provisional"]
+    assert [f.name for f in fields(InitResult)] == ["T_world_object", "cov6", "velocity", "hidden", "provisional",
+                                                  "given"]
 
 
 def _picture(rng, sigma):
