@@ -26,7 +26,7 @@ front of its top camera), and the other cameras must find and track it.
 
 With ``--track N`` the trial also runs the tracker the server runs (the
 same initialiser as its starting-pose hook, called on the same frames) for N
-frames, and scores what the issue's user sees: the status. A trial is then
+frames, and scores what a user sees: the status. A trial is then
 *initialised* when the tracker publishes ``tracking`` within ``--frames``
 frames with ADD below 10%, and a *wrong lock* when any frame of the N is
 published ``tracking`` with ADD at or above 10%. The tracker confirms a
@@ -361,7 +361,7 @@ def main(argv=None):
             print(f"  worst published ADD per tracked trial, % of the diameter: median {100 * np.median(worst):.2f}, "
                   f"p90 {100 * np.percentile(worst, 90):.2f}, max {100 * np.max(worst):.2f} ({len(worst)} trials)")
         cams = [by_rig[k] for k in ("1", "2", "3") if k in by_rig]
-        if len(cams) == 3:  # the criterion: random rigs of 1, 2 and 3 cameras, drawn alike
+        if len(cams) == 3:  # the criterion: random rigs of 1, 2 and 3 cameras, drawn alike
             print(f"  1, 2 and 3 cameras weighted alike: {np.mean([ok / n for ok, _, n in cams]):.3f}")
     if not a.no_baseline and totals["base"][2]:
         so, sb = totals["ours"][0] / totals["ours"][2], totals["base"][0] / totals["base"][2]

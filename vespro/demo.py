@@ -169,7 +169,7 @@ def search_q0(cameras: str) -> np.ndarray | None:
     The tool 0.3 m above the belt and 0.15 m past the cell's centre, looking back at the
     belt's entry 0.15 m before it: from the home pose the hand camera sees the floor, and
     straight above the belt it would see the part face-on, the view a single camera
-    settles worst (see issue 5's notes).
+    settles worst.
     """
     if cameras != "eye-in-hand":
         return None

@@ -76,7 +76,7 @@ def run_follow(latency_compensation: bool, seconds: float = 7.0) -> np.ndarray:
 def test_follows_conveyor_through_the_link_thanks_to_latency_compensation():
     with_comp = run_follow(True)
     without = run_follow(False)
-    # The bound: steady-state error under 2 mm with compensation.
+    # The bound: steady-state error under 2 mm with compensation.
     assert with_comp.max() < 2e-3, with_comp.max()
     # Without it the reference lags by about speed x (latency + half a frame period) = 6 mm.
     assert without.mean() > 3e-3, without.mean()

@@ -54,7 +54,7 @@ def test_recovers_simulator_intrinsics(captured):
     assert len(res.failed) + len(res.rejected) <= 2  # a board cut by the border may go unfound
     # Detector's corners ~0.08 px; read on the board plane ~0.005 px (measured 0.082 -> 0.0045).
     assert res.rms_px_detected > 0.05 and res.rms_px < 0.015, (res.rms_px_detected, res.rms_px)
-    # The criterion: undistortion map error < 0.1 px over the WHOLE image
+    # The criterion: undistortion map error < 0.1 px over the WHOLE image
     # (every 4 px, border rows and columns and the four extreme corner pixels
     # included). Measured: max 0.012 px, RMS 0.003 px (seeds 0-5: max 0.009-0.026).
     # Without the reading rounds the same capture gives 0.29 px in the corners.

@@ -1,4 +1,4 @@
-"""A recording tracked with the calibrated rig instead of the true one (issue 9).
+"""A recording tracked with the calibrated rig instead of the true one.
 
 Calibrate intrinsics (both cameras) and extrinsics in the simulated cell with
 0.3 px image noise, then track the same recording with the true and with the

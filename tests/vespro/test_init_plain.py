@@ -1,4 +1,4 @@
-"""Single-camera verification for parts with plain faces (issue 5).
+"""Single-camera verification for parts with plain faces.
 
 Synthetic images from ``test_init_search.render`` (faces painted far to near
 over random clutter, a distinct shade per face normal): face interiors,

@@ -1,4 +1,4 @@
-"""Loss and recovery: every camera occluded for two seconds mid-sequence (issue 5).
+"""Loss and recovery: every camera occluded for two seconds mid-sequence.
 
 The tracker must report ``lost`` within a few frames of the occlusion and
 re-acquire the part (automatic initialisation, seeded by the last good pose and

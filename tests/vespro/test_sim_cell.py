@@ -82,7 +82,7 @@ def test_marker_centroids_match_projection_from_rig_file(tmp_path, distortion):
             if min(d) < 5.0:  # else hidden behind something: not this marker's blob
                 errs.append(min(d))
         assert len(errs) >= 2, f"{cam.name}: too few markers seen ({len(errs)})"
-        # 0.5 px: the bound; a sphere's projected centroid differs from its centre's
+        # 0.5 px: the bound; a sphere's projected centroid differs from its centre's
         # projection by ~(r/z)^2 * offset, far below it at r = 4 mm, z > 0.3 m.
         assert max(errs) < 0.5, f"{cam.name}: marker errors {np.round(errs, 3)} px"
 
