@@ -7,6 +7,7 @@ publishing a wrong pose as ``tracking``.
 """
 
 import numpy as np
+import pytest
 
 from vespro.groundtruth import read_groundtruth
 from vespro.init import make_initializer
@@ -42,48 +43,55 @@ def test_all_cameras_occluded_for_two_seconds_lost_then_reacquired(tmp_path):
     assert max(errs) < 0.1 * tr.model.diameter  # no wrong lock, before or after
 
 
-def _paddle_recording(tmp_path, rig="fixed3", hide="cam_top"):
+@pytest.fixture(scope="module")
+def paddle_dir(tmp_path_factory):
+    """Where the paddle recordings are made, once for the module."""
+    return tmp_path_factory.mktemp("paddle")
+
+
+def _paddle_recording(directory, rig="fixed3", hide="cam_top"):
     """An L-block on the belt, a paddle hiding it from camera ``hide`` of a fixed rig
-    throughout (40 frames, recorded once per test directory): (recording, ground truth)."""
+    throughout (40 frames, recorded once per directory, rig and camera): (recording,
+    ground truth)."""
     from vespro.sim.cell import OccluderSweep
 
     cfg = CellConfig(MODELS_DIR / "objects" / "lblock.stl", load_rig(CAMERAS_DIR / f"{rig}.yaml"),
                      effects=ImageEffects(noise_px=0.5),
                      occluders=(OccluderSweep(hide, 0.0, duration=100.0, half_travel=0.0),))
-    path = tmp_path / "rec"
+    path = directory / f"rec-{rig}-{hide}"
     if not path.exists():
         record(path, cfg, Conveyor(speed=0.05, y0=-0.1), 40, "lblock")
     return Recording(path), read_groundtruth(path)[2]
 
 
-def _hidden_run(tmp_path, rig="fixed3", hide="cam_top", **init_options):
+def _hidden_run(directory, rig="fixed3", hide="cam_top", **init_options):
     """A paddle hiding the part from one camera of a fixed rig throughout; tracked from
     the images alone. Returns (outputs, recording times, ground truth, tracker)."""
     from vespro.tracker import TrackerConfig
 
-    rec, T = _paddle_recording(tmp_path, rig, hide)
+    rec, T = _paddle_recording(directory, rig, hide)
     blind = {} if init_options.get("hidden_camera", True) else {"blind_found_fraction": 0.0}
     tr = make_tracker(rec, TrackerConfig(**blind))
     tr.initializer = make_initializer(rec.rig, tr.model, **init_options)
     return track_recording(rec, tr), rec.t, T, tr
 
 
-def test_a_camera_hidden_by_an_unknown_body_neither_blocks_initialisation_nor_tracking(tmp_path):
+def test_a_camera_hidden_by_an_unknown_body_neither_blocks_initialisation_nor_tracking(paddle_dir):
     """Something the model does not know (the arm, a paddle here) hides the part from one
     of three cameras: the two others find it (``InitOptions.hidden_camera``), confirm it and
     track it (``TrackerConfig.blind_found_fraction``); with both rules off it is never found."""
-    outs, t, T, tr = _hidden_run(tmp_path)
+    outs, t, T, tr = _hidden_run(paddle_dir)
     tracking = [o for o in outs if o.status == "tracking"]
     assert tracking and t[tracking[0].index] < 0.5, [o.status for o in outs]
     assert len(tracking) >= len(outs) - 10  # then held to the end
     errs = [np.linalg.norm(o.T_world_object[:3, 3] - T[o.index][:3, 3]) for o in tracking]
     assert max(errs) < 0.05 * tr.model.diameter
     assert tr.blind_frames >= len(tracking) - 1
-    outs, *_ = _hidden_run(tmp_path, hidden_camera=False)
+    outs, *_ = _hidden_run(paddle_dir, hidden_camera=False)
     assert all(o.status != "tracking" for o in outs)
 
 
-def test_a_seeded_reinitialisation_leaves_out_a_camera_the_part_is_hidden_from(tmp_path):
+def test_a_seeded_reinitialisation_leaves_out_a_camera_the_part_is_hidden_from(paddle_dir):
     """After a loss the initialiser first refines the last good pose (a seed). A camera
     the part is hidden from (the paddle before ``cam_top``) agrees with none of those
     refinements, so every seeded start failed on "a camera disagrees" and the call fell
@@ -92,7 +100,7 @@ def test_a_seeded_reinitialisation_leaves_out_a_camera_the_part_is_hidden_from(t
     from vespro.model import load_model
     from vespro.se3 import exp_so3
 
-    rec, T = _paddle_recording(tmp_path)
+    rec, T = _paddle_recording(paddle_dir)
     model = load_model(MODELS_DIR / "objects" / "lblock.stl")
     k = 20
     seed = T[k].copy()
@@ -110,16 +118,16 @@ def test_a_seeded_reinitialisation_leaves_out_a_camera_the_part_is_hidden_from(t
     assert modes[False][0] != "seed"
 
 
-def test_with_two_cameras_one_hidden_the_other_initialises_and_tracks_alone(tmp_path):
+def test_with_two_cameras_one_hidden_the_other_initialises_and_tracks_alone(paddle_dir):
     """Two fixed cameras, the right one behind a paddle throughout: the left one finds the
     part under the one-camera rules (``InitResult.hidden`` names the right camera, so the
     tracker confirms it by the left alone) and tracks it with its edges, to one-camera
     accuracy (measured: from frame 7, 33 of 40 frames, max 4.1 mm); never with the rules off."""
-    outs, t, T, tr = _hidden_run(tmp_path, rig="fixed2", hide="cam_right")
+    outs, t, T, tr = _hidden_run(paddle_dir, rig="fixed2", hide="cam_right")
     tracking = [o for o in outs if o.status == "tracking"]
     assert tracking and t[tracking[0].index] < 1.0, [o.status for o in outs]
     assert len(tracking) >= len(outs) - 15
     errs = [np.linalg.norm(o.T_world_object[:3, 3] - T[o.index][:3, 3]) for o in tracking]
     assert max(errs) < 0.1 * tr.model.diameter
-    outs, *_ = _hidden_run(tmp_path, rig="fixed2", hide="cam_right", hidden_camera=False)
+    outs, *_ = _hidden_run(paddle_dir, rig="fixed2", hide="cam_right", hidden_camera=False)
     assert all(o.status != "tracking" for o in outs)
