@@ -147,8 +147,8 @@ class TrackerConfig:
         nothing (the start may be wrong in that camera), unless the initialiser
         judged it without that camera (``InitResult.hidden``): then by the one,
         under the one-camera rules. 0 turns it off. A frame whose cameras together
-        found fewer than this fraction of the corners selected is searched again
-        (see ``Tracker._track``): the windows missed.
+        found fewer than this fraction of the corners selected, two or more of
+        them selecting, is searched again (see ``Tracker._track``): the windows missed.
     max_pos_std : float
         Position std (m) beyond which the track is lost.
     confirm_frames : int
@@ -942,12 +942,16 @@ class Tracker:
         P_prior = ekf.P[:6, :6].copy()
         obs, n_found, n_acc, mean_nis, max_half, ok = self._measure_twice(fs, stage)
         n_sel = sum(int(ob.feature_ids.size) for ob in obs)
-        if dt > 0 and n_found < c.blind_found_fraction * n_sel:
+        n_cams = sum(1 for ob in obs if ob.feature_ids.size)
+        if dt > 0 and n_cams >= 2 and n_found < c.blind_found_fraction * n_sel:
             # The windows missed most corners: the velocity is off by more than the filter
             # thinks (an unknown velocity at a start, a sudden turn). Search again about the
             # same prediction, its velocity covariance widened so that the predicted pose's
             # opens by the start's sigmas (init_sigma_pos, init_sigma_rot); keep whichever
-            # search accepted more corners.
+            # search accepted more corners. Only where two or more cameras select corners: in
+            # wide windows one camera's corners can agree with a wrong pose (depth and tilt are
+            # its weak directions), while several cameras' must agree with one another too
+            # (a one-camera L-block start was taken 57% off through such a search).
             kept = (ekf.snapshot(), self.sigma_px, self.feature_factor.copy(), self._noise_updates)
             ekf.restore(before)
             ekf.widen_velocity(c.init_sigma_pos / dt, c.init_sigma_rot / dt)
