@@ -70,11 +70,12 @@ def _frame_sets(part: str, rig_name: str, n: int, mono: bool):
         return rig, object_mesh_path(part), [cell.next_frameset() for _ in range(n)]
 
 
-def _track(rig, model, frame_sets, selection: str) -> int:
+def _track(rig, model, frame_sets, selection: str, decision: str = "rules") -> int:
     from .init import make_initializer
     from .tracker import Tracker, TrackerConfig
 
-    tracker = Tracker(rig, model, TrackerConfig(selection=selection), initializer=make_initializer(rig, model))
+    tracker = Tracker(rig, model, TrackerConfig(selection=selection, decision=decision),
+                      initializer=make_initializer(rig, model, plain_faces=decision != "bank"))
     return sum(tracker.process(fs).status == "tracking" for fs in frame_sets)
 
 
@@ -104,11 +105,14 @@ def warm_up(log=print) -> list[str]:
             break
         model = load_model(mesh, name=part)
         images = "grey" if mono else "colour"
-        runs += [(f"{part}, cameras {', '.join(rig.names)}, {images}, {sel} selection", rig, model, sets, sel),
-                 (f"{part}, camera {rig.names[0]} alone", replace(rig, cameras=rig.cameras[:1]), model, sets, sel)]
-    for what, rig, model, frame_sets, sel in runs:
+        one = replace(rig, cameras=rig.cameras[:1])
+        runs += [(f"{part}, cameras {', '.join(rig.names)}, {images}, {sel} selection", rig, model, sets, sel, "rules"),
+                 (f"{part}, camera {rig.names[0]} alone", one, model, sets, sel, "rules")]
+        if not mono:  # the hypothesis bank and its image likelihood (--decision bank)
+            runs.append((f"{part}, camera {rig.names[0]} alone, decided by the bank", one, model, sets, sel, "bank"))
+    for what, rig, model, frame_sets, sel, decision in runs:
         t = time.monotonic()
-        n = _track(rig, model, frame_sets, sel)
+        n = _track(rig, model, frame_sets, sel, decision)
         log(f"  {what}: {n}/{len(frame_sets)} frames tracking ({time.monotonic() - t:.0f} s)")
     return uncompiled_kernels()
 
