@@ -20,10 +20,3 @@ class KeptMessages:
 def kept_publisher() -> KeptMessages:
     """A publisher that keeps what the server publishes (``.msgs``)."""
     return KeptMessages()
-
-
-def pytest_sessionfinish(session):
-    """Close the simulated cells ``trial_frames`` keeps for the trials asked for last."""
-    from trial_frames import close_trials
-
-    close_trials()

@@ -4,9 +4,10 @@ The last few trials asked for are kept with their cells open: asked again (a tes
 premise run and its run with the rule on, or the next test on the same trial), a trial
 returns copies of the frames already rendered and renders only those beyond them, from
 where its cell stopped (a trial's first frames do not depend on how many follow).
-:func:`close_trials` closes the kept cells.
+:func:`close_trials` closes the kept cells (at the latest when the process ends).
 """
 
+import atexit
 from collections import OrderedDict
 from dataclasses import replace
 
@@ -67,3 +68,7 @@ def close_trials():
     """Close the kept trials' cells."""
     while _kept:
         _kept.popitem()[1].cell.close()
+
+
+# The simulated cells kept for the last trials are closed when the test process ends.
+atexit.register(close_trials)
