@@ -471,7 +471,7 @@ class PoseServer:
         s.last_latency_ms = (t_send - fs.t_ns) * 1e-6
         s.latency_ms.add(s.last_latency_ms)
         s.status_counts[out.status] = s.status_counts.get(out.status, 0) + 1
-        self._window_lat.append((t_send - fs.t_ns) * 1e-6)
+        self._window_lat.append(s.last_latency_ms)
         if self.on_output is not None:
             self.on_output(fs, out)
         t4 = time.perf_counter()
