@@ -2,14 +2,21 @@
 
 Whatever proposes a pose (the initialiser, a user, a recovery) only adds a
 hypothesis; what is published follows from the evidence. Each hypothesis
-carries a :class:`vespro.ekf.PoseEKF` and a score: the log-likelihood ratio
-of the frames it has seen (:mod:`vespro.likelihood`, against all-clutter),
-with the past discounted by ``forget`` per frame so that a pose which stops
-explaining the images loses its standing within a few frames (a discounted
-sequential test). Beside the hypotheses stands the null, "the part is at none
-of these poses", whose lines read clutter only: its log ratio is 0 on every
-frame. A hypothesis's probability is its share of ``exp(score)`` over the
-null and all hypotheses.
+carries a :class:`vespro.ekf.PoseEKF` and a score: the log of its posterior
+probability. Beside the hypotheses stands the null, "the part is at none of
+these poses", whose lines read clutter only; a hypothesis's evidence on a
+frame is its log-likelihood ratio against the null (:mod:`vespro.likelihood`).
+
+The probabilities follow the forward recursion of a hidden Markov model: the
+state is which hypothesis (or the null) is the part's pose, and between two
+frames a hypothesis stops being it with probability ``switch_rate`` (its
+filter slid off, the part was taken away), that mass going to the null. The
+frame's evidence then multiplies each prior. The recursion bounds what a
+long history can vouch for: after any number of good frames a hypothesis's
+prior odds against the null are at most ``(1 - switch_rate) / switch_rate``,
+so a frame whose edges a hypothesis explains worse than clutter demotes it on
+that frame, however long it was published (a drifting track is not published
+on its past), and a frame that explains them better restores it.
 
 The likelihood of one frame treats its lines as independent, which they are
 not: the samples along one projected edge move together when the pose is
@@ -61,8 +68,8 @@ class BankOptions:
     ----------
     wrong_lock_rate : float
         A hypothesis is published when its probability is at least one minus this.
-    forget : float
-        Weight of a hypothesis's past score in each new frame's (0: the last frame alone).
+    switch_rate : float
+        Probability per frame that a hypothesis stops being the part's pose (see the module).
     evidence_weight : float
         Scale of every frame's log-likelihood ratio: independent lines per line weighed
         (``spacing_px`` over the correlation length along an edge, 2 px / 20 px).
@@ -79,7 +86,7 @@ class BankOptions:
     """
 
     wrong_lock_rate: float = 0.01
-    forget: float = 0.6
+    switch_rate: float = 0.01
     evidence_weight: float = 0.1
     new_prior: float = 0.1
     merge_frac: float = 0.05
@@ -90,8 +97,8 @@ class BankOptions:
     def __post_init__(self):
         if not 0 < self.wrong_lock_rate < 1:
             raise ValueError(f"wrong_lock_rate must be in (0, 1), got {self.wrong_lock_rate}")
-        if not 0 <= self.forget < 1:
-            raise ValueError(f"forget must be in [0, 1), got {self.forget}")
+        if not 0 < self.switch_rate < 1:
+            raise ValueError(f"switch_rate must be in (0, 1), got {self.switch_rate}")
         if not self.evidence_weight > 0:
             raise ValueError(f"evidence_weight must be > 0, got {self.evidence_weight}")
         if self.max_hypotheses < 1:
@@ -100,7 +107,7 @@ class BankOptions:
 
 @dataclass(eq=False)
 class Hypothesis:
-    """One pose hypothesis: its filter, score (discounted log-likelihood ratio) and last evidence."""
+    """One pose hypothesis: its filter, score (log posterior probability) and last evidence."""
 
     ekf: PoseEKF
     score: float
@@ -173,15 +180,27 @@ class HypothesisBank:
             self.hypotheses.remove(h)
 
     def weigh(self, views) -> None:
-        """Score every hypothesis on one frame: ``views`` as for :class:`ImageLikelihood`."""
-        g = self.options.forget
-        self.null_score *= g
-        for h in self.hypotheses:
+        """One step of the forward recursion: every hypothesis's prior (``switch_rate`` of its
+        probability passed to the null), then the frame's evidence (``views`` as for
+        :class:`ImageLikelihood`); the scores end as log posterior probabilities."""
+        if not self.hypotheses:
+            self.null_score = 0.0
+            return
+        eps = self.options.switch_rate
+        p = self.probabilities()
+        p_null = max(1.0 - float(p.sum()), 0.0)
+        self.null_score = math.log(max(p_null + eps * float(p.sum()), 1e-300))
+        for h, ph in zip(self.hypotheses, p):
             pl = self.likelihood(h.ekf.pose, views)
             h.last = pl
             h.last_log_lik = self.options.evidence_weight * pl.log_lik
-            h.score = g * h.score + h.last_log_lik
+            h.score = math.log(max((1.0 - eps) * float(ph), 1e-300)) + h.last_log_lik
             h.frames += 1
+        top = max(self.null_score, max(h.score for h in self.hypotheses))
+        norm = top + math.log(math.exp(self.null_score - top) + sum(math.exp(h.score - top) for h in self.hypotheses))
+        self.null_score -= norm
+        for h in self.hypotheses:
+            h.score -= norm
 
     def probabilities(self) -> np.ndarray:
         """Each hypothesis's probability (the null takes the rest), in the order held."""
