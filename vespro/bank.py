@@ -34,6 +34,14 @@ the ranking of the raw likelihood: a pose that explains more edge by more
 evidence (a near, large projection) stays ahead of one that explains less (a
 small, far copy of the part), which a weight per edge or per pose would not.
 
+A camera's view of the part may be blocked by something the model does not
+know (the arm over the belt, a hand): its lines then read the blocking body,
+clutter to the model, and a right pose would lose its standing by a camera
+that sees nothing of it. Each camera's evidence is therefore a mixture: its
+lines' weighted log ratio with probability ``p_visible``, no evidence with
+the rest, so that a blocked camera costs a pose at most ``log(1 - p_visible)``
+a frame while the others decide.
+
 Equivalent poses of a symmetric part and poses within ``merge_frac`` of the
 diameter of each other (ADD over the part's symmetries) are one hypothesis:
 the first keeps its filter, the scores add as probabilities. Hypotheses whose
@@ -73,6 +81,10 @@ class BankOptions:
     evidence_weight : float
         Scale of every frame's log-likelihood ratio: independent lines per line weighed
         (``spacing_px`` over the correlation length along an edge, 2 px / 20 px).
+    p_visible : float
+        Probability that a camera's view of the part is not blocked by something the model
+        does not know (a camera that finds none of the part's edges costs a pose at most
+        ``log(1 - p_visible)``).
     new_prior : float
         Prior probability of a proposed pose against the hypotheses already held
         (its score starts at the log of this plus the best current score, at most 0).
@@ -88,6 +100,7 @@ class BankOptions:
     wrong_lock_rate: float = 0.01
     switch_rate: float = 0.01
     evidence_weight: float = 0.1
+    p_visible: float = 0.95
     new_prior: float = 0.1
     merge_frac: float = 0.05
     prune_prob: float = 1e-4
@@ -101,6 +114,8 @@ class BankOptions:
             raise ValueError(f"switch_rate must be in (0, 1), got {self.switch_rate}")
         if not self.evidence_weight > 0:
             raise ValueError(f"evidence_weight must be > 0, got {self.evidence_weight}")
+        if not 0 < self.p_visible <= 1:
+            raise ValueError(f"p_visible must be in (0, 1], got {self.p_visible}")
         if self.max_hypotheses < 1:
             raise ValueError(f"max_hypotheses must be >= 1, got {self.max_hypotheses}")
 
@@ -193,7 +208,7 @@ class HypothesisBank:
         for h, ph in zip(self.hypotheses, p):
             pl = self.likelihood(h.ekf.pose, views)
             h.last = pl
-            h.last_log_lik = self.options.evidence_weight * pl.log_lik
+            h.last_log_lik = self.evidence(pl)
             h.score = math.log(max((1.0 - eps) * float(ph), 1e-300)) + h.last_log_lik
             h.frames += 1
         top = max(self.null_score, max(h.score for h in self.hypotheses))
@@ -201,6 +216,15 @@ class HypothesisBank:
         self.null_score -= norm
         for h in self.hypotheses:
             h.score -= norm
+
+    def evidence(self, pl: PoseLikelihood) -> float:
+        """A frame's log ratio for a pose: per camera, the weighted log ratio of its lines if the
+        part is in view (``p_visible``), or none (0) if something blocks it; cameras add."""
+        w, q = self.options.evidence_weight, self.options.p_visible
+        if q >= 1.0:
+            return w * pl.log_lik
+        lq, lh = math.log(q), math.log1p(-q)
+        return float(sum(np.logaddexp(lq + w * c.log_lik, lh) for c in pl.cameras))
 
     def probabilities(self) -> np.ndarray:
         """Each hypothesis's probability (the null takes the rest), in the order held."""

@@ -20,7 +20,7 @@ Nothing here knows the scene: no background, colour or support plane.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 import cv2
 import numpy as np
 
@@ -223,6 +223,24 @@ def extract_features(name: str, img: np.ndarray, K: np.ndarray, opt: EdgeOptions
     -------
     CameraFeatures
     """
+    f = edge_maps(name, img, K, opt)
+    pts = detect_corners(f.grey, opt)
+    if pts is None or len(pts) == 0:
+        corners = np.zeros((0, 2))
+    else:
+        pts = cv2.cornerSubPix(f.grey, pts.astype(np.float32), (2, 2), (-1, -1),
+                               (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 20, 0.01))
+        corners = pts.reshape(-1, 2).astype(np.float64)
+    links = link_corners(corners, f.dt, opt, np.hypot(f.width, f.height))
+    ends = link_ends(corners, links, f.dt, opt)
+    for a in (corners, links, ends):
+        a.setflags(write=False)
+    return replace(f, corners=corners, links=links, link_ends=ends)
+
+
+def edge_maps(name: str, img: np.ndarray, K: np.ndarray, opt: EdgeOptions = EdgeOptions()) -> CameraFeatures:
+    """The edge half of :func:`extract_features`: edges, oriented distance maps, gradient and grey
+    image; no corners (what a pose refinement on the edges needs, :func:`vespro.init.search.refine_pose`)."""
     H, W = img.shape[:2]
     dx, dy = _gradient(img, opt.blur_sigma)
     noise = image_noise(img)
@@ -239,18 +257,10 @@ def extract_features(name: str, img: np.ndarray, K: np.ndarray, opt: EdgeOptions
         np.minimum(d, opt.dt_max, out=d)
         dt[k] = d
     grey = img if img.ndim == 2 else cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
-    pts = detect_corners(grey, opt)
-    if pts is None or len(pts) == 0:
-        corners = np.zeros((0, 2))
-    else:
-        pts = cv2.cornerSubPix(grey, pts.astype(np.float32), (2, 2), (-1, -1),
-                               (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 20, 0.01))
-        corners = pts.reshape(-1, 2).astype(np.float64)
-    links = link_corners(corners, dt, opt, np.hypot(W, H))
-    ends = link_ends(corners, links, dt, opt)
     grad = np.stack([dx, dy]).astype(np.float32)
     grey = np.array(grey, np.uint8)  # (a copy: the caller's image may be reused)
     grey_noise = noise if img.ndim == 2 else image_noise(grey)
+    corners, links, ends = np.zeros((0, 2)), np.zeros((0, 2), np.int64), np.zeros((0, 2), bool)
     for a in (dt, edges, corners, links, ends, grad, grey):
         a.setflags(write=False)
     return CameraFeatures(name, np.asarray(K, float), W, H, dt, edges, corners, links, ends, grad, grey, grey_noise)
