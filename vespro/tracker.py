@@ -97,6 +97,9 @@ class TrackerConfig:
         finding fewer, the frame is searched again with the start's velocity std. 0: off.
     max_pos_std : float
         Position std at which a hypothesis's filter has diverged and is dropped, m.
+    refine_window_px : int
+        Largest window half-size from which a frame is measured a second time about
+        the first pass's result, px.
     edge_aid : str
         Where the part's edges are fitted too: ``"single"`` (a lone camera with corners),
         ``"always"`` or ``"off"``.
@@ -138,6 +141,7 @@ class TrackerConfig:
     min_accepted: int = 4
     blind_found_fraction: float = 0.5
     max_pos_std: float = 0.02
+    refine_window_px: int = 12
     edge_aid: str = "single"
     edge_offset_px: float = 0.0
     start_edge_offset_px: float = 0.6
@@ -509,7 +513,7 @@ class Tracker:
             return self._decide(fs, [], 0, float("nan"), stage)
         T_prior = ekf.pose  # (a copy)
         P_prior = ekf.P[:6, :6].copy()
-        obs, n_found, n_acc, mean_nis, ambiguous, ok = self._measure_twice(fs, stage)
+        obs, n_found, n_acc, mean_nis, max_half, ok = self._measure_twice(fs, stage)
         n_sel = sum(int(ob.feature_ids.size) for ob in obs)
         n_cams = sum(1 for ob in obs if ob.feature_ids.size)
         missed = dt > 0 and n_found < c.blind_found_fraction * n_sel
@@ -528,7 +532,7 @@ class Tracker:
             again = self._measure_twice(fs, stage)
             self.researches += 1
             if again[2] > n_acc:
-                obs, n_found, n_acc, mean_nis, ambiguous, ok = again
+                obs, n_found, n_acc, mean_nis, max_half, ok = again
             else:
                 snap, self.sigma_px, self.feature_factor, self._noise_updates = kept
                 ekf.restore(snap)
@@ -553,18 +557,16 @@ class Tracker:
         stage["redetect"] = time.perf_counter() - t
 
     def _measure_twice(self, fs: FrameSet, stage: dict) -> tuple:
-        """:meth:`_measure` about the filter's prediction, and again about its result when a
-        window held another predicted corner; the filter updated once."""
+        """:meth:`_measure` about the filter's prediction, and again about its result when the
+        windows were large; the filter updated once (see ``refine_window_px``)."""
         ekf = self.ekf
         saved = (ekf.snapshot(), self.sigma_px, self.feature_factor.copy(), self._noise_updates)
         result = self._measure(fs, stage)
-        if result[5] and result[4]:
-            # A window held a neighbouring corner of the part as well as its own (wide windows
-            # at a start, a coast, a jolt, with corners close together): the extractor may have
-            # measured the neighbour. The first pass's result only places the windows of a
-            # second pass (small); the filter is then updated once, from its prediction, with
-            # the second pass's corners: each image counts once. Windows that are wide but hold
-            # one corner each (a part seen close up) need no second pass.
+        if result[5] and result[4] >= self.config.refine_window_px:
+            # Large windows (a start, a coast, a jolt): the first pass used the corners with no
+            # neighbour inside their window. Its result only places the windows of a second
+            # pass (small, the full feature set); the filter is then updated once, from its
+            # prediction, with the second pass's corners: each image counts once.
             assoc = (ekf.pose, ekf.pose_covariance)
             snap, self.sigma_px, self.feature_factor, self._noise_updates = saved
             ekf.restore(snap)
@@ -628,8 +630,8 @@ class Tracker:
         6x6 covariance), by default the filter's prediction; the update is
         always the filter's, linearised at its own state.
 
-        Returns (observations, corners found, accepted, mean NIS, whether a window held another
-        predicted corner too, whether the update was applied); adds each stage's time to ``stage``.
+        Returns (observations, corners found, accepted, mean NIS, largest window half-size,
+        whether the update was applied); adds each stage's time to ``stage``.
         """
         c = self.config
         ekf = self.ekf
@@ -679,7 +681,7 @@ class Tracker:
         t = time.perf_counter()
         zs, hs, Js, owners, keys = [], [], [], [], []
         obs = []
-        ambiguous = False
+        max_half = 0
         for k, entry in enumerate(per_cam):
             cam = self.rig.cameras[k]
             if entry is None:
@@ -693,11 +695,7 @@ class Tracker:
             Jk = J[sel]
             fid = vis.indices[sel]
             half = self._window_half_sizes(k, Jk, fid, P6)
-            if not ambiguous and len(uv) > 1:
-                d = uv[sel][:, None, :] - uv[None, :, :]
-                d2 = np.einsum("ijk,ijk->ij", d, d)
-                d2[np.arange(sel.size), sel] = np.inf
-                ambiguous = bool(np.any(np.sqrt(d2.min(axis=1)) <= half + 2.0))
+            max_half = max(max_half, int(half.max()))
             ext = extract_corners(img, uv[sel], half)
             found = ext.found
             zs.append(ext.uv[found])
@@ -762,7 +760,7 @@ class Tracker:
                     offset += found_idx.size
                     obs[oi] = CameraObservation(**{**obs[oi].__dict__, "accepted": acc})
         stage["update"] += time.perf_counter() - t
-        return obs, len(z), n_acc, mean_nis, ambiguous, updated
+        return obs, len(z), n_acc, mean_nis, max_half, updated
 
     def _seeing(self, obs: list) -> list:
         """The observations whose cameras get edge fits: all of them, less the blind cameras
