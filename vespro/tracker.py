@@ -259,6 +259,22 @@ class _Candidates:
         return cls(vis.indices[keep], vis.points[keep], vis.view_angle[keep], vis.silhouette_distance[keep])
 
 
+@dataclass(frozen=True)
+class _CameraMeasurement:
+    """One camera's corners of one measurement pass: its observation, and the measured pixels
+    ``z`` with their predictions ``h`` and Jacobians ``J`` at the filter's state, their
+    (camera, corner) ``key``, which of the selected corners were found, and the largest
+    window half-size (None arrays: the camera measured nothing)."""
+
+    obs: CameraObservation
+    z: np.ndarray | None = None
+    h: np.ndarray | None = None
+    J: np.ndarray | None = None
+    key: np.ndarray | None = None
+    found_idx: np.ndarray | None = None
+    half: int = 0
+
+
 #: 0.99 quantile of chi-square with 6 dof (an edge-fitted pose agreeing with the filter).
 _CHI2_6_99 = 16.811893829770927
 
@@ -557,20 +573,23 @@ class Tracker:
         stage["redetect"] = time.perf_counter() - t
 
     def _measure_twice(self, fs: FrameSet, stage: dict) -> tuple:
-        """:meth:`_measure` about the filter's prediction, and again about its result when the
-        windows were large; the filter updated once (see ``refine_window_px``)."""
+        """:meth:`_measure` about the filter's prediction, and again about its result in the
+        cameras whose windows were wide; the filter updated once (see ``refine_window_px``)."""
         ekf = self.ekf
         saved = (ekf.snapshot(), self.sigma_px, self.feature_factor.copy(), self._noise_updates)
-        result = self._measure(fs, stage)
-        if result[5] and result[4] >= self.config.refine_window_px:
-            # Large windows (a start, a coast, a jolt): the first pass used the corners with no
+        result, recs = self._measure(fs, stage)
+        wide = {k for k, r in recs.items() if r.half >= self.config.refine_window_px}
+        if result[5] and wide:
+            # Wide windows (a start, a coast, a jolt): the first pass used the corners with no
             # neighbour inside their window. Its result only places the windows of a second
-            # pass (small, the full feature set); the filter is then updated once, from its
-            # prediction, with the second pass's corners: each image counts once.
+            # pass (small, the full feature set) in those cameras; the filter is then updated
+            # once, from its prediction, with the second pass's corners there and the first
+            # pass's elsewhere: each image counts once. A camera whose windows were small
+            # already measured about the prediction what it would measure about the result.
             assoc = (ekf.pose, ekf.pose_covariance)
             snap, self.sigma_px, self.feature_factor, self._noise_updates = saved
             ekf.restore(snap)
-            result = self._measure(fs, stage, assoc)
+            result, _ = self._measure(fs, stage, assoc, {k: r for k, r in recs.items() if k not in wide})
         return result
 
     def _adapt_motion(self, T_prior: np.ndarray, P_prior: np.ndarray) -> None:
@@ -623,27 +642,31 @@ class Tracker:
                 memory.learn(m.fit.sample_contrast[0], m.edge_side)
         stage["edges"] = time.perf_counter() - t
 
-    def _measure(self, fs: FrameSet, stage: dict, assoc: tuple | None = None):
+    def _measure(self, fs: FrameSet, stage: dict, assoc: tuple | None = None, kept: dict | None = None):
         """Visibility, selection, extraction and update.
 
         Features are chosen and searched for around ``assoc`` = (T_world_object,
         6x6 covariance), by default the filter's prediction; the update is
-        always the filter's, linearised at its own state.
+        always the filter's, linearised at its own state. ``kept``: camera index ->
+        :class:`_CameraMeasurement` of an earlier pass about the same prediction, used
+        as it is for those cameras.
 
-        Returns (observations, corners found, accepted, mean NIS, largest window half-size,
-        whether the update was applied); adds each stage's time to ``stage``.
+        Returns ((observations, corners found, accepted, mean NIS, largest window half-size,
+        whether the update was applied), the cameras' measurements by camera index); adds
+        each stage's time to ``stage``.
         """
         c = self.config
         ekf = self.ekf
+        kept = kept or {}
         T_pred, P6 = (ekf.pose, ekf.pose_covariance) if assoc is None else assoc
 
         # Visibility and projection per camera.
         t = time.perf_counter()
         cands, per_cam = [], []
-        for cam in self.rig:
+        for k, cam in enumerate(self.rig):
             img = fs.images.get(cam.name)
             T_wc = self._camera_pose(fs, cam.name)
-            if img is None or T_wc is None:
+            if img is None or T_wc is None or k in kept:
                 per_cam.append(None)
                 continue
             vis = _Candidates.of(self.scene.query(0, T_wc, [T_pred], cam.intrinsics, check=False), self.salient)
@@ -679,41 +702,42 @@ class Tracker:
 
         # Windowed extraction.
         t = time.perf_counter()
-        zs, hs, Js, owners, keys = [], [], [], [], []
-        obs = []
-        max_half = 0
+        recs = {}
         for k, entry in enumerate(per_cam):
             cam = self.rig.cameras[k]
+            if k in kept:
+                recs[k] = kept[k]
+                continue
             if entry is None:
-                obs.append(CameraObservation(cam.name, fs.images.get(cam.name) is not None))
+                recs[k] = _CameraMeasurement(CameraObservation(cam.name, fs.images.get(cam.name) is not None))
                 continue
             _, img, T_wc, vis, uv, J = entry
             sel = chosen.get(k, np.zeros(0, int))
             if sel.size == 0:
-                obs.append(CameraObservation(cam.name, True, int(vis.indices.size)))
+                recs[k] = _CameraMeasurement(CameraObservation(cam.name, True, int(vis.indices.size)))
                 continue
             Jk = J[sel]
             fid = vis.indices[sel]
             half = self._window_half_sizes(k, Jk, fid, P6)
-            max_half = max(max_half, int(half.max()))
             ext = extract_corners(img, uv[sel], half)
             found = ext.found
-            zs.append(ext.uv[found])
             if assoc is None:
-                hs.append(uv[sel][found])
-                Js.append(Jk[found])
+                h_k, J_k = uv[sel][found], Jk[found]
             elif found.any():  # predicted pixels and Jacobians at the filter's own state
                 h_k, _, J_k = project_with_jacobian(cam.intrinsics, T_wc, ekf.pose, vis.points[sel][found])
-                hs.append(h_k)
-                Js.append(J_k)
             else:
-                hs.append(np.zeros((0, 2)))
-                Js.append(np.zeros((0, 2, 6)))
-            keys.append(np.stack([np.full(int(found.sum()), k), fid[found]], axis=1))
-            owners.append((len(obs), np.flatnonzero(found)))
-            obs.append(CameraObservation(cam.name, True, int(vis.indices.size), vis.indices[sel], uv[sel], half,
-                                         ext.uv, np.zeros(sel.size, bool)))
+                h_k, J_k = np.zeros((0, 2)), np.zeros((0, 2, 6))
+            recs[k] = _CameraMeasurement(
+                CameraObservation(cam.name, True, int(vis.indices.size), vis.indices[sel], uv[sel], half, ext.uv,
+                                  np.zeros(sel.size, bool)),
+                ext.uv[found], h_k, J_k, np.stack([np.full(int(found.sum()), k), fid[found]], axis=1),
+                np.flatnonzero(found), int(half.max()))
         stage["extraction"] += time.perf_counter() - t
+        obs = [recs[k].obs for k in range(len(per_cam))]
+        meas = [(k, recs[k]) for k in range(len(per_cam)) if recs[k].z is not None]
+        zs, hs, Js, keys = ([getattr(r, f) for _, r in meas] for f in ("z", "h", "J", "key"))
+        owners = [(k, r.found_idx) for k, r in meas]
+        max_half = max((r.half for r in recs.values()), default=0)
 
         # Update.
         t = time.perf_counter()
@@ -760,7 +784,7 @@ class Tracker:
                     offset += found_idx.size
                     obs[oi] = CameraObservation(**{**obs[oi].__dict__, "accepted": acc})
         stage["update"] += time.perf_counter() - t
-        return obs, len(z), n_acc, mean_nis, max_half, updated
+        return (obs, len(z), n_acc, mean_nis, max_half, updated), recs
 
     def _seeing(self, obs: list) -> list:
         """The observations whose cameras get edge fits: all of them, less the blind cameras
