@@ -164,7 +164,8 @@ def run_tracked(trial: Trial, track_frames: int, config_set: dict | None = None,
     model, syms, frames = trial.model, trial.syms, trial.frames
     rig, config, motion = trial.cell_setup()
     init_set = dict(init_set or {})
-    init_set.setdefault("plain_faces", False)  # as the command line sets (vespro.cmd_track.init_options)
+    if (config_set or {}).get("decision") == "bank":  # as --decision bank sets (vespro.cmd_track.init_options)
+        init_set.setdefault("plain_faces", False)
     gate = _Gated(make_initializer(rig, model, **init_set), trial.stride)
     tracker = Tracker(rig, model, config=replace(TrackerConfig(), **(config_set or {})), initializer=gate)
     for k, v in (edge_set or {}).items():

@@ -2,16 +2,20 @@
 
 An 84 mm cube (corners as ``mbt/cube.cao``) seen by one camera (ViSP's
 ``px py u0 v0``, no distortion), 218 grey frames at 25 Hz (the stamps here).
-The tracker runs twice on the same frames: with its initialiser and nothing
-else (``auto``: no flag, no pose), and, as the baseline, started at ViSP's
-hand-set start pose (``given``: ``cube.0.pos``, 1-3 px off the image's
-outline). The table gives for each: the first frame published ``tracking``,
-the frames published ``tracking``, the ADD of frame 0's published pose from
-the start pose (% of the diameter), the per-frame time (median, p99; the
-initialiser's calls included) and its ratio to the baseline's. With
-``--overlay DIR`` it writes the published outline over frames 0, 100 and 200.
+The tracker runs with its initialiser and nothing else, once per decision
+(``TrackerConfig.decision``), and the table gives, per decision: the first
+frame published ``tracking``, the frames published ``tracking`` among those
+run, the ADD of frame 0's published pose from ViSP's hand-set start pose
+(``cube.0.pos``, 1-3 px off the image's outline; % of the diameter), and the
+per-frame time (median, p99; the initialiser's calls included). With
+``--overlay DIR`` it writes the bank's published outline over frames 0, 100
+and 200.
 
-Usage: ``python3 bench/visp_cube.py [--frames 218] [--overlay DIR]``
+With ``--textured`` the initialiser is told the part's faces are textured
+(``vespro serve --textured``); with the bank deciding it never assumes plain
+faces (as ``vespro serve --decision bank``: texture is clutter to the likelihood).
+
+Usage: ``python3 bench/visp_cube.py [--frames 218] [--decisions rules,bank] [--rules-frames 30] [--overlay DIR] [--textured]``
 """
 
 from __future__ import annotations
@@ -34,7 +38,6 @@ from vespro.metrics import add_sym, discrete_symmetries  # noqa: E402
 from vespro.model import box_model  # noqa: E402
 from vespro.rig import Rig, RigCamera  # noqa: E402
 from vespro.se3 import exp_so3  # noqa: E402
-from vespro.startpose import InitResult  # noqa: E402
 from vespro.tracker import Tracker, TrackerConfig  # noqa: E402
 
 DATA = Path("/usr/share/visp-images-data/ViSP-images/mbt")
@@ -50,18 +53,16 @@ def start_pose() -> np.ndarray:
     return T
 
 
-def run(mode: str, n: int, overlay: Path | None) -> dict:
+def run(decision: str, n: int, overlay: Path | None, textured: bool = False) -> dict:
     model = box_model([0.084] * 3, center=(-0.042, 0.042, 0.042), name="cube")
     img0 = cv2.imread(str(DATA / "cube" / "image0000.pgm"), cv2.IMREAD_GRAYSCALE)
     rig = Rig((RigCamera("cam", CameraIntrinsics(img0.shape[1], img0.shape[0], K), T_world_camera=np.eye(4)),))
-    tr = Tracker(rig, model, TrackerConfig(), initializer=make_initializer(rig, model, plain_faces=False) if mode == "auto" else None)
+    tr = Tracker(rig, model, TrackerConfig(decision=decision), initializer=make_initializer(rig, model, plain_faces=not (textured or decision == "bank")))
     syms = discrete_symmetries(model.vertices)
     out = dict(first=None, tracked=0, add0=float("nan"), ms=[])
     for k in range(n):
         img = cv2.imread(str(DATA / "cube" / f"image{k:04d}.pgm"), cv2.IMREAD_GRAYSCALE)
         fs = FrameSet(k, int(k * 40e6), {"cam": img})
-        if k == 0 and mode == "given":
-            tr.start(InitResult(start_pose(), given=True), fs.t_ns)
         t = time.perf_counter()
         o = tr.process(fs)
         out["ms"].append((time.perf_counter() - t) * 1e3)
@@ -82,25 +83,27 @@ def run(mode: str, n: int, overlay: Path | None) -> dict:
             cv2.putText(vis, f"frame {k}: {o.status} p={o.probability:.3f}", (10, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.5,
                         (0, 0, 255), 1, cv2.LINE_AA)
             overlay.mkdir(parents=True, exist_ok=True)
-            cv2.imwrite(str(overlay / f"cube_{mode}_{k:03d}.png"), vis)
+            cv2.imwrite(str(overlay / f"cube_{decision}{'_textured' if textured else ''}_{k:03d}.png"), vis)
     return out
 
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--frames", type=int, default=218)
+    ap.add_argument("--rules-frames", type=int, default=30,
+                    help="frames run with the rules (each refused start costs about a second)")
+    ap.add_argument("--decisions", default="rules,bank")
     ap.add_argument("--overlay", type=Path, default=None)
+    ap.add_argument("--textured", action="store_true", help="the initialiser told the part is textured (vespro's --textured)")
     a = ap.parse_args(argv)
     if not (DATA / "cube" / "image0000.pgm").exists():
         raise SystemExit("visp-images-data is not installed (apt install visp-images-data)")
-    runs = {m: run(m, a.frames, a.overlay) for m in ("given", "auto")}
-    base = np.median(runs["given"]["ms"])
-    print(f"{'start':>6} {'frames':>6} {'first':>5} {'tracked':>7} {'ADD0 %':>6} {'median ms':>9} {'p99 ms':>7} "
-          f"{'x given':>7}")
-    for m, r in runs.items():
-        med = np.median(r["ms"])
-        print(f"{m:>6} {a.frames:>6} {str(r['first']):>5} {r['tracked']:>7} {r['add0']:>6.2f} "
-              f"{med:>9.1f} {np.percentile(r['ms'], 99):>7.1f} {med / base:>7.2f}", flush=True)
+    print(f"{'decision':>8} {'frames':>6} {'first':>5} {'tracked':>7} {'ADD0 %':>6} {'median ms':>9} {'p99 ms':>7}")
+    for d in a.decisions.split(","):
+        n = min(a.frames, a.rules_frames) if d == "rules" else a.frames
+        r = run(d, n, a.overlay, a.textured)
+        print(f"{d:>8} {n:>6} {str(r['first']):>5} {r['tracked']:>7} {r['add0']:>6.2f} "
+              f"{np.median(r['ms']):>9.1f} {np.percentile(r['ms'], 99):>7.1f}", flush=True)
 
 
 if __name__ == "__main__":

@@ -52,8 +52,14 @@ def add_tracker_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--selection", choices=["information", "quality"], default="quality",
                    help="feature selection: information-greedy (log-det) or the classic quality index")
     p.add_argument("--sigma-px", type=float, default=0.5, help="corner measurement noise std, px")
-    # Accepted and said to be unneeded: texture inside a face is clutter to the image likelihood.
-    p.add_argument("--textured", action="store_true", help=argparse.SUPPRESS)
+    p.add_argument("--textured", action="store_true",
+                   help="the part's faces carry texture or markings: image edges inside its faces do not count "
+                        "against a pose found by one camera (by default faces are taken as plain, as CAD parts "
+                        "of one material are; see InitOptions.plain_faces)")
+    p.add_argument("--decision", choices=["rules", "bank"], default="rules",
+                   help="what decides the published status: the confirmation rules, or the hypothesis bank "
+                        "weighing the initialiser's poses by the image likelihood (texture counts as clutter "
+                        "there: the initialiser then takes every part as textured)")
     add_symmetry_option(p)
 
 
@@ -75,16 +81,14 @@ def say_symmetry(prog: str, tracker, given: bool, reacquires: bool) -> None:
 def tracker_config(args):
     from .tracker import TrackerConfig
 
-    if getattr(args, "textured", False):
-        print("vespro: --textured is no longer needed (texture inside a face counts as clutter to the image "
-              "likelihood); ignored", file=sys.stderr)
     return TrackerConfig(features_per_camera=args.features, selection=args.selection, sigma_px=args.sigma_px,
-                         symmetry=args.symmetry)
+                         decision=getattr(args, "decision", "rules"), symmetry=args.symmetry)
 
 
 def init_options(args) -> dict:
-    """``InitOptions`` fields the command line sets."""
-    return {"plain_faces": False}
+    """``InitOptions`` fields the command line sets (``--textured``; ``--decision bank``: the bank's
+    likelihood takes texture inside the faces as clutter, so the plain-face checks stay off)."""
+    return {"plain_faces": not (getattr(args, "textured", False) or getattr(args, "decision", "rules") == "bank")}
 
 
 def initializer_for(args, rec, model):

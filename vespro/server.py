@@ -85,23 +85,27 @@ def _worker_ping() -> None:
     return None
 
 
-def _init_call(initializer, fs: FrameSet, seed=None) -> tuple:
+def _init_call(initializer, fs: FrameSet, seed=None, pending=None) -> tuple:
     """One initialiser call (seeded first when there is a seed): ``(result, why not, candidates)``.
 
-    ``why not`` is the initialiser's reason for returning no pose (its
-    ``last_report.reason``), or "". ``candidates``: the poses it ranked besides its
-    answer, best first (hypotheses for the bank: :meth:`vespro.tracker.Tracker.propose`).
+    ``pending``: ``(T_world_object, t_ns)`` of the tracker's provisional start, for the
+    call to confirm (:meth:`vespro.tracker.Tracker.offer`). ``why not`` is the
+    initialiser's reason for returning no pose (its ``last_report.reason``, e.g. an
+    accidental view or an ambiguity), or "". ``candidates``: the poses it ranked besides
+    its answer, best first (for the hypothesis bank: :meth:`vespro.tracker.Tracker.propose`).
     """
     if seed is not None and hasattr(initializer, "reseed"):
         initializer.reseed(seed[0], velocity=seed[1], t_ns=seed[2])
+    if pending is not None and hasattr(initializer, "await_confirmation"):
+        initializer.await_confirmation(*pending)
     res = initializer(fs)
     report = getattr(initializer, "last_report", None)
     cands = tuple(T for T, _ in getattr(report, "candidates", ()))
     return res, ("" if res is not None or report is None else str(getattr(report, "reason", "") or "")), cands
 
 
-def _worker_run(fs: FrameSet, seed=None):
-    return _init_call(_WORKER_INIT, fs, seed)
+def _worker_run(fs: FrameSet, seed=None, pending=None):
+    return _init_call(_WORKER_INIT, fs, seed, pending)
 
 _STATUS = {"tracking": PoseStatus.TRACKING, "initializing": PoseStatus.INITIALIZING, "lost": PoseStatus.LOST}
 
@@ -112,7 +116,8 @@ def pose_message(out: TrackerOutput, seq: int, t_send_ns: int, object_id: int = 
 
     A frame that is not tracking still carries a pose (the last good one, or
     identity) so the message is well formed; its status tells the receiver not
-    to use it. The tracker's probability goes out with every frame.
+    to use it. The tracker's probability goes out with every frame (NaN: not
+    stated, as with the confirmation rules).
     """
     if out.status == "tracking" and out.T_world_object is not None:
         T = out.T_world_object
@@ -219,6 +224,7 @@ class PoseServer:
         self.source = source
         self.tracker = tracker
         self.tracker.initializer = None
+        self._bank = getattr(tracker, "bank", None)  # decision "bank": the hypotheses the initialiser feeds
         self._blind_logged = 0  # Tracker.blind_frames at the last status line
         self.publisher = publisher
         self.clock = clock
@@ -243,10 +249,10 @@ class PoseServer:
             # Start the worker now: started by the first real job, its launch stalled the live loop
             # for long enough that the frames after that job's were missing and its pose was discarded.
             self._worker_up = self._pool.submit(_worker_ping)
-            self._submit = lambda fs, seed: self._pool.submit(_worker_run, fs, seed)
+            self._submit = lambda fs, seed, pending: self._pool.submit(_worker_run, fs, seed, pending)
         elif background_init:
             self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="vespro-init")
-            self._submit = lambda fs, seed: self._pool.submit(_init_call, self.initializer, fs, seed)
+            self._submit = lambda fs, seed, pending: self._pool.submit(_init_call, self.initializer, fs, seed, pending)
         else:
             self._pool = None
         self._job: Future | None = None
@@ -287,14 +293,19 @@ class PoseServer:
 
     # -- initialisation ---------------------------------------------------------
     def _searching(self) -> bool:
-        """Whether the initialiser is wanted: while nothing is published and no catch-up is under
-        way (its answers are hypotheses beside those held, :meth:`Tracker.propose`; not while
-        catching up: they would join the hypotheses mid-way)."""
-        return not self.tracker.confirmed and self._catching is None
+        """Whether the initialiser is wanted: while there is no filter, or the filter holds a
+        provisional start (the initialiser confirms or replaces it: :meth:`Tracker.offer`);
+        with the hypothesis bank, while nothing is published and no catch-up is under way (its
+        answers are hypotheses beside those held: :meth:`Tracker.propose`)."""
+        tr = self.tracker
+        if self._bank is not None:  # (not while catching up: the answer would join hypotheses mid-way)
+            return not tr.confirmed and self._catching is None
+        return tr.ekf is None or tr.provisional
 
     def _holding(self) -> bool:
-        """Whether the tracker holds a pose hypothesis to track."""
-        return bool(self.tracker.bank.hypotheses)
+        """Whether the tracker holds a pose to track (a filter, or the bank's hypotheses)."""
+        tr = self.tracker
+        return tr.ekf is not None or (self._bank is not None and bool(self._bank.hypotheses))
 
     def _maybe_start(self, fs: FrameSet) -> None:
         """Run the initialiser while it is wanted (:meth:`_searching`)."""
@@ -304,11 +315,15 @@ class PoseServer:
             self.stats.init_attempts += 1
             t = time.perf_counter()
             # After a loss the initialiser first tries near the last good pose.
-            res, _, cands = _init_call(self.initializer, fs, self.tracker.recovery_seed())
+            res, _, cands = _init_call(self.initializer, fs, self.tracker.recovery_seed(),
+                                       self.tracker.provisional_pose())
             self.stats.add_stage("init", (time.perf_counter() - t) * 1e3)
             if res is not None:
                 self.stats.init_successes += 1
-                self.tracker.propose(res, fs.t_ns, cands)
+                if self._bank is not None:
+                    self.tracker.propose(res, fs.t_ns, cands)
+                else:
+                    self._start(res, fs.t_ns)
             return
         if self._job is not None and self._job.done():
             cands = ()
@@ -323,7 +338,8 @@ class PoseServer:
             self.stats.add_stage("init", (time.perf_counter() - self._job_wall) * 1e3)
             if self.log:
                 waited = (fs.t_ns - job_t) * 1e-9
-                found = (f"no pose ({why})" if why else "no pose") if res is None else "a pose" + "".join(
+                found = (f"no pose ({why})" if why else "no pose") if res is None else (
+                    "a provisional pose" if res.provisional else "a pose") + "".join(
                     f" ({name} hidden: judged without it)" for name in res.hidden)
                 self._note(found, f"initialisation on the frame of {waited:.1f} s ago: {found}")
             newer = [old for old in self._backlog if old.t_ns > job_t]
@@ -335,7 +351,7 @@ class PoseServer:
                 self.stale_inits += 1
                 res = None
                 self._note("discarded", "  discarded: the frames right after it are gone (no catch-up across the gap)")
-            if res is not None and self.tracker.bank.hypotheses:
+            if res is not None and self._bank is not None and self._bank.hypotheses:
                 # Hypotheses are held at the present: the new ones are carried through the
                 # frames since theirs and join them.
                 self.stats.init_successes += 1
@@ -343,11 +359,17 @@ class PoseServer:
                 self._backlog.clear()
                 return
             if res is not None:
+                self.stats.init_successes += 1
+                if self._bank is not None:
+                    self.tracker.propose(res, job_t, cands)
+                    self._catching = deque(newer)
+                    self._backlog.clear()
+                    return
+                if not self._start(res, job_t):
+                    return  # the provisional start confirmed (or kept): tracked on as it is
                 # Catch up: the part moved while the initialiser worked. The frames that came
                 # since are tracked (not published: they are old), a few per live frame, with
-                # the live frames joining the queue, until the hypotheses reach the present.
-                self.stats.init_successes += 1
-                self.tracker.propose(res, job_t, cands)
+                # the live frames joining the queue, until the filter reaches the present.
                 self._catching = deque(newer)
                 self._backlog.clear()
                 return
@@ -355,7 +377,15 @@ class PoseServer:
             self.stats.init_attempts += 1
             self._job_t_ns = fs.t_ns
             self._job_wall = time.perf_counter()
-            self._job = self._submit(fs, self.tracker.recovery_seed())
+            self._job = self._submit(fs, self.tracker.recovery_seed(), self.tracker.provisional_pose())
+
+    def _start(self, res, t_ns: int) -> bool:
+        """Start the filter from an initialiser's pose on the frame set of ``t_ns``, or offer the
+        pose to a provisional start; True when the filter was (re)started."""
+        if self.tracker.ekf is not None and self.tracker.provisional:
+            return self.tracker.offer(res, t_ns)
+        self.tracker.start(res, t_ns)
+        return True
 
     def _catch_up(self, fs: FrameSet) -> TrackerOutput:
         """Track queued frames, then ``fs`` once the queue is through; ``fs``'s output.
@@ -367,7 +397,7 @@ class PoseServer:
         initialisation under load, 1.3 s of catching up left the filter a 0.6 s gap
         to bridge, and a one-camera pose 15 mm off was confirmed on the far side.
         While the queue lasts the live frame is published ``initializing``; the
-        live frames decide again once it is through.
+        filter is confirmed again on the live frames once it is through.
         """
         q = self._catching
         q.append(fs)
@@ -375,13 +405,14 @@ class PoseServer:
         n = 0
         while q and self._holding() and (n < CATCH_UP_MIN or self.clock.now_ns() < t_end):
             f = q.popleft()
-            if not q:  # the live frame set: published as the bank decides on it
+            if not q:  # the live frame set: confirmed again on live frames before publishing
                 self._catching = None
+                self.tracker.require_confirmation(f.t_ns)
                 return self.tracker.process(f)
             self.tracker.process(f)
             self.caught_up_frames += 1
             n += 1
-        if not self._holding():  # every hypothesis gone on the way: the initialiser starts over
+        if not self._holding():  # lost (or not confirmed in time) on the way: the initialiser starts over
             self._catching = None
             return TrackerOutput(fs.index, fs.t_ns, self.tracker.status)
         return TrackerOutput(fs.index, fs.t_ns, "initializing")
@@ -496,10 +527,10 @@ class PoseServer:
 
         Across more than ``max_gap_s`` the filter's velocity is no evidence (the
         stream may have paused, or lost the frames while the part moved on): a
-        published track is started again at its last pose with a start's
-        uncertainty, published once the new frames make it probable as any
-        start; otherwise the initialiser searches, seeded from the last good
-        pose. On ViSP's cube
+        confirmed track is started again at its last pose with a start's
+        uncertainty, published once the tracker confirms it on the new frames as
+        any start; one not confirmed within ``confirm_within_s`` is dropped and the
+        initialiser searches, seeded from the last good pose. On ViSP's cube
         sequence after a 2 s pause the restart tracked from the second frame;
         kept across the gap, the filter's prediction (its velocity over 2 s) lost
         the part on the first and waited for the initialiser.
@@ -508,7 +539,7 @@ class PoseServer:
         self._gap_since = None
         long_gap = waited > self.max_gap_s
         tr = self.tracker
-        restart = long_gap and tr.ekf is not None and tr.confirmed and self._catching is None
+        restart = long_gap and tr.ekf is not None and tr.confirmed and not tr.provisional and self._catching is None
         if restart:
             tr.start(InitResult(tr.ekf.pose), fs.t_ns)
         elif long_gap:
@@ -518,7 +549,7 @@ class PoseServer:
             self._backlog.clear()  # an answer for a frame before the gap is not caught up across it
         if self.log:
             self.log(f"source: frames again after {waited:.1f} s" +
-                     ("; the track starts again from its last pose" if restart else
+                     ("; the track starts again from its last pose, to be confirmed" if restart else
                       "; the track starts over" if long_gap else ""))
 
     def _publish(self, out: TrackerOutput) -> int:

@@ -565,7 +565,9 @@ def track_scenario(sc: dict, cache_dir: str | Path, log=print, overrides: dict |
     if sc["init"] == "gt":
         init_pose = T_true[0]  # evaluator-only: scores tracking, not initialisation
     else:
-        tracker.initializer = make_initializer(rec.rig, tracker.model, plain_faces=False)
+        # With the bank, texture inside a face is clutter to the likelihood: the plain-face checks
+        # stay off, as ``--decision bank`` sets them (vespro.cmd_track.init_options).
+        tracker.initializer = make_initializer(rec.rig, tracker.model, plain_faces=config.decision != "bank")
     outs = track_recording(rec, tracker, init_pose)
     return {"rec_path": rec_path, "rec": rec, "T_true": T_true, "tracker": tracker, "config": config, "outs": outs}
 

@@ -70,12 +70,12 @@ def _frame_sets(part: str, rig_name: str, n: int, mono: bool):
         return rig, object_mesh_path(part), [cell.next_frameset() for _ in range(n)]
 
 
-def _track(rig, model, frame_sets, selection: str) -> int:
+def _track(rig, model, frame_sets, selection: str, decision: str = "rules") -> int:
     from .init import make_initializer
     from .tracker import Tracker, TrackerConfig
 
-    tracker = Tracker(rig, model, TrackerConfig(selection=selection),
-                      initializer=make_initializer(rig, model, plain_faces=False))
+    tracker = Tracker(rig, model, TrackerConfig(selection=selection, decision=decision),
+                      initializer=make_initializer(rig, model, plain_faces=decision != "bank"))
     return sum(tracker.process(fs).status == "tracking" for fs in frame_sets)
 
 
@@ -96,7 +96,7 @@ def warm_up(log=print) -> list[str]:
     runs = []
     # The demo's cell (the bracket, not convex; two fixed cameras and one on the arm, grey
     # images), and a convex part on colour images with the other feature selection; each
-    # also with one camera alone (the one-camera edge fits).
+    # also with one camera alone (the one-camera rules of the initialiser and tracker).
     for part, rig_name, mono, sel in (("bracket", "hybrid", True, "quality"), ("box", "fixed2", False, "information")):
         try:
             rig, mesh, sets = _frame_sets(part, rig_name, FRAMES, mono)
@@ -106,11 +106,13 @@ def warm_up(log=print) -> list[str]:
         model = load_model(mesh, name=part)
         images = "grey" if mono else "colour"
         one = replace(rig, cameras=rig.cameras[:1])
-        runs += [(f"{part}, cameras {', '.join(rig.names)}, {images}, {sel} selection", rig, model, sets, sel),
-                 (f"{part}, camera {rig.names[0]} alone", one, model, sets, sel)]
-    for what, rig, model, frame_sets, sel in runs:
+        runs += [(f"{part}, cameras {', '.join(rig.names)}, {images}, {sel} selection", rig, model, sets, sel, "rules"),
+                 (f"{part}, camera {rig.names[0]} alone", one, model, sets, sel, "rules")]
+        if not mono:  # the hypothesis bank and its image likelihood (--decision bank)
+            runs.append((f"{part}, camera {rig.names[0]} alone, decided by the bank", one, model, sets, sel, "bank"))
+    for what, rig, model, frame_sets, sel, decision in runs:
         t = time.monotonic()
-        n = _track(rig, model, frame_sets, sel)
+        n = _track(rig, model, frame_sets, sel, decision)
         log(f"  {what}: {n}/{len(frame_sets)} frames tracking ({time.monotonic() - t:.0f} s)")
     return uncompiled_kernels()
 

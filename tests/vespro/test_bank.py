@@ -1,4 +1,4 @@
-"""The hypothesis bank (vespro.bank) and the tracker deciding by it.
+"""The hypothesis bank (vespro.bank) and the tracker deciding by it (TrackerConfig.decision = "bank").
 
 Simulator frames; ground truth for scoring only.
 """
@@ -143,7 +143,7 @@ def test_bank_publishes_a_right_start_at_once_and_never_a_wrong_one(box_frames):
     fs0, T0 = frames[0]
     T_near = T0.copy()
     T_near[:3, 3] += 0.01 * model.diameter * np.array([0.6, 0.0, 0.8])
-    tr = Tracker(rig, model, TrackerConfig())
+    tr = Tracker(rig, model, TrackerConfig(decision="bank"))
     tr.start(InitResult(T_near), fs0.t_ns)
     outs = [tr.process(fs) for fs, _ in frames]
     assert all(o.status == "tracking" for o in outs)
@@ -153,7 +153,7 @@ def test_bank_publishes_a_right_start_at_once_and_never_a_wrong_one(box_frames):
     T_wrong = T0.copy()
     T_wrong[:3, :3] = T0[:3, :3] @ exp_so3([0.0, np.deg2rad(25.0), 0.0])
     T_wrong[:3, 3] = T0[:3, :3] @ c + T0[:3, 3] - T_wrong[:3, :3] @ c
-    tr = Tracker(rig, model, TrackerConfig())
+    tr = Tracker(rig, model, TrackerConfig(decision="bank"))
     tr.start(InitResult(T_wrong), fs0.t_ns)
     outs = [tr.process(fs) for fs, _ in frames]
     assert all(o.status != "tracking" for o in outs)
@@ -166,7 +166,7 @@ def test_bank_demotes_a_track_whose_images_stop_showing_it(box_frames):
     (a view that shows nothing may be a blocked one: it costs at most ``log(1 - p_visible)``)."""
     rig, model, frames = box_frames
     fs0, T0 = frames[0]
-    tr = Tracker(rig, model, TrackerConfig())
+    tr = Tracker(rig, model, TrackerConfig(decision="bank"))
     tr.start(InitResult(T0), fs0.t_ns)
     for fs, _ in frames[:3]:
         assert tr.process(fs).status == "tracking"
@@ -176,13 +176,18 @@ def test_bank_demotes_a_track_whose_images_stop_showing_it(box_frames):
     assert out.status == "lost" and out.probability < 1.0 - tr.bank.options.wrong_lock_rate
 
 
+def test_decision_must_be_named():
+    with pytest.raises(ValueError, match="decision"):
+        TrackerConfig(decision="vote")
+
+
 VISP = __import__("pathlib").Path("/usr/share/visp-images-data/ViSP-images/mbt")
 
 
 @pytest.mark.skipif(not (VISP / "cube" / "image0000.pgm").exists(), reason="visp-images-data not installed")
 def test_bank_starts_on_a_real_textured_cube_with_no_flag_and_no_pose():
     """ViSP's real cube (84 mm, textured faces, ``mbt/cube``), the initialiser with its default
-    options but for the plain-face checks (off, as the command line sets them):
+    options but for the plain-face checks (off with the bank, as ``--decision bank`` sets):
     published ``tracking`` from within the first 3 frames, within 10% of the diameter of
     ViSP's hand-set start pose on frame 0 (itself 1-3 px off; measured 4.7%)."""
     import cv2
@@ -197,7 +202,7 @@ def test_bank_starts_on_a_real_textured_cube_with_no_flag_and_no_pose():
     model = box_model([0.084] * 3, center=(-0.042, 0.042, 0.042), name="cube")
     imgs = [cv2.imread(str(VISP / "cube" / f"image{k:04d}.pgm"), cv2.IMREAD_GRAYSCALE) for k in range(3)]
     rig = Rig((RigCamera("cam", CameraIntrinsics(640, 480, K), T_world_camera=np.eye(4)),))
-    tr = Tracker(rig, model, TrackerConfig(), initializer=make_initializer(rig, model, plain_faces=False))
+    tr = Tracker(rig, model, TrackerConfig(decision="bank"), initializer=make_initializer(rig, model, plain_faces=False))
     outs = [tr.process(FrameSet(k, int(k * 40e6), {"cam": im})) for k, im in enumerate(imgs)]
     tracked = [o for o in outs if o.status == "tracking"]
     assert tracked and tracked[-1] is outs[-1]

@@ -64,31 +64,22 @@ def _paddle_recording(directory, rig="fixed3", hide="cam_top"):
     return Recording(path), read_groundtruth(path)[2]
 
 
-def _hidden_run(directory, rig="fixed3", hide="cam_top", p_visible=None):
+def _hidden_run(directory, rig="fixed3", hide="cam_top", **init_options):
     """A paddle hiding the part from one camera of a fixed rig throughout; tracked from
-    the images alone (``p_visible``: the bank's, when given). Returns (outputs, recording
-    times, ground truth, tracker)."""
-    from dataclasses import replace
+    the images alone. Returns (outputs, recording times, ground truth, tracker)."""
+    from vespro.tracker import TrackerConfig
 
     rec, T = _paddle_recording(directory, rig, hide)
-    tr = make_tracker(rec)
-    if p_visible is not None:
-        tr.bank.options = replace(tr.bank.options, p_visible=p_visible)
-    tr.initializer = make_initializer(rec.rig, tr.model, plain_faces=False)
+    blind = {} if init_options.get("hidden_camera", True) else {"blind_found_fraction": 0.0}
+    tr = make_tracker(rec, TrackerConfig(**blind))
+    tr.initializer = make_initializer(rec.rig, tr.model, **init_options)
     return track_recording(rec, tr), rec.t, T, tr
-
-
-def _published_near(outs, T, within):
-    """Frames published ``tracking`` within ``within`` (m) of the true position."""
-    return [o.index for o in outs if o.status == "tracking"
-            and np.linalg.norm(o.T_world_object[:3, 3] - T[o.index][:3, 3]) < within]
 
 
 def test_a_camera_hidden_by_an_unknown_body_neither_blocks_initialisation_nor_tracking(paddle_dir):
     """Something the model does not know (the arm, a paddle here) hides the part from one
-    of three cameras: the two others find it and the bank publishes it, a camera that sees
-    none of the part's edges costing a pose at most ``log(1 - p_visible)`` a frame; it is
-    tracked to the end, accurately, the blind camera left out of the edge fits."""
+    of three cameras: the two others find it (``InitOptions.hidden_camera``), confirm it and
+    track it (``TrackerConfig.blind_found_fraction``); with both rules off it is never found."""
     outs, t, T, tr = _hidden_run(paddle_dir)
     tracking = [o for o in outs if o.status == "tracking"]
     assert tracking and t[tracking[0].index] < 0.5, [o.status for o in outs]
@@ -96,6 +87,8 @@ def test_a_camera_hidden_by_an_unknown_body_neither_blocks_initialisation_nor_tr
     errs = [np.linalg.norm(o.T_world_object[:3, 3] - T[o.index][:3, 3]) for o in tracking]
     assert max(errs) < 0.05 * tr.model.diameter
     assert tr.blind_frames >= len(tracking) - 1
+    outs, *_ = _hidden_run(paddle_dir, hidden_camera=False)
+    assert all(o.status != "tracking" for o in outs)
 
 
 def test_a_seeded_reinitialisation_leaves_out_a_camera_the_part_is_hidden_from(paddle_dir):
@@ -127,14 +120,44 @@ def test_a_seeded_reinitialisation_leaves_out_a_camera_the_part_is_hidden_from(p
 
 def test_with_two_cameras_one_hidden_the_other_initialises_and_tracks_alone(paddle_dir):
     """Two fixed cameras, the right one behind a paddle throughout: the left one finds the
-    part, the bank publishes it on the left camera's evidence (the right one costing at most
-    ``log(1 - p_visible)`` a frame) and it is tracked with the left camera's edges, to
-    one-camera accuracy, to the end; with ``p_visible`` 1 never at the right pose."""
+    part under the one-camera rules (``InitResult.hidden`` names the right camera, so the
+    tracker confirms it by the left alone) and tracks it with its edges, to one-camera
+    accuracy (measured: from frame 7, 33 of 40 frames, max 4.1 mm); never with the rules off."""
     outs, t, T, tr = _hidden_run(paddle_dir, rig="fixed2", hide="cam_right")
     tracking = [o for o in outs if o.status == "tracking"]
     assert tracking and t[tracking[0].index] < 1.0, [o.status for o in outs]
     assert len(tracking) >= len(outs) - 15
     errs = [np.linalg.norm(o.T_world_object[:3, 3] - T[o.index][:3, 3]) for o in tracking]
     assert max(errs) < 0.1 * tr.model.diameter
-    outs, *_ = _hidden_run(paddle_dir, rig="fixed2", hide="cam_right", p_visible=1.0)
-    assert not _published_near(outs, T, 0.1 * tr.model.diameter)
+    outs, *_ = _hidden_run(paddle_dir, rig="fixed2", hide="cam_right", hidden_camera=False)
+    assert all(o.status != "tracking" for o in outs)
+
+
+def test_with_the_bank_a_camera_hidden_by_an_unknown_body_costs_a_pose_little(paddle_dir):
+    """Decision "bank", two fixed cameras, the right one behind a paddle throughout: each
+    camera's evidence is a mixture with a blocked view (``BankOptions.p_visible``), so the
+    right camera, which finds none of the part's edges, costs the right pose at most
+    ``log(1 - p_visible)`` a frame: published within the first second and tracked to the end
+    (measured: from frame 6, every frame). Counting every camera as seeing (``p_visible`` 1),
+    the hidden camera refutes the right pose on every frame and it is never published."""
+    from dataclasses import replace
+
+    from vespro.tracker import TrackerConfig
+
+    rec, T = _paddle_recording(paddle_dir, "fixed2", "cam_right")
+
+    def run(p_visible=None):
+        tr = make_tracker(rec, TrackerConfig(decision="bank"))
+        if p_visible is not None:
+            tr.bank.options = replace(tr.bank.options, p_visible=p_visible)
+        tr.initializer = make_initializer(rec.rig, tr.model, plain_faces=False)
+        outs = track_recording(rec, tr)
+        return [o for o in outs if o.status == "tracking"
+                and np.linalg.norm(o.T_world_object[:3, 3] - T[o.index][:3, 3]) < 0.1 * tr.model.diameter], outs
+
+    right, outs = run()
+    assert right and rec.t[right[0].index] < 1.0, [o.status for o in outs]
+    assert len(right) >= len(outs) - 15
+    assert all(o in right for o in outs if o.status == "tracking")  # nothing else published
+    right, _ = run(p_visible=1.0)
+    assert right == []

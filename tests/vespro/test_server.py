@@ -74,6 +74,7 @@ def test_replayed_recording_is_served_in_order_over_tcp(rec_path):
     pub.close()
     assert stats.frames == len(rec) == len(got)
     assert [m.seq for m in got] == list(range(len(rec)))
+    assert got[0].status == PoseStatus.INITIALIZING  # the start is confirmed first
     tracking = [m for m in got if m.status == PoseStatus.TRACKING]
     assert len(tracking) >= len(rec) - 3
     for m in tracking:
@@ -183,6 +184,61 @@ def test_the_log_says_why_an_initialisation_found_no_pose(rec_path):
     assert _init_call(lambda fs: None, rec.frameset(0)) == (None, "", ())  # no report: no reason
 
 
+class _ProvisionalFirst:
+    """A fake initialiser: a provisional pose (the truth) on the frame sets before
+    ``confirm_from``, then the same pose confirmed; ``far`` puts its first pose 5 cm off."""
+
+    def __init__(self, T, confirm_from, far=False):
+        self.T, self.confirm_from, self.far = T, confirm_from, far
+        self.last_report, self.awaited, self.calls = None, [], []
+
+    def await_confirmation(self, T_world_object, t_ns):
+        self.awaited.append(t_ns)
+
+    def __call__(self, fs):
+        from types import SimpleNamespace
+
+        self.calls.append(fs.index)
+        self.last_report = SimpleNamespace(reason="")
+        T = self.T[fs.index].copy()
+        if self.far and len(self.calls) == 1:
+            T[2, 3] += 0.05
+        return InitResult(T, provisional=fs.index < self.confirm_from)
+
+
+@pytest.mark.parametrize("mode", [False, "thread"])
+def test_a_provisional_start_is_published_once_the_initialiser_confirms_it(rec_path, mode):
+    """The server keeps calling the initialiser while the filter holds a provisional start,
+    handing it the filter's pose to confirm; nothing is published ``tracking`` before an
+    answer confirms it, and a first pose elsewhere is replaced by the next answer."""
+    rec = Recording(rec_path)
+    _, _, T = read_groundtruth(rec_path)
+    clock = SimClock()
+    ini = _ProvisionalFirst(T, confirm_from=6, far=True)
+    tracker = Tracker(rec.rig, load_model(rec.model_path))
+    lines = []
+    server = PoseServer(ReplaySource(rec, clock), tracker, None, clock, ini, background_init=mode, log=lines.append)
+    outs = []
+
+    def on_output(fs, out):
+        outs.append(out)
+        if mode:
+            time.sleep(0.02)  # a live loop's pace: the worker answers a few frames later
+
+    server.on_output = on_output
+    server.run()
+    status = [o.status for o in outs]
+    assert "tracking" in status
+    first = status.index("tracking")
+    assert first >= min(c for c in ini.calls if c >= 6), (first, ini.calls)
+    assert len(ini.calls) >= 2 and ini.awaited  # called on while provisional, with the filter's pose
+    assert tracker.starts_replaced >= 1  # the first pose, 5 cm off, replaced
+    if mode:
+        assert any(ln.endswith("a provisional pose") for ln in lines), lines
+    else:  # lockstep: called on every frame set until confirmed on frame set 6, published there
+        assert first == 6 and ini.calls[:7] == list(range(7)), (status, ini.calls)
+
+
 def _child_prints_ok(code: str) -> None:
     """Run ``code`` in a child process (the test process keeps its own scheduling): it prints OK,
     or SKIP where real-time scheduling is not permitted."""
@@ -281,8 +337,8 @@ class _ListSource:
 def test_a_stalled_camera_is_published_lost_and_the_track_found_again_after_it(rec_path, kept_publisher):
     """Frames 0-14, a 2 s stall (the source reports gaps), frames 15-29 2 s later (a stream
     that paused): ``lost`` is published at the gap; the filter starts again at its last
-    pose, published once the new frames make it probable, and the part is tracked to the
-    end; the stall and the return are each logged once."""
+    pose, confirmed on the new frames before it is published, and the part is tracked to
+    the end; the stall and the return are each logged once."""
     from vespro.frames import FrameSet
     from vespro.sources import SourceGap
 
@@ -310,8 +366,9 @@ def test_a_stalled_camera_is_published_lost_and_the_track_found_again_after_it(r
     before, during, back = status[:15], status[15:18], status[18:-1]
     assert before[-1] == PoseStatus.TRACKING
     assert during == [PoseStatus.LOST] * 3 and stats.source_gaps == 3
+    assert back[0] == PoseStatus.INITIALIZING  # a start again, not a coast: confirmed first
     assert back[-1] == PoseStatus.TRACKING and back.index(PoseStatus.TRACKING) <= 5
-    assert calls[0] == 0 and all(c >= 15 for c in calls[1:])  # asked again only while nothing is published
+    assert calls == [0]  # found again from its last pose, without a search
     assert status[-1] == PoseStatus.LOST  # the source ended: nothing tracks the part now
     assert sum("published lost" in ln for ln in lines) == 1
     assert sum("frames again after 2.0 s; the track starts again from its last pose" in ln for ln in lines) == 1
@@ -330,7 +387,7 @@ def test_server_statistics_do_not_grow_with_the_number_of_frames():
     from vespro.tracker import TrackerOutput
 
     class Quick:  # a tracker that takes 1-3 ms, status by frame
-        initializer, ekf, confirmed, blind_frames = None, None, False, 0
+        initializer, ekf, provisional, blind_frames = None, None, False, 0
 
         def process(self, fs):
             return TrackerOutput(fs.index, fs.t_ns, ("tracking", "lost")[fs.index % 4 == 0],
@@ -451,14 +508,16 @@ class _WrongAnswerRightCandidate:
 
 @pytest.mark.parametrize("mode", [False, "thread"])
 def test_with_the_bank_the_initialisers_candidates_are_weighed_beside_its_answer(rec_path, mode):
-    """The server offers the bank the initialiser's answer and its other candidates, and
-    calls it on while nothing is published. An answer 5 cm off with the part's
+    """Decision "bank": the server offers the bank the initialiser's answer and its other
+    candidates, and calls it on while nothing is published. An answer 5 cm off with the part's
     pose as a candidate: the part's pose is published, never the answer."""
+    from vespro.tracker import TrackerConfig
+
     rec = Recording(rec_path)
     _, _, T = read_groundtruth(rec_path)
     clock = SimClock()
     ini = _WrongAnswerRightCandidate(T)
-    tracker = Tracker(rec.rig, load_model(rec.model_path))
+    tracker = Tracker(rec.rig, load_model(rec.model_path), TrackerConfig(decision="bank"))
     lines = []
     server = PoseServer(ReplaySource(rec, clock), tracker, None, clock, ini, background_init=mode, log=lines.append)
     outs = []
