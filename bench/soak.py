@@ -108,7 +108,7 @@ def main() -> int:
     p.add_argument("--duration", type=float, default=1800.0, help="soak length, s")
     p.add_argument("--period", type=float, default=300.0, help="kill the server every this many seconds")
     p.add_argument("--restart-delay", type=float, default=1.0, help="restart the server this long after the kill, s")
-    p.add_argument("--recording", type=Path, default=ROOT.parent.parent / "shared" / "data" / "example_box2",
+    p.add_argument("--recording", type=Path, default=ROOT.parent / "shared" / "data" / "example_box2",
                    help="recording the server replays in a loop")
     p.add_argument("--port", type=int, default=5587, help="TCP port of the server on 127.0.0.1")
     p.add_argument("--rss-period", type=float, default=5.0, help="memory sampling period, s")
