@@ -24,6 +24,12 @@ Reported:
 - the servo's safety record at the end (stops by cause, late ticks,
   rejections).
 
+The replayed recording should be long (a short one loops every few seconds and
+the part jumps back at each loop), e.g. the demo's own: ``vespro demo
+--lockstep --out out/demo`` then ``--recording out/demo/vision/recording``;
+give the servo a core of its own (``--servo-arg=--cpu=1``, SCHED_FIFO) as a
+robot controller has.
+
 Timings depend on the machine's load: the servo's late ticks and the time to
 stop are only meaningful on a machine that keeps the servo's 2 ms tick, and
 the stop and resume times only where the server tracks the replayed part (a
