@@ -60,6 +60,7 @@ from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
+from scipy.special import logsumexp
 
 from .ekf import PoseEKF
 from .likelihood import ImageLikelihood, PoseLikelihood
@@ -211,8 +212,7 @@ class HypothesisBank:
             h.last_log_lik = self.evidence(pl)
             h.score = math.log(max((1.0 - eps) * float(ph), 1e-300)) + h.last_log_lik
             h.frames += 1
-        top = max(self.null_score, max(h.score for h in self.hypotheses))
-        norm = top + math.log(math.exp(self.null_score - top) + sum(math.exp(h.score - top) for h in self.hypotheses))
+        norm = float(logsumexp([self.null_score] + [h.score for h in self.hypotheses]))
         self.null_score -= norm
         for h in self.hypotheses:
             h.score -= norm

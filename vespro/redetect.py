@@ -40,14 +40,17 @@ class Redetector:
         Self-occlusion of a non-convex part.
     options : EdgeOptions
         Edge detection and distance maps (``dt_max`` sets the window's margin too).
+    undistort : dict, optional
+        Camera name -> :class:`~vespro.init.features.Undistorter` already built for this rig
+        (the edge aid's); built here otherwise.
     """
 
-    def __init__(self, rig, mf, tree=None, options: EdgeOptions = EdgeOptions()):
+    def __init__(self, rig, mf, tree=None, options: EdgeOptions = EdgeOptions(), undistort: dict | None = None):
         self.rig = rig
         self.mf = mf
         self.tree = tree
         self.options = options
-        self.undistort = {c.name: Undistorter(c.intrinsics) for c in rig}
+        self.undistort = undistort if undistort is not None else {c.name: Undistorter(c.intrinsics) for c in rig}
         self.calls = 0
 
     def views(self, images: dict, camera_poses: dict, T_world_object: np.ndarray) -> list:

@@ -699,7 +699,8 @@ class Tracker:
             mf = self.edge_aid.mf if self.edge_aid is not None else model_features(model)
             self.bank = HypothesisBank(model.vertices, model.diameter, self.symmetries, ImageLikelihood(mf, self.tree),
                                        self._new_filter, BankOptions())
-            self.redetector = Redetector(rig, mf, self.tree)
+            self.redetector = Redetector(rig, mf, self.tree,
+                                         undistort=self.edge_aid.undistort if self.edge_aid is not None else None)
             self._bank_report = None  # the initialiser's last report seen (its candidates are proposed)
         self._warm_up()
 
