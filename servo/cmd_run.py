@@ -111,7 +111,8 @@ def write_stats_json(path: Path, stats, receiver, poses_used: int, period_ns: in
         "link": {"poses": rs.poses, "frames_ok": rs.frames_ok, "rejected": dict(rs.rejected),
                  "poses_rejected": dict(rs.pose_rejected), "seq_gaps": rs.seq_gaps,
                  "seq_restarts": rs.seq_restarts, "hellos": rs.hellos,
-                 "connects": rs.connects, "disconnects": rs.disconnects},
+                 "connects": rs.connects, "disconnects": rs.disconnects,
+                 "refusals": rs.refusals, "refusal": rs.refusal},
         "rt_warning": stats.rt_warning,
     }
     if state is not None:
@@ -135,8 +136,9 @@ def status_line(state, receiver, t_ns: int) -> str:
     age_ms = "-" if age >= 2**62 else f"{age * 1e-6:.1f}"
     link_rej = {**{k: v for k, v in rs.rejected.items() if v}, **{k: v for k, v in rs.pose_rejected.items() if v}}
     link = ",".join(f"{k}:{v}" for k, v in link_rej.items()) or "0"
+    refused = f" (refused: {rs.refusal})" if rs.refusal else ""
     return (f"{Status(state.status).name:9s} | poses used {state.n_used} | age {age_ms} ms | "
-            f"link {rs.state.name} rejected {link} | {state.record.summary()}")
+            f"link {rs.state.name}{refused} rejected {link} | {state.record.summary()}")
 
 
 def run(args) -> int:

@@ -52,6 +52,12 @@ A server that restarts sends a HELLO first and starts its ``seq`` over: after
 a HELLO the next pose may have any ``seq`` but the last one (counted in
 ``ReceiverStats.seq_restarts`` when it goes back). A new connection starts a
 new stream too.
+
+A TCP server that serves no more clients sends one line of text instead of
+the stream (``vespro.wire.REFUSAL_PREFIX`` and its reason) and closes the
+connection: the receiver counts it (``ReceiverStats.refusals``), keeps the
+reason (``ReceiverStats.refusal``, until a server sends its HELLO) and tries
+again with its backoff.
 """
 
 from __future__ import annotations
@@ -65,7 +71,7 @@ from dataclasses import dataclass
 from typing import Callable
 from urllib.parse import urlsplit
 
-from vespro.wire import Decoder, HelloMsg, PoseMsg
+from vespro.wire import REFUSAL_PREFIX, Decoder, HelloMsg, PoseMsg
 
 __all__ = ["PoseReceiver", "LinkState", "ReceiverStats", "NO_POSE_AGE_NS", "POSE_REJECT_REASONS"]
 
@@ -102,6 +108,8 @@ class ReceiverStats:
     pose_rejected: dict  # well-formed poses not used, by reason (POSE_REJECT_REASONS)
     hellos: int          # HELLO messages received
     seq_restarts: int    # sequences started over after a HELLO (a restarted server)
+    refusals: int = 0    # connections the server refused (it serves no more clients)
+    refusal: str | None = None  # the server's last refusal line, without its prefix
 
     @property
     def rejected_total(self) -> int:
@@ -110,6 +118,9 @@ class ReceiverStats:
     @property
     def pose_rejected_total(self) -> int:
         return sum(self.pose_rejected.values())
+
+
+_HEAD_BYTES = 512  # a refusal line is shorter
 
 
 class _TcpTransport:
@@ -278,6 +289,10 @@ class PoseReceiver:
         self._seq_restarts = 0
         self._last_seq: int | None = None
         self._seq_open = True  # the next pose may start a new sequence
+        self._head = bytearray()  # a connection's first bytes while they may be a refusal line
+        self._head_open = False
+        self._refusals = 0
+        self.refusal: str | None = None
 
     # --- the loop's API -----------------------------------------------------------
 
@@ -346,7 +361,7 @@ class PoseReceiver:
         return ReceiverStats(self.state, self._connects, self._disconnects, self._open_failures,
                              d.bytes_in, d.frames_ok, self._poses, d.rejected, d.seq_gaps,
                              d.seq_duplicates, d.seq_resets, dict(self._pose_rejected), self._hellos,
-                             self._seq_restarts)
+                             self._seq_restarts, self._refusals, self.refusal)
 
     def close(self) -> None:
         self._transport.close()
@@ -368,11 +383,18 @@ class PoseReceiver:
         self.hello = None  # the peer announces its objects again
         self._last_seq = None
         self._seq_open = True
+        self._head.clear()
+        self._head_open = True
 
     def _lost(self, now: int, connected: bool) -> None:
         self._transport.close()
         if connected:
             self._disconnects += 1
+            if self._head.startswith(REFUSAL_PREFIX):
+                self._refusals += 1
+                line = bytes(self._head[len(REFUSAL_PREFIX):]).split(b"\n", 1)[0]
+                self.refusal = line.decode("utf-8", "replace").strip()[:200]
+            self._head.clear()
         else:
             self._open_failures += 1
         self.state = LinkState.DISCONNECTED
@@ -387,6 +409,10 @@ class PoseReceiver:
             if not data:
                 break
             total += len(data)
+            if self._head_open:
+                data = self._hold_refusal(data)
+                if not data:
+                    continue
             msgs = self._decoder.feed(data)
             if out is not None:
                 out.extend(msgs)
@@ -403,6 +429,7 @@ class PoseReceiver:
                 elif isinstance(msg, HelloMsg):
                     self.hello = msg
                     self._hellos += 1
+                    self.refusal = None  # served now
                     self._seq_open = True
                 self._backoff_ns = self._backoff_min_ns
         if total:
@@ -410,6 +437,18 @@ class PoseReceiver:
         elif self._idle_ns and now - self._last_rx_ns > self._idle_ns:
             raise TimeoutError("link idle")
         return newest
+
+    def _hold_refusal(self, data: bytes) -> bytes:
+        """A connection's first bytes are held back while they may be a refusal line (not
+        garbage for the decoder); what to decode now (b"" while held)."""
+        self._head += data
+        n = min(len(self._head), len(REFUSAL_PREFIX))
+        if self._head[:n] == REFUSAL_PREFIX[:n] and len(self._head) <= _HEAD_BYTES:
+            return b""
+        self._head_open = False
+        data = bytes(self._head)
+        self._head.clear()
+        return data
 
     def _reject_reason(self, msg: PoseMsg) -> str | None:
         """Why a decoded pose is not used (``POSE_REJECT_REASONS``), None if it is; updates the sequence."""

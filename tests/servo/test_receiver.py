@@ -164,6 +164,39 @@ def test_reconnects_after_server_restart():
         pub.close()
 
 
+def test_a_refusing_server_s_reason_is_kept_and_shown_and_a_later_seat_is_taken():
+    """A server that serves no more clients says why and closes: the receiver counts the
+    refusal, keeps the reason for the servo's status line, retries, and is served once a
+    seat is free (the reason then goes)."""
+    from servo.cmd_run import status_line
+    from servo.loop import LoopConfig, LoopState
+
+    pub = PosePublisher.tcp(HELLO, 0, max_clients=1, heartbeat_period_s=0, stamp_send_time=False)
+    port = pub.address[1]
+    first = PoseReceiver(f"socket://127.0.0.1:{port}")
+    rx = PoseReceiver(f"socket://127.0.0.1:{port}", backoff_min_s=0.005, backoff_max_s=0.02)
+    try:
+        assert poll_until(first, lambda: first.hello is not None)
+        assert poll_until(rx, lambda: rx.stats().refusals >= 2)
+        st = rx.stats()
+        assert rx.hello is None and st.poses == 0 and st.rejected_total == 0
+        assert "at most 1 clients" in st.refusal and "--max-clients" in st.refusal
+        line = status_line(LoopState(LoopConfig()), rx, time.monotonic_ns())
+        assert "(refused: this pose server takes at most 1 clients" in line, line
+        first.close()                                # a seat frees up
+        got: list = []
+        assert poll_until(rx, lambda: got[-1:] == [HELLO], got)
+        pose = make_poses(1, seed=3)[0]
+        pub.publish(pose)
+        assert poll_until(rx, lambda: rx.latest()[0] == pose)
+        assert rx.stats().refusal is None and "refused" not in status_line(
+            LoopState(LoopConfig()), rx, time.monotonic_ns())
+    finally:
+        first.close()
+        rx.close()
+        pub.close()
+
+
 def test_partial_frame_from_a_dead_connection_does_not_spoil_the_next():
     srv = socket.socket()
     srv.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
