@@ -140,6 +140,11 @@ def run(args) -> int:
 
     for msg in enter_realtime(args.cpu, args.nice, args.fifo):  # before any renderer or worker starts a thread
         print(f"vespro serve: {msg}", file=sys.stderr)
+    if not args.lockstep:  # a live server runs for hours: freed images go back to the system
+        from .memory import return_freed_images
+
+        if (why := return_freed_images()) is not None:
+            print(f"vespro serve: {why}", file=sys.stderr)
     try:
         if args.source == "replay":
             if not args.recording:

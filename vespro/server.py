@@ -28,6 +28,7 @@ Statistics are kept in memory that does not grow with the run's length.
 from __future__ import annotations
 
 import os
+import signal
 import threading
 import time
 from collections import deque
@@ -68,6 +69,9 @@ def _worker_setup(factory, nice: int = 0) -> None:
     machine busy with other work one call took 21 s.
     """
     global _WORKER_INIT
+    # Ctrl-C reaches the whole process group: the server stops the worker (its pool's
+    # shutdown), and the worker must not die mid-job with a traceback of its own.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     leave_realtime()  # free of the live loop's core and real-time class, if it had them
     if nice:
         try:
