@@ -59,6 +59,6 @@ def run_visp(args) -> int:
         print(f"start pose in {res['init_pose']}; track with:")
         print(f"  vespro track {rec} --init-pose {res['init_pose']} -o {rec / 'poses.csv'}")
     else:
-        print(f"no start pose (.0.pos) found; track with the automatic start or give one:")
+        print("no start pose (.0.pos) found; track with the automatic start or give one:")
         print(f"  vespro track {rec} -o {rec / 'poses.csv'}   # or --init-pose x,y,z,qw,qx,qy,qz")
     return 0

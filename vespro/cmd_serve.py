@@ -192,7 +192,7 @@ def run(args) -> int:
         return 2
 
     tracker = Tracker(source.rig, model, tracker_config(args))
-    initializer = factory = None
+    factory = None
     if args.init_pose:
         T0 = parse_pose(args.init_pose)
         fired = []

@@ -65,7 +65,6 @@ def p3p_grunert(P_object: np.ndarray, bearings: np.ndarray) -> tuple[np.ndarray,
     """
     P = np.asarray(P_object, float)
     j = np.asarray(bearings, float)
-    n = P.shape[0]
     a2 = np.sum((P[:, 1] - P[:, 2]) ** 2, 1)
     b2 = np.sum((P[:, 0] - P[:, 2]) ** 2, 1)
     c2 = np.sum((P[:, 0] - P[:, 1]) ** 2, 1)

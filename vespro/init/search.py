@@ -25,7 +25,6 @@ from numba import types
 from numba.extending import intrinsic
 from scipy.spatial import cKDTree
 
-from ..imageedges import edge_visible as _edge_visible
 from ..imageedges import front_faces as _front
 from ..imageedges import project_points as _project
 from ..imageedges import visible_samples
@@ -278,7 +277,7 @@ def _normal_bin_i32(angle, n_bins):
 
 @njit
 def _edges_seen(front, i, ef_l, convex, vis_e):
-    """Visible edges at pose ``i`` from its front-facing faces (``_edge_visible``) into ``vis_e``."""
+    """Visible edges at pose ``i`` from its front-facing faces (as :func:`vespro.imageedges.edge_visible`) into ``vis_e``."""
     for e in range(ef_l.shape[0]):
         a = front[i, ef_l[e, 0]]
         b = front[i, ef_l[e, 1]]
