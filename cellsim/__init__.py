@@ -9,3 +9,5 @@ Above ``vespro`` and ``servo``: it imports both (and ``rtkit``); neither imports
   against the plant's ground truth.
 - ``cmd_demo``: ``vespro demo``'s run and its summary on the terminal.
 """
+
+import vespro as _vespro  # noqa: F401  (first: it picks MuJoCo's offscreen rendering before mujoco loads)
