@@ -18,5 +18,5 @@ if [ ${#need[@]} -gt 0 ]; then
   fi
 fi
 python3 -m pip install -q --disable-pip-version-check -e '.[interop,view,bench]' 2>&1 | grep -v "Running pip as the 'root' user" || true
-python3 -c "import vespro, servo"
+python3 -c "import vespro, servo, rtkit, cellsim"
 python3 -m vespro.warmup

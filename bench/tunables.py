@@ -24,7 +24,7 @@ sys.path.insert(0, str(ROOT))
 import vespro  # noqa: E402
 
 #: Modules outside the estimation path.
-OUTSIDE = ("vespro.sim", "vespro.calib", "vespro.cmd_", "vespro.cli", "vespro.__main__", "vespro.demo",
+OUTSIDE = ("vespro.sim", "vespro.calib", "vespro.cmd_", "vespro.cli", "vespro.__main__",
            "vespro.warmup", "vespro.viewer", "vespro.mcap_export", "vespro.ros2", "vespro.zenoh_link", "vespro.link",
            "vespro.wire", "vespro.server", "vespro.sources", "vespro.loadshed", "vespro.suite", "vespro.bop",
            "vespro.evaluate", "vespro.library", "vespro.toy_scene", "vespro.realtime", "vespro.throttle")

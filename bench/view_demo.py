@@ -34,7 +34,7 @@ import numpy as np  # noqa: E402
 from _cpuclock import tracker_clock  # noqa: E402
 from _table import print_table  # noqa: E402
 
-from vespro.demo import DemoConfig, run_demo  # noqa: E402
+from cellsim.demo import DemoConfig, run_demo  # noqa: E402
 from vespro.server import PoseServer  # noqa: E402
 
 

@@ -1,7 +1,8 @@
 """VESPRO control side: 500 Hz position-based visual servoing.
 
-Imports from ``vespro`` only the wire protocol module (``vespro.wire``); today
-nothing from ``vespro`` at all (the link adapter is wired later).
+Imports from ``vespro`` only the wire protocol module (``vespro.wire``), and what
+both sides' processes share from ``rtkit`` (its Rerun view's worker process, the
+robot's shared-memory block).
 
 Modules (dependencies point down the list):
 
@@ -16,7 +17,6 @@ Modules (dependencies point down the list):
 - ``loop``: ``step(state, sample, t_ns, out) -> Status`` and the ``Scheduler``.
 - ``recorder``: preallocated time histories, saved as NPZ + CSV.
 - ``virtual_target``: a sampled, delayed conveyor part for virtual mode.
-- ``logproc``: a worker in a process of its own fed by a bounded queue (both sides' Rerun views).
 - ``view``: the servo's series in a Rerun recording (``servo run --view-...``).
 """
 

@@ -110,7 +110,7 @@ class ServoView:
     def __init__(self, model_path, site: str, *, connect: str | None = None, save=None,
                  recording_id: str | None = None, application_id: str = "vespro servo", t0_ns: int | None = None,
                  every: int = 10, max_queue: int = 1024):
-        from .logproc import QueuedProcess
+        from rtkit.logproc import QueuedProcess  # the mechanism both sides' views share
 
         _check_rr()
         self.every = max(1, int(every))

@@ -3,6 +3,12 @@
 Each subcommand lives in its own module and exposes ``add_parser(subparsers)``,
 which registers the subparser and sets ``func(args) -> int``. Register new
 subcommands in ``_COMMANDS``; imports are lazy so ``--help`` stays fast.
+
+``demo`` drives both sides (the simulated plant, the pose server, the servo): its
+options are registered here like any other command's, and its run is imported from
+the package above both sides, ``cellsim``, only when it runs (:func:`run_demo`).
+This is the one place in ``vespro`` that reaches ``cellsim``: the command line is
+the outermost shell.
 """
 
 from __future__ import annotations
@@ -25,14 +31,27 @@ _COMMANDS = [
 ]
 
 
+def run_demo(args) -> int:
+    """``vespro demo``: the whole cell, run by ``cellsim`` (above the vision and servo sides)."""
+    from cellsim.cmd_demo import run
+
+    return run(args)
+
+
+#: Commands whose run lives outside ``vespro`` (their ``add_parser`` sets no ``func``).
+_RUNS = {"demo": run_demo}
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="vespro",
         description="VESPRO vision side: simulated cell, recordings, tracking, pose server.",
     )
     sub = p.add_subparsers(dest="command", metavar="COMMAND")
-    for module, _ in _COMMANDS:
+    for module, name in _COMMANDS:
         importlib.import_module(module).add_parser(sub)
+        if name in _RUNS:
+            sub.choices[name].set_defaults(func=_RUNS[name])
     return p
 
 

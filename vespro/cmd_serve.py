@@ -291,7 +291,7 @@ def run(args) -> int:
         if writer is not None:
             if args.cpu is not None or args.fifo:  # the saving (PNG encoding) is not live work
                 leave_realtime()
-            _save_run(args.record, writer, outputs, server.stats, link_stats, source, shedder)
+            save_run(args.record, writer, outputs, server.stats, link_stats, source, shedder)
         for s, h in old.items():  # restored last: a late signal must not interrupt the saving
             signal.signal(s, h)
     summ = stats.summary()
@@ -310,7 +310,7 @@ class ServeOptionError(InputError):
     """An option of ``vespro serve`` out of its range."""
 
 
-def _save_run(folder: Path, writer, outputs, stats, link_stats, source, shedder=None) -> None:
+def save_run(folder: Path, writer, outputs, stats, link_stats, source, shedder=None) -> None:
     """What a recorded server run leaves for evaluation (the demo's summary)."""
     import json
     import pickle

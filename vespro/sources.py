@@ -437,7 +437,7 @@ class WorldSource:
     Parameters
     ----------
     world_shm : str
-        Name of the plant's :class:`vespro.sim.plant.WorldShm`.
+        Name of the plant's world state block (:class:`vespro.sim.world.WorldShm`).
     config : vespro.sim.cell.CellConfig
         Rig, object mesh, imaging effects (its motion and arm settings are unused).
     clock : Clock
@@ -446,7 +446,7 @@ class WorldSource:
     def __init__(self, world_shm: str, config, clock: Clock, wait_start_s: float = 30.0):
         from .sim.cell import SimCell
         from .sim.motion import Static
-        from .sim.plant import WorldShm
+        from .sim.world import WorldShm
         from .se3 import transform_from_pq
 
         self._pq = transform_from_pq

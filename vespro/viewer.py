@@ -134,7 +134,7 @@ class RerunView:
     def __init__(self, rig, model, *, spawn: bool = False, connect: str | None = None, save=None,
                  block: bool = False, image_every: int = 1, max_queue: int = 16, name: str = "vespro",
                  recording_id: str | None = None, t0_ns: int | None = None):
-        from servo.logproc import QueuedProcess  # the mechanism both sides' views share
+        from rtkit.logproc import QueuedProcess  # the mechanism both sides' views share
 
         _rr()  # a missing package is the caller's one-line error, not the child's
         self.block = block

@@ -333,7 +333,9 @@ def test_fileno_follows_the_link(pty_pair):
     assert rx.fileno() is None
 
 
-def test_servo_side_imports_only_vespro_wire():
+def test_receiver_loads_only_the_wire_protocol():
+    """Importing the receiver loads vespro.wire alone of vespro, and no SciPy, OpenCV or MuJoCo
+    (what each package may import at all: tests/test_layers.py)."""
     import subprocess
     import sys
     from pathlib import Path

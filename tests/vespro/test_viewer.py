@@ -105,7 +105,7 @@ def test_view_save_of_a_track_holds_images_pose_and_series_for_every_frame(track
 
 def test_view_save_of_a_lockstep_demo_shows_estimate_truth_and_servo(tmp_path):
     """The demo (an evaluator) adds the true pose, the arm and the servo's series to the view."""
-    from vespro.demo import DemoConfig, run_demo
+    from cellsim.demo import DemoConfig, run_demo
     from vespro.poses import read_poses
     from vespro.recording import Recording
 
@@ -178,9 +178,9 @@ def test_servo_process_logs_into_the_recording_of_the_pose_servers_view(tracked,
 
 def test_real_time_demo_gives_its_pose_server_and_servo_one_recording(tmp_path):
     """Both processes get the same ids and time zero; each saves its own file, the servo's beside the one asked for."""
+    from cellsim.demo import DemoConfig, view_options
     from servo.cli import build_parser as servo_parser
     from vespro.cli import build_parser
-    from vespro.demo import DemoConfig, view_options
 
     rrd = tmp_path / "run.rrd"
     vision, servo = view_options(DemoConfig(view_save=rrd, view=True), "rid", 123)

@@ -12,7 +12,7 @@ import pytest
 
 pytest.importorskip("vespro.init", reason="automatic initialisation is needed to acquire the part")
 
-from vespro.demo import DemoConfig, run_demo  # noqa: E402
+from cellsim.demo import DemoConfig, run_demo  # noqa: E402
 
 WATCHDOG_S = 3 / 26  # the servo's default: no valid pose for 3 frame periods
 
@@ -77,7 +77,7 @@ def test_eye_in_hand_cell_waits_where_its_camera_sees_the_belt_entry():
     import numpy as np
 
     from vespro.camera import project_points
-    from vespro.demo import search_q0
+    from cellsim.demo import search_q0
     from vespro.rig import load_rig
     from vespro.sim.rigs import CAMERAS_DIR
 

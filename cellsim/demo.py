@@ -1,6 +1,6 @@
 """The whole cell, end to end: plant, pose server and servo as three processes.
 
-- the plant (``python -m vespro.sim.plant``): the cell's physics at 500 Hz in
+- the plant (``python -m cellsim.plant``): the cell's physics at 500 Hz in
   real time, a part arriving on the conveyor, the arm's drives on a
   shared-memory fieldbus, the world state for the cameras;
 - the pose server (``vespro serve --source world``): renders the cameras from
@@ -177,8 +177,8 @@ def search_q0(cameras: str) -> np.ndarray | None:
 
     from servo.kinematics import ArmKinematics, solve_ik
 
-    from .se3 import transform_from_rt
-    from .sim.scene import BELT_CENTER_X, BELT_TOP_Z, CELL_XML
+    from vespro.se3 import transform_from_rt
+    from vespro.sim.scene import BELT_CENTER_X, BELT_TOP_Z, CELL_XML
 
     tcp = np.array([BELT_CENTER_X, 0.15, BELT_TOP_Z + 0.30])
     z = np.array([BELT_CENTER_X, -0.15, BELT_TOP_Z]) - tcp
@@ -232,7 +232,7 @@ def _servo_rrd(path: Path) -> Path:
 
 def _merge_view(cfg: DemoConfig, log) -> None:
     """Join the servo's saved view into the pose server's file (one recording, one file)."""
-    from .viewer import merge_rrd
+    from vespro.viewer import merge_rrd
 
     main, servo = Path(cfg.view_save), _servo_rrd(cfg.view_save)
     if not (main.exists() and servo.exists()):
@@ -252,7 +252,7 @@ def run_demo(cfg: DemoConfig, log=print) -> dict:
         return run_demo_lockstep(cfg, log)
     from servo.shm_robot import RobotShm
 
-    from .sim.plant import WorldShm
+    from vespro.sim.world import WorldShm
 
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -291,7 +291,7 @@ def run_demo(cfg: DemoConfig, log=print) -> dict:
         _wait_ready(procs["vision"], out / "vision.log", "vespro serve: world source", timeout_s=120.0,
                     note=lambda: log("demo: waiting for the pose server (a first run without set-up's "
                                      "python3 -m vespro.warmup compiles its kernels: up to a minute)"))
-        procs["plant"] = _spawn([py, "-m", "vespro.sim.plant", "--robot-shm", robot.name, "--world-shm", world.name,
+        procs["plant"] = _spawn([py, "-m", "cellsim.plant", "--robot-shm", robot.name, "--world-shm", world.name,
                                  "--object", cfg.object, "--duration", str(cfg.duration), "--speed", str(cfg.speed),
                                  "--y0", str(cfg.y0), "--stop-time", str(cfg.stop_time),
                                  "--log", str(out / "plant.npz"),
@@ -414,24 +414,26 @@ def run_demo_lockstep(cfg: DemoConfig, log=print) -> dict:
     from servo.recorder import Recorder
     from servo.shm_robot import RobotShm, ShmArm
 
-    from .clock import SimClock
-    from .cmd_record import object_mesh_path
-    from .cmd_serve import _save_run
-    from .link import PosePublisher
-    from .model import load_model
-    from .recording import AsyncRecordingWriter
-    from .rig import load_rig
-    from .server import PoseServer
-    from .sim.cell import CellConfig
-    from .sim.imaging import ImageEffects
-    from .sim.motion import Conveyor
-    from .sim.plant import Plant, WorldShm
-    from .sim.rigs import CAMERAS_DIR
-    from .sources import WorldSource
-    from .se3 import transform_from_pq
-    from .symmetry import describe as describe_symmetry
-    from .tracker import Tracker, TrackerConfig
-    from .wire import HelloMsg
+    from vespro.clock import SimClock
+    from vespro.cmd_record import object_mesh_path
+    from vespro.cmd_serve import save_run
+    from vespro.link import PosePublisher
+    from vespro.model import load_model
+    from vespro.recording import AsyncRecordingWriter
+    from vespro.rig import load_rig
+    from vespro.server import PoseServer
+    from vespro.sim.cell import CellConfig
+    from vespro.sim.imaging import ImageEffects
+    from vespro.sim.motion import Conveyor
+    from vespro.sim.rigs import CAMERAS_DIR
+    from vespro.sim.world import WorldShm
+    from vespro.sources import WorldSource
+    from vespro.se3 import transform_from_pq
+    from vespro.symmetry import describe as describe_symmetry
+    from vespro.tracker import Tracker, TrackerConfig
+    from vespro.wire import HelloMsg
+
+    from .plant import Plant
 
     out = Path(cfg.out)
     (out / "servo").mkdir(parents=True, exist_ok=True)
@@ -450,7 +452,7 @@ def run_demo_lockstep(cfg: DemoConfig, log=print) -> dict:
     if note:
         log(f"demo: {note}")
     try:
-        from .init import make_initializer
+        from vespro.init import make_initializer
 
         initializer = make_initializer(rig, model)
     except ImportError:
@@ -462,7 +464,7 @@ def run_demo_lockstep(cfg: DemoConfig, log=print) -> dict:
     outputs = []
     view = None
     if cfg.view or cfg.view_connect or cfg.view_save:
-        from .viewer import COLORS, RerunView
+        from vespro.viewer import COLORS, RerunView
 
         view = RerunView(rig, model, spawn=cfg.view, connect=cfg.view_connect, save=cfg.view_save, block=True,
                          image_every=cfg.view_image_every, name=VIEW_APP_ID)
@@ -534,7 +536,7 @@ def run_demo_lockstep(cfg: DemoConfig, log=print) -> dict:
         plant.finish(out / "plant.npz")
         if view is not None and (line := view.close()):
             log(line)
-        _save_run(out / "vision", writer, outputs, server.stats, link_stats, source)
+        save_run(out / "vision", writer, outputs, server.stats, link_stats, source)
         source.close()
         arm.close()
         robot_shm.close()
@@ -549,7 +551,7 @@ def run_demo_lockstep(cfg: DemoConfig, log=print) -> dict:
 
 
 def _pose_arrays(pq: np.ndarray) -> np.ndarray:
-    from .se3 import transform_from_pq
+    from vespro.se3 import transform_from_pq
 
     return np.array([transform_from_pq(r) for r in pq])
 
@@ -558,9 +560,9 @@ def summarize(out: Path, cfg: DemoConfig, events: list) -> dict:
     """Figures of a demo run from the files its processes left (ground truth: the plant log)."""
     import pickle
 
-    from .groundtruth import GroundTruthWriter
-    from .metrics import pose_error_vector, rmse
-    from .recording import Recording, RecordingError
+    from vespro.groundtruth import GroundTruthWriter
+    from vespro.metrics import pose_error_vector, rmse
+    from vespro.recording import Recording, RecordingError
 
     plant = np.load(out / "plant.npz")
     t_log = plant["t_ns"]
@@ -662,7 +664,7 @@ def _realtime_figures(vision: dict, rec, outputs, t_log, T_obj_log, t0: int, fir
     the load it shed, and how soon after the part came into a camera's view it was tracked
     (in view: its origin projects inside the image of a camera, in front of it; from the
     recording's rig and eye-in-hand poses and the plant's true object poses)."""
-    from .se3 import invert_transform
+    from vespro.se3 import invert_transform
 
     processed = int(vision.get("frames", 0))
     missed = int(vision.get("missed_captures", 0))
@@ -745,14 +747,14 @@ def _video(out: Path, rec_path: Path, outputs, plant, t0: int) -> None:
     """Camera views with the projected model and features, plus an inset of the arm."""
     import cv2
 
-    from .camera import CameraIntrinsics
-    from .evaluate import overlay_video
-    from .model import load_model
-    from .recording import Recording
-    from .rig import Rig, RigCamera
-    from .se3 import transform_from_pq, transform_from_rt
-    from .sim.cell import CellConfig, SimCell
-    from .sim.motion import Static
+    from vespro.camera import CameraIntrinsics
+    from vespro.evaluate import overlay_video
+    from vespro.model import load_model
+    from vespro.recording import Recording
+    from vespro.rig import Rig, RigCamera
+    from vespro.se3 import transform_from_pq, transform_from_rt
+    from vespro.sim.cell import CellConfig, SimCell
+    from vespro.sim.motion import Static
 
     rec = Recording(rec_path)
     model = load_model(rec.model_path)
@@ -778,7 +780,7 @@ def _video(out: Path, rec_path: Path, outputs, plant, t0: int) -> None:
 
     # Re-index the live outputs by recording index (the recording fills capture gaps).
     outs = []
-    from .tracker import TrackerOutput
+    from vespro.tracker import TrackerOutput
 
     for k in range(len(rec)):
         outs.append(by_index.get(k, TrackerOutput(k, 0, "initializing")))

@@ -6,7 +6,7 @@ part on the conveyor) on the wall clock and exposes two shared-memory blocks:
 - the robot "fieldbus" (:class:`servo.shm_robot.RobotShm`): measured joints out,
   joint commands in, as a real arm's controller would; the servo process drives
   the arm through it exactly as it drives the in-process MuJoCo arm;
-- the world state (:class:`WorldShm`): arm joints and the object's pose, which
+- the world state (:class:`vespro.sim.world.WorldShm`): arm joints and the object's pose, which
   the vision process renders its camera images from (the cameras "see" the world).
 
 The drive model is the servo's own :class:`servo.robot.MujocoArm` on the cell
@@ -14,7 +14,7 @@ model (one drive model, not two). The ground truth (object pose, TCP pose,
 joints, at every step) goes into a preallocated log written at the end, for
 evaluators only.
 
-Run as ``python -m vespro.sim.plant --help``.
+Run as ``python -m cellsim.plant --help``.
 """
 
 from __future__ import annotations
@@ -26,59 +26,10 @@ from pathlib import Path
 
 import numpy as np
 
-from servo.shm_robot import SharedBlock  # one lifecycle for shared-memory blocks
+from vespro.sim.world import WorldShm
 
-__all__ = ["WorldShm", "Plant", "run_plant"]
+__all__ = ["Plant", "run_plant"]
 
-
-class WorldShm(SharedBlock):
-    """World state for the cameras: seqlock, t_ns, q (6), object pose (7), t0_ns, running.
-
-    Layout (float64 words): ``0`` seqlock, ``1`` t_ns, ``2:8`` q, ``8:15`` object
-    ``x y z qw qx qy qz``, ``15`` the plant's start time t0_ns, ``16`` running
-    (1.0 while stepping, 0.0 before start and after the end), ``17`` the step index.
-    """
-
-    SIZE = 18
-
-    def __init__(self, name: str | None = None):
-        super().__init__(name, self.SIZE)
-
-    def write(self, t_ns: int, q: np.ndarray, pq_object: np.ndarray, step: int) -> None:
-        a = self.a
-        a[0] += 1.0
-        a[1] = float(t_ns)
-        a[2:8] = q
-        a[8:15] = pq_object
-        a[17] = float(step)
-        a[0] += 1.0
-
-    def read(self) -> tuple[int, np.ndarray, np.ndarray, int] | None:
-        """``(t_ns, q, pq_object, step)``, or None if never written."""
-        a = self.a
-        for _ in range(1000):
-            s1 = a[0]
-            if s1 == 0.0:
-                return None
-            if int(s1) % 2:
-                continue
-            v = a[1:18].copy()
-            if a[0] == s1:
-                return int(v[0]), v[1:7], v[7:14], int(v[16])
-        return None
-
-    @property
-    def t0_ns(self) -> int:
-        return int(self.a[15])
-
-    @property
-    def running(self) -> bool:
-        return bool(self.a[16] > 0.5)
-
-    @property
-    def finished(self) -> bool:
-        """The plant ran and has stopped."""
-        return self.a[15] > 0 and not self.running
 
 class Plant:
     """The cell's physics, one 2 ms step at a time (real-time and lockstep alike).
@@ -99,8 +50,8 @@ class Plant:
         from servo.robot import MujocoArm
         from servo.shm_robot import RobotShm
 
-        from ..rig import Rig
-        from .scene import SceneSpec, build_cell
+        from vespro.rig import Rig
+        from vespro.sim.scene import SceneSpec, build_cell
 
         model, _ = build_cell(SceneSpec(Path(object_mesh), Rig(())))
         self.model = model
@@ -125,7 +76,7 @@ class Plant:
 
     def start(self, t0_ns: int) -> None:
         """Publish the initial state, then declare the plant alive (readers never see zeros)."""
-        from ..se3 import pq_from_transform
+        from vespro.se3 import pq_from_transform
 
         self.t0_ns = int(t0_ns)
         self.arm.read(self._q)
@@ -137,7 +88,7 @@ class Plant:
 
     def step(self) -> int:
         """Apply the latest command, step physics, publish state; returns the new time, ns."""
-        from ..se3 import pq_from_transform, quat_from_matrix
+        from vespro.se3 import pq_from_transform, quat_from_matrix
 
         arm, d, cmd = self.arm, self.data, self._cmd
         if self.robot.read_command(cmd):
@@ -188,7 +139,7 @@ class Plant:
 def run_plant(robot_shm: str, world_shm: str, object_mesh: Path, motion, duration_s: float, log_path: Path,
               realtime: bool = True, q0: np.ndarray | None = None) -> dict:
     """Step the cell in real time until ``duration_s`` (or SIGTERM/SIGINT); returns timing statistics."""
-    from ..clock import WallClock
+    from vespro.clock import WallClock
 
     plant = Plant(robot_shm, world_shm, object_mesh, motion, duration_s, q0=q0)
     n_steps = int(round(duration_s * 1e9 / plant.dt_ns))
@@ -219,10 +170,10 @@ def run_plant(robot_shm: str, world_shm: str, object_mesh: Path, motion, duratio
 
 
 def main(argv=None) -> int:
-    from ..cmd_record import object_mesh_path
-    from .motion import Conveyor
+    from vespro.cmd_record import object_mesh_path
+    from vespro.sim.motion import Conveyor
 
-    p = argparse.ArgumentParser(prog="python -m vespro.sim.plant", description=__doc__,
+    p = argparse.ArgumentParser(prog="python -m cellsim.plant", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--robot-shm", required=True)
     p.add_argument("--world-shm", required=True)
@@ -237,7 +188,7 @@ def main(argv=None) -> int:
     p.add_argument("--cpu", type=int, metavar="N", help="pin the plant to core N")
     p.add_argument("--fifo", type=int, default=0, metavar="PRIO", help="run SCHED_FIFO at this priority (0: normal)")
     args = p.parse_args(argv)
-    from ..realtime import enter_realtime
+    from vespro.realtime import enter_realtime
 
     for msg in enter_realtime(args.cpu, 0, args.fifo):
         print(f"plant: {msg}", file=sys.stderr, flush=True)
