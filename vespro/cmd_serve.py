@@ -40,8 +40,8 @@ def add_parser(sub) -> None:
     p.add_argument("--loop", action="store_true", help="replay: start over at the end")
     p.add_argument("--device", action="append", default=[],
                    help="camera: a cv2.VideoCapture device per rig camera, in the rig's order: an index (0), "
-                        "a video file or a stream URL; files and streams are paced at their frame rate (their "
-                        "own, or --rate)")
+                        "a video file or a stream URL (rtsp://, http://, ...); a file is paced at its frame rate (its "
+                        "own, or --rate), a camera or a stream is taken as its frames come")
     p.add_argument("--on-camera-end", choices=["stop", "retry"], default="stop",
                    help="camera: when a stream ends or a camera fails: stop the server, or reopen the device "
                         "with backoff (0.5 s doubling to 8 s; a file starts over). Either way the end is logged "

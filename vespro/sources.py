@@ -31,7 +31,7 @@ from .recording import Recording
 from .rig import Rig
 
 __all__ = ["FrameSource", "ReplaySource", "SimSource", "CameraSource", "CameraError", "SourceGap", "WorldSource",
-           "is_live_device"]
+           "is_live_device", "is_local_camera"]
 
 
 class FrameSource(Protocol):
@@ -143,14 +143,27 @@ class CameraError(InputError):
     """A camera device that cannot be opened, or a device list that does not fit the rig."""
 
 
-def is_live_device(spec) -> bool:
-    """True for a local camera (``0``, ``/dev/video0``): it delivers frames at its own pace.
+_STREAM_SCHEMES = ("rtsp", "rtsps", "rtp", "srt", "udp", "tcp", "rtmp", "http", "https")
 
-    Anything else (a video file, a network URL) is read as fast as it decodes, so the
-    source paces it at its frame rate.
-    """
+
+def is_local_camera(spec) -> bool:
+    """True for a camera on this machine (``0``, ``/dev/video0``): its size and rate can be set."""
     s = str(spec)
     return s.isdigit() or s.startswith("/dev/")
+
+
+def is_live_device(spec) -> bool:
+    """True for a source that delivers frames at its own pace: a local camera, or a network
+    stream (``rtsp://``, ``http://``, ``udp://``, ...), whose frames come as they are sent.
+
+    A video file is read as fast as it decodes, so the source paces it at its frame rate.
+    A live source is never paced: frames it had already sent while the reader was behind
+    (a stream's first second, buffered while the decoder probed it) would otherwise be held
+    to a timeline that starts late, and every later frame would wait as long.
+    """
+    s = str(spec)
+    scheme, sep, _ = s.partition("://")
+    return is_local_camera(s) or (bool(sep) and scheme.lower() in _STREAM_SCHEMES)
 
 
 class _Device:
@@ -171,7 +184,7 @@ class _Device:
         if not cap.isOpened():
             cap.release()
             return False
-        if is_live_device(self.spec):
+        if is_local_camera(self.spec):
             import cv2
 
             cap.set(cv2.CAP_PROP_FRAME_WIDTH, self.size[0])
@@ -197,16 +210,14 @@ class CameraSource:
     publishes ``lost``), or None once the source has ended.
 
     Timing
-        A local camera (:func:`is_live_device`) paces itself: its frames are stamped
-        when ``grab`` returns. A file or network stream is paced at its frame rate
-        (``rate_hz``, else the container's FPS): frame k is delivered at, and
-        stamped, ``t0 + k / rate``. A frame that comes more than a period after
-        its instant (a stream that stopped and resumed, a reader held up) starts
-        the timeline anew from its arrival (counted in ``resyncs``): dropping it
-        instead lost every frame of a stream read at its live edge, where each
-        frame comes just as it is sent. The grabs of all cameras are issued back
-        to back before any decoding. Frame sets the server has not taken when a
-        newer one is ready are dropped, newest kept (``missed``).
+        A live device (:func:`is_live_device`: a local camera or a network stream)
+        paces itself: its frames are stamped when ``grab`` returns. A video file is
+        paced at its frame rate (``rate_hz``, else the container's FPS): frame k is
+        delivered at, and stamped, ``t0 + k / rate``. A frame that comes more than
+        a period after its instant (a reader held up) starts the timeline anew from
+        its arrival (counted in ``resyncs``). The grabs of all cameras are issued
+        back to back before any decoding. Frame sets the server has not taken when
+        a newer one is ready are dropped, newest kept (``missed``).
     End of a stream
         A device whose ``grab`` fails has ended (end of file, camera unplugged,
         stream closed): said once through ``log``. ``on_end="stop"``: the source
