@@ -306,6 +306,11 @@ class PoseServer:
             return not tr.confirmed and self._catching is None
         return tr.ekf is None or tr.provisional
 
+    @property
+    def kept_frames(self) -> int:
+        """Frame sets kept for a catch-up: those since the initialisation call under way."""
+        return len(self._backlog)
+
     def _holding(self) -> bool:
         """Whether the tracker holds a pose to track (a filter, or the bank's hypotheses)."""
         tr = self.tracker
@@ -378,6 +383,10 @@ class PoseServer:
                 self._backlog.clear()
                 return
         if self._job is None:
+            # The frames kept are those since the call under way: a start found on this frame
+            # set is caught up from here, and nothing older is needed (a call that found no
+            # pose leaves none behind).
+            self._backlog.clear()
             self.stats.init_attempts += 1
             self._job_t_ns = fs.t_ns
             self._job_wall = time.perf_counter()
@@ -453,10 +462,12 @@ class PoseServer:
             self._maybe_start(fs)
             out = self._catch_up(fs) if self._catching is not None else self.tracker.process(fs)
             t1 = time.perf_counter()
-            if self._searching() and self._pool is not None:
+            if self._searching() and self._pool is not None and self._job is not None:
                 # Kept in grey (what the tracker uses): a third of the memory.
                 self._backlog.append(FrameSet(fs.index, fs.t_ns, {k: fs.grey(k) for k in fs.images},
                                               fs.T_world_camera))
+            elif self._backlog:
+                self._backlog.clear()  # no initialisation under way: nothing to catch up through
         except Exception as e:  # a tracker bug must not take the server down: drop the track
             s.tracker_errors += 1
             if s.tracker_errors <= 3 and self.log:

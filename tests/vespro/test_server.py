@@ -155,6 +155,34 @@ def test_a_slow_initialiser_is_caught_up_through_the_frames_it_missed(rec_path):
         assert np.linalg.norm(o.T_world_object[:3, 3] - T[o.index][:3, 3]) < 3e-3
 
 
+def test_frames_are_kept_only_for_the_initialisation_under_way(rec_path):
+    """The frames kept for a catch-up are those since the call under way: a call that finds
+    no pose leaves none behind (they held a live server's memory up by a frame set or two
+    for minutes), and once the part is tracked none are kept."""
+    rec = Recording(rec_path)
+    _, _, T = read_groundtruth(rec_path)
+    clock = SimClock()
+    calls = []
+
+    def init(fs):  # no pose on its first three calls, then the part's
+        calls.append(fs.index)
+        time.sleep(0.15)
+        return InitResult(T[fs.index]) if len(calls) > 3 else None
+
+    server = PoseServer(ReplaySource(rec, clock), Tracker(rec.rig, load_model(rec.model_path)), None, clock,
+                        init, background_init="thread", log=None)
+    seen = []
+    server.on_output = lambda fs, o: (seen.append((fs.index, server.kept_frames, calls[-1] if calls else None,
+                                                   o.status)), time.sleep(0.02))
+    server.run()
+    assert len(calls) >= 4
+    assert max(k for _, k, _, _ in seen) >= 3  # frames were kept while a call ran
+    for i, kept, c, _ in seen:  # never more than the frames since the latest call's frame set
+        assert c is None or kept <= i - c + 1, (i, kept, c)
+    tracked = [k for _, k, _, st in seen if st == "tracking"]
+    assert tracked and tracked[-1] == 0
+
+
 def test_the_log_says_why_an_initialisation_found_no_pose(rec_path):
     """Each background initialisation is logged; one that found no pose says why (the
     initialiser's reason: a user seeing a lone camera's "accidental view" knows to add a
