@@ -1,4 +1,4 @@
-"""Named shared-memory blocks of float64 words: created by one process, attached by others.
+"""Named shared-memory blocks of float64 words (or bytes): created by one process, attached by others.
 
 What both sides' processes share in memory (the robot's fieldbus, the simulated
 world's state) is built on :class:`SharedBlock`: one lifecycle, in which the
@@ -53,6 +53,11 @@ class SharedBlock:
     @property
     def name(self) -> str:
         return self._shm.name
+
+    @property
+    def bytes(self) -> np.ndarray:
+        """The whole block as bytes (uint8), for data other than words (images)."""
+        return np.ndarray((self.a.size * 8,), dtype=np.uint8, buffer=self._shm.buf)
 
     def close(self) -> None:
         self.a = None

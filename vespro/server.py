@@ -40,6 +40,7 @@ import numpy as np
 
 from .clock import Clock
 from .frames import FrameSet
+from .frameslot import FrameSlot, SlotFrames
 from .quantiles import LogHistogram
 from .realtime import leave_realtime
 from .se3 import quat_from_matrix
@@ -108,8 +109,8 @@ def _init_call(initializer, fs: FrameSet, seed=None, pending=None) -> tuple:
     return res, ("" if res is not None or report is None else str(getattr(report, "reason", "") or "")), cands
 
 
-def _worker_run(fs: FrameSet, seed=None, pending=None):
-    return _init_call(_WORKER_INIT, fs, seed, pending)
+def _worker_run(frames: SlotFrames, seed=None, pending=None):
+    return _init_call(_WORKER_INIT, frames.frameset(), seed, pending)
 
 _STATUS = {"tracking": PoseStatus.TRACKING, "initializing": PoseStatus.INITIALIZING, "lost": PoseStatus.LOST}
 
@@ -253,13 +254,18 @@ class PoseServer:
             # Start the worker now: started by the first real job, its launch stalled the live loop
             # for long enough that the frames after that job's were missing and its pose was discarded.
             self._worker_up = self._pool.submit(_worker_ping)
-            self._submit = lambda fs, seed, pending: self._pool.submit(_worker_run, fs, seed, pending)
+            # The images go through shared memory (vespro.frameslot), not the executor's queue.
+            self._slot = FrameSlot()
+            self._submit = lambda fs, seed, pending: self._pool.submit(_worker_run, self._slot.put(fs), seed,
+                                                                       pending)
         elif background_init:
             self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="vespro-init")
             self._submit = lambda fs, seed, pending: self._pool.submit(_init_call, self.initializer, fs, seed, pending)
         else:
             self._pool = None
         self._job: Future | None = None
+        if background_init != "process":
+            self._slot = None
         self._job_t_ns = 0
         self._job_wall = 0.0
         self._seq = 0
@@ -603,4 +609,6 @@ class PoseServer:
         finally:
             if self._pool is not None:
                 self._pool.shutdown(wait=False, cancel_futures=True)
+            if self._slot is not None:
+                self._slot.close()  # (a worker still reading keeps its mapping)
         return self.stats
