@@ -394,7 +394,6 @@ class PoseReceiver:
                 self._refusals += 1
                 line = bytes(self._head[len(REFUSAL_PREFIX):]).split(b"\n", 1)[0]
                 self.refusal = line.decode("utf-8", "replace").strip()[:200]
-            self._head.clear()
         else:
             self._open_failures += 1
         self.state = LinkState.DISCONNECTED

@@ -246,6 +246,7 @@ class PoseServer:
         self._gap_since: int | None = None  # stamp of the last frame set before the current source gap
         self._last_fs_ns: int | None = None
         self._stop = threading.Event()
+        self._slot: FrameSlot | None = None  # the start's frames for a worker process
         if background_init == "process":
             if initializer_factory is None:
                 raise ValueError("background_init='process' needs an initializer_factory")
@@ -264,8 +265,6 @@ class PoseServer:
         else:
             self._pool = None
         self._job: Future | None = None
-        if background_init != "process":
-            self._slot = None
         self._job_t_ns = 0
         self._job_wall = 0.0
         self._seq = 0
