@@ -45,7 +45,8 @@ class ImageRead:
 
     Attributes
     ----------
-    path : Path
+    path : str or Path
+        As the caller gave it.
     image : ndarray or None
         Grey ``(H, W)`` or BGR ``(H, W, 3)``, uint8; None when not usable.
     reason : str or None
@@ -56,7 +57,7 @@ class ImageRead:
         Usable files: one channel (grey) or colour.
     """
 
-    path: Path
+    path: str | Path
     image: np.ndarray | None
     reason: str | None = None
     detail: str = ""
@@ -99,10 +100,11 @@ def _png_header(data: bytes) -> tuple[str | None, str, tuple[int, int, int, int]
         o = end
 
 
-def _check(path: Path, width: int, height: int) -> tuple[ImageRead, bytes | None]:
+def _check(path: str | Path, width: int, height: int) -> tuple[ImageRead, bytes | None]:
     """Everything but decoding: ``(outcome, file bytes when usable so far)``."""
     try:
-        data = path.read_bytes()
+        with open(path, "rb") as f:  # not pathlib, which interns each part of the name
+            data = f.read()
     except FileNotFoundError:
         return ImageRead(path, None, "missing", "no such file"), None
     except OSError as e:
@@ -124,7 +126,7 @@ def check_image(path: str | Path, width: int, height: int) -> ImageRead:
     For copying files: a usable file has ``reason`` None; ``grey`` tells grey
     from colour.
     """
-    return _check(Path(path), width, height)[0]
+    return _check(path, width, height)[0]
 
 
 def read_image(path: str | Path, width: int, height: int) -> ImageRead:
@@ -135,7 +137,6 @@ def read_image(path: str | Path, width: int, height: int) -> ImageRead:
     not 8-bit; ``reason`` and ``detail`` say which. Colour images come back
     BGR (an alpha channel is dropped), grey ones as they are.
     """
-    path = Path(path)
     res, data = _check(path, width, height)
     if data is None:
         return res

@@ -28,6 +28,7 @@ from __future__ import annotations
 from .errors import InputError
 
 import csv
+import os
 import shutil
 from pathlib import Path
 
@@ -109,6 +110,7 @@ class Recording:
             raise RecordingError(str(e)) from None
         self.model_path = self._model_path()
         self.index, self.t, self._eih = self._read_frames()
+        self._frames_dir = os.path.join(os.fspath(self.path), "frames")
         self.images = ImageTally(self.rig.names)
         self.warnings: list[str] = self._images_past_end()
 
@@ -231,7 +233,14 @@ class Recording:
         return str(self.meta.get("object", self.model_path.stem))
 
     def image_path(self, camera: str, index: int) -> Path:
-        return self.path / "frames" / camera / f"{index:06d}.png"
+        return Path(self._image_file(camera, index))
+
+    def _image_file(self, camera: str, index: int) -> str:
+        # A plain string, built without pathlib: pathlib interns every part of a
+        # path (CPython's sys.intern), so a server replaying for hours would
+        # churn the interned-string table with a new name per frame, and that
+        # table is rebuilt larger, never smaller, as the churn fills it.
+        return f"{self._frames_dir}{os.sep}{camera}{os.sep}{index:06d}.png"
 
     def image(self, camera: str, index: int) -> np.ndarray | None:
         """The image of ``camera`` at ``index`` (grey or BGR uint8), or None if missing or unusable.
@@ -241,14 +250,14 @@ class Recording:
         :attr:`images`.
         """
         intr = self.rig[camera].intrinsics
-        res = read_image(self.image_path(camera, index), intr.width, intr.height)
+        res = read_image(self._image_file(camera, index), intr.width, intr.height)
         self.images.note(camera, res)
         return res.image
 
     def check_image(self, camera: str, index: int) -> ImageRead:
         """:meth:`image`'s checks without decoding (for copying files); counted in :attr:`images`."""
         intr = self.rig[camera].intrinsics
-        res = check_image(self.image_path(camera, index), intr.width, intr.height)
+        res = check_image(self._image_file(camera, index), intr.width, intr.height)
         self.images.note(camera, res)
         return res
 

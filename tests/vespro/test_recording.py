@@ -213,3 +213,28 @@ def test_deferred_png_writer_gives_the_same_recording(tmp_path):
         for cam in ("a", "h"):
             np.testing.assert_array_equal(b.frameset(i).images[cam], frames[i].images[cam])
             np.testing.assert_array_equal(a.frameset(i).images[cam], b.frameset(i).images[cam])
+
+
+def test_replaying_frames_adds_no_interned_names(tmp_path, monkeypatch):
+    """A server replays for hours: reading a frame must not intern a new string.
+
+    CPython keeps interned strings in one table that is rebuilt larger, never
+    smaller, as short-lived names fill it; pathlib interns every part of every
+    path it builds, so a path object per frame grew the server's memory by a
+    step of megabytes every few minutes.
+    """
+    import sys
+
+    _write(tmp_path / "rec", n=6, drop=())
+    rec = Recording(tmp_path / "rec")
+    interned = []
+    real = sys.intern
+    monkeypatch.setattr(sys, "intern", lambda s: interned.append(s) or real(s))
+    rec.image_path("a", 3)  # premise: a path object interns its parts (the patch sees it)
+    assert "000003.png" in interned
+    interned.clear()
+    for k in range(len(rec)):
+        fs = rec.frameset(k)
+        assert fs.images["a"] is not None and fs.images["h"] is not None
+        assert rec.check_image("a", k).reason is None
+    assert interned == []
