@@ -91,14 +91,18 @@ def _worker_ping() -> None:
 
 
 def _init_call(initializer, fs: FrameSet, seed=None, pending=None) -> tuple:
-    """One initialiser call (seeded first when there is a seed): ``(result, why not, candidates)``.
+    """One initialiser call (seeded first when there is a seed): ``(result, why not, candidates,
+    cpu ms)``.
 
     ``pending``: ``(T_world_object, t_ns)`` of the tracker's provisional start, for the
     call to confirm (:meth:`vespro.tracker.Tracker.offer`). ``why not`` is the
     initialiser's reason for returning no pose (its ``last_report.reason``, e.g. an
     accidental view or an ambiguity), or "". ``candidates``: the poses it ranked besides
     its answer, best first (for the hypothesis bank: :meth:`vespro.tracker.Tracker.propose`).
+    ``cpu ms``: the CPU time of the call's thread; against the wall time from submission to
+    answer it tells a call that worked long from one that waited for a core.
     """
+    cpu0 = time.thread_time()
     if seed is not None and hasattr(initializer, "reseed"):
         initializer.reseed(seed[0], velocity=seed[1], t_ns=seed[2])
     if pending is not None and hasattr(initializer, "await_confirmation"):
@@ -106,7 +110,8 @@ def _init_call(initializer, fs: FrameSet, seed=None, pending=None) -> tuple:
     res = initializer(fs)
     report = getattr(initializer, "last_report", None)
     cands = tuple(T for T, _ in getattr(report, "candidates", ()))
-    return res, ("" if res is not None or report is None else str(getattr(report, "reason", "") or "")), cands
+    why = "" if res is not None or report is None else str(getattr(report, "reason", "") or "")
+    return res, why, cands, (time.thread_time() - cpu0) * 1e3
 
 
 def _worker_run(frames: SlotFrames, seed=None, pending=None):
@@ -163,8 +168,9 @@ class ServerStats:
     #: (the source's own work: rendering, reading a camera; not its wait for the capture
     #: instant), ``track`` (tracker and catch-up; ``track: <stage>`` its own stages,
     #: ``TrackerOutput.stage_ms``), ``backlog``, ``publish``, ``record`` (the ``on_output``
-    #: hook); and ``init`` once per initialisation job: from its submission to the loop
-    #: taking its answer. Bounded memory, whatever the uptime.
+    #: hook); and once per initialisation job ``init``, from its submission to the loop
+    #: taking its answer, and ``init cpu``, the CPU time it took (the rest it waited for a
+    #: core). Bounded memory, whatever the uptime.
     stage_ms: dict = field(default_factory=dict)
 
     def add_stage(self, name: str, ms: float) -> None:
@@ -329,9 +335,10 @@ class PoseServer:
             self.stats.init_attempts += 1
             t = time.perf_counter()
             # After a loss the initialiser first tries near the last good pose.
-            res, _, cands = _init_call(self.initializer, fs, self.tracker.recovery_seed(),
-                                       self.tracker.provisional_pose())
+            res, _, cands, cpu_ms = _init_call(self.initializer, fs, self.tracker.recovery_seed(),
+                                               self.tracker.provisional_pose())
             self.stats.add_stage("init", (time.perf_counter() - t) * 1e3)
+            self.stats.add_stage("init cpu", cpu_ms)
             if res is not None:
                 self.stats.init_successes += 1
                 if self._bank is not None:
@@ -342,7 +349,8 @@ class PoseServer:
         if self._job is not None and self._job.done():
             cands = ()
             try:
-                res, why, cands = self._job.result()
+                res, why, cands, cpu_ms = self._job.result()
+                self.stats.add_stage("init cpu", cpu_ms)
             except Exception as e:  # an initialiser bug must not kill the server
                 res, why = None, ""
                 if self.log:
