@@ -283,16 +283,23 @@ def detect_corners(grey: np.ndarray, opt: EdgeOptions) -> np.ndarray | None:
     grey = cv2.GaussianBlur(grey, (0, 0), opt.corner_blur_sigma) if opt.corner_blur_sigma > 0 else grey
     nx, ny = max(1, round(W / opt.corner_tile_px)), max(1, round(H / opt.corner_tile_px))
     per = max(8, opt.max_corners // (nx * ny))
+    # Each tile is searched in its own pixels and a margin the response reads (the Sobel,
+    # the block, the 3x3 maximum): the same corners as a whole-image search masked to the
+    # tile, which computed the response over the whole image once per tile.
+    m = opt.corner_block // 2 + 3
     out = []
     for iy in range(ny):
         for ix in range(nx):
             x0, x1 = ix * W // nx, (ix + 1) * W // nx
             y0, y1 = iy * H // ny, (iy + 1) * H // ny
-            mask = np.zeros_like(grey)
-            mask[y0:y1, x0:x1] = 255
-            p = cv2.goodFeaturesToTrack(grey, per, opt.corner_quality, opt.corner_min_distance, mask=mask, blockSize=opt.corner_block)
+            X0, Y0, X1, Y1 = max(0, x0 - m), max(0, y0 - m), min(W, x1 + m), min(H, y1 + m)
+            sub = grey[Y0:Y1, X0:X1]
+            mask = np.zeros_like(sub)
+            mask[y0 - Y0:y1 - Y0, x0 - X0:x1 - X0] = 255
+            p = cv2.goodFeaturesToTrack(sub, per, opt.corner_quality, opt.corner_min_distance, mask=mask,
+                                        blockSize=opt.corner_block)
             if p is not None:
-                out.append(p.reshape(-1, 2))
+                out.append(p.reshape(-1, 2) + np.float32([X0, Y0]))
     if not out:
         return None
     pts = np.concatenate(out)
