@@ -804,17 +804,19 @@ def _corners_whole_image(grey, opt):
     return pts[keep].reshape(-1, 1, 2).astype(np.float32)
 
 
-def test_tiled_corners_are_the_masked_whole_image_search():
+def test_corners_and_links_are_those_of_the_whole_image_and_all_samples():
     """Each tile searched in its own pixels (and the margin its response reads) finds the
-    whole-image search's corners to the last bit, at a tile's cost instead of the image's:
-    on rendered views of the parts over clutter, with noise, and on ViSP's real cube."""
+    whole-image search's corners to the last bit, at a tile's cost instead of the image's;
+    the corner links, screened on two samples first, are those of all twelve. On rendered
+    views of the parts over clutter, with noise, and on ViSP's real cube."""
     import glob
 
     import cv2
 
-    from vespro.init.features import EdgeOptions, detect_corners
+    from vespro.init.features import EdgeOptions, detect_corners, edge_maps, link_corners
 
     opt = EdgeOptions()
+    links_seen = []
     rng = np.random.default_rng(3)
     images = []
     for name in NAMES:
@@ -829,3 +831,28 @@ def test_tiled_corners_are_the_masked_whole_image_search():
         got, want = detect_corners(img, opt), _corners_whole_image(img, opt)
         assert len(want) > 20
         assert _bits_equal(got, want)
+        # The corner links: two samples first, to the same links as all twelve on every pair.
+        corners = want.reshape(-1, 2).astype(np.float64)
+        dt = edge_maps("c", img, K, opt).dt
+        diag = np.hypot(*img.shape)
+        links = link_corners(corners, dt, opt, diag)
+        assert _bits_equal(links, _links_all_samples(corners, dt, opt, diag))
+        links_seen.append(len(links))
+    assert min(links_seen[:-len(real) - 1]) > 5  # (the parts' views have links to compare)
+
+
+def _links_all_samples(corners, dt, opt, diag):
+    """``link_corners`` with all twelve samples on every pair (the reference)."""
+    from vespro.init.features import lookup_dt
+
+    i, j = np.triu_indices(len(corners), 1)
+    d = corners[j] - corners[i]
+    L = np.hypot(d[:, 0], d[:, 1])
+    ok = (L >= opt.link_min_px) & (L <= opt.link_max_frac * diag)
+    i, j, d = i[ok], j[ok], d[ok]
+    fr = np.linspace(0.12, 0.88, 12)
+    pts = corners[i][:, None, :] + fr[None, :, None] * d[:, None, :]
+    bins = normal_bins(np.arctan2(d[:, 0], -d[:, 1]), dt.shape[0])
+    dist = lookup_dt(dt, np.broadcast_to(bins[:, None], pts.shape[:2]), pts, np.inf)
+    keep = np.mean(dist <= opt.link_tol_px, axis=1) >= opt.link_support
+    return np.stack([i[keep], j[keep]], 1).astype(np.int64)
