@@ -122,7 +122,8 @@ def test_no_module_imports_a_command_module():
     for rel, tree in files:
         for module, names, lazy, line in _from_imports(rel, tree):
             # "from vespro import cmd_track" imports the command module too
-            hits = {m for m in (module, *(f"{module}.{n}" for n in names)) if COMMAND_MODULE.match(m)}
+            hits = {h.group(1) for m in (module, *(f"{module}.{n}" for n in names))
+                    if (h := COMMAND_MODULE.match(m))}
             if not hits:
                 continue
             if rel == DISPATCHER and lazy:
