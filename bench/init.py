@@ -65,12 +65,12 @@ import numpy as np  # noqa: E402
 
 from bench._table import print_table, stats_ms  # noqa: E402
 from vespro.init import make_initializer  # noqa: E402
+from vespro.library import object_mesh_path  # noqa: E402
 from vespro.metrics import add, add_sym  # noqa: E402
 from vespro.model import load_model  # noqa: E402
 from vespro.sim.cell import OccluderSweep, SimCell  # noqa: E402
 from vespro.sim.trials import model_symmetries, random_rig, trial_config  # noqa: E402
 from vespro.tracker import Tracker, TrackerConfig  # noqa: E402
-from vespro.cmd_record import object_mesh_path  # noqa: E402
 
 BASELINE = dict(min_supported_edges=0, min_supported_edges_single=0, min_size_px=0.0, ambiguity_margin=-1.0,
                 require_fixed_view=False, subpixel=False, min_camera_inlier_frac=0.0)
@@ -164,7 +164,7 @@ def run_tracked(trial: Trial, track_frames: int, config_set: dict | None = None,
     model, syms, frames = trial.model, trial.syms, trial.frames
     rig, config, motion = trial.cell_setup()
     init_set = dict(init_set or {})
-    if (config_set or {}).get("decision") == "bank":  # as --decision bank sets (vespro.cmd_track.init_options)
+    if (config_set or {}).get("decision") == "bank":  # as --decision bank sets (vespro.options.init_options)
         init_set.setdefault("plain_faces", False)
     gate = _Gated(make_initializer(rig, model, **init_set), trial.stride)
     tracker = Tracker(rig, model, config=replace(TrackerConfig(), **(config_set or {})), initializer=gate)

@@ -14,7 +14,7 @@ def _f(v, fmt="{:.2f}"):
 
 def run(args) -> int:
     """Run the demo with the options of ``vespro demo`` (:mod:`vespro.cmd_demo`); print its summary."""
-    from vespro.cmd_record import object_mesh_path
+    from vespro.library import object_mesh_path
 
     from .demo import DemoConfig, run_demo
 

@@ -415,8 +415,7 @@ def run_demo_lockstep(cfg: DemoConfig, log=print) -> dict:
     from servo.shm_robot import RobotShm, ShmArm
 
     from vespro.clock import SimClock
-    from vespro.cmd_record import object_mesh_path
-    from vespro.cmd_serve import save_run
+    from vespro.library import object_mesh_path
     from vespro.link import PosePublisher
     from vespro.model import load_model
     from vespro.recording import AsyncRecordingWriter
@@ -429,6 +428,7 @@ def run_demo_lockstep(cfg: DemoConfig, log=print) -> dict:
     from vespro.sim.world import WorldShm
     from vespro.sources import WorldSource
     from vespro.se3 import transform_from_pq
+    from vespro.server_record import save_run
     from vespro.symmetry import describe as describe_symmetry
     from vespro.tracker import Tracker, TrackerConfig
     from vespro.wire import HelloMsg

@@ -170,7 +170,7 @@ def run_plant(robot_shm: str, world_shm: str, object_mesh: Path, motion, duratio
 
 
 def main(argv=None) -> int:
-    from vespro.cmd_record import object_mesh_path
+    from vespro.library import object_mesh_path
     from vespro.sim.motion import Conveyor
 
     p = argparse.ArgumentParser(prog="python -m cellsim.plant", description=__doc__,

@@ -6,9 +6,16 @@ imports from ``vespro`` only the wire protocol and nothing from ``cellsim``;
 ``cellsim`` (the simulated cell, driving both sides) sits on top. The one exception:
 the ``vespro`` command line hands ``vespro demo`` to ``cellsim`` in the command's
 handler, when it runs.
+
+Within the packages, a command module (``vespro/cmd_*.py``, ``cellsim/cmd_demo.py``)
+builds its sub-command and runs it; what commands share lives in library modules, so
+no module imports a command module but the command-line dispatcher. And no module
+imports another's private (``_name``) names; tests and benchmarks may reach into the
+module they exercise.
 """
 
 import ast
+import re
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -24,13 +31,19 @@ RULES = {
 LAZY_EXCEPTIONS = {("vespro/cli.py", "cellsim.cmd_demo")}
 
 
+def _in_function(tree: ast.AST) -> set[int]:
+    """ids of the nodes inside a function (or lambda) of the tree."""
+    inside = set()
+    for node in ast.walk(tree):
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda)):
+            inside.update(id(n) for n in ast.walk(node) if n is not node)
+    return inside
+
+
 def _imports(tree: ast.AST) -> list[tuple[str, bool]]:
     """(absolute module imported, inside a function) for every import of the tree; relative
     imports stay in their package and are left out. A literal ``importlib.import_module`` counts."""
-    in_function = set()
-    for node in ast.walk(tree):
-        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda)):
-            in_function.update(id(n) for n in ast.walk(node) if n is not node)
+    in_function = _in_function(tree)
     found = []
     for node in ast.walk(tree):
         if isinstance(node, ast.Import):
@@ -69,3 +82,67 @@ def test_each_package_imports_only_the_layers_below_it():
     assert not offenders, "imports against the layering: " + "; ".join(offenders)
     # The exception is the demo's dispatch; when it goes, its entry goes too.
     assert exceptions_seen == LAZY_EXCEPTIONS
+
+
+#: Command modules: each builds its sub-command and runs it (a module name pattern).
+COMMAND_MODULE = re.compile(r"(vespro\.cmd_\w+|cellsim\.cmd_demo)(\.|$)")
+#: The command-line dispatcher, which may import the command modules (lazily only).
+DISPATCHER = "vespro/cli.py"
+
+
+def _sources(*dirs: str) -> list[tuple[str, ast.AST]]:
+    """(path relative to the root, parsed tree) of every source under the folders."""
+    out = []
+    for d in dirs:
+        for path in sorted((ROOT / d).rglob("*.py")):
+            rel = path.relative_to(ROOT).as_posix()
+            out.append((rel, ast.parse(path.read_text(), rel)))
+    return out
+
+
+def _from_imports(rel: str, tree: ast.AST) -> list[tuple[str, list[str], bool, int]]:
+    """(absolute module, names imported from it, inside a function, line) for every import of
+    the tree, relative ones resolved against the file's package; ``import a.b`` gives ("a.b", [])."""
+    in_function = _in_function(tree)
+    package = rel[:-3].split("/")[:-1]
+    found = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            found += [(a.name, [], id(node) in in_function, node.lineno) for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            base = package[:len(package) - node.level + 1] if node.level else []
+            module = ".".join([*base, *([node.module] if node.module else [])])
+            found.append((module, [a.name for a in node.names], id(node) in in_function, node.lineno))
+    return found
+
+
+def test_no_module_imports_a_command_module():
+    offenders, dispatched, files = [], set(), _sources(*PACKAGES, "bench")
+    assert len(files) > 100
+    for rel, tree in files:
+        for module, names, lazy, line in _from_imports(rel, tree):
+            # "from vespro import cmd_track" imports the command module too
+            hits = {h.group(1) for m in (module, *(f"{module}.{n}" for n in names))
+                    if (h := COMMAND_MODULE.match(m))}
+            if not hits:
+                continue
+            if rel == DISPATCHER and lazy:
+                dispatched |= hits
+                continue
+            offenders += [f"{rel}:{line}: {m}" for m in sorted(hits)]
+    assert not offenders, "command modules imported (move what they share to a library module): " + "; ".join(
+        offenders)
+    assert "cellsim.cmd_demo" in dispatched  # the check sees the dispatcher's own (lazy) import
+
+
+def test_no_module_imports_a_private_name_of_another():
+    offenders, n_from = [], 0
+    for rel, tree in _sources(*PACKAGES):
+        for module, names, _, line in _from_imports(rel, tree):
+            if module.split(".")[0] not in PACKAGES:
+                continue
+            n_from += 1
+            private = [n for n in names if n.startswith("_") and not (n.startswith("__") and n.endswith("__"))]
+            offenders += [f"{rel}:{line}: {module}.{n}" for n in private]
+    assert n_from > 300
+    assert not offenders, "private names imported from another module (make them public): " + "; ".join(offenders)

@@ -52,6 +52,7 @@ __all__ = [
     "load_bsp",
     "load_or_build_bsp",
     "default_cache_dir",
+    "segment_blocked",
 ]
 
 #: Leaf codes in the child arrays (non-negative values are node indices).
@@ -315,18 +316,21 @@ def _blocked_from_kernel(a, B, bounds, h_start, sign, plane, end_dist, rows, t_l
     st_node = np.empty(children.shape[0] + 2, dtype=np.int64)
     st_t = np.empty((children.shape[0] + 2, 2))
     for i in range(k):
-        out[i] = _segment_blocked(a, B[i, 0], B[i, 1], B[i, 2], bounds, h_start, sign, plane, end_dist, rows[i],
-                                  t_lo[i], t_hi[i], children, pe, st_node, st_t)
+        out[i] = segment_blocked(a, B[i, 0], B[i, 1], B[i, 2], bounds, h_start, sign, plane, end_dist, rows[i],
+                                 t_lo[i], t_hi[i], children, pe, st_node, st_t)
     return out
 
 
 @njit
-def _segment_blocked(a, bx, by, bz, bounds, h_start, sign, plane, end_dist, row, t0, t1, children, pe, st_node, st_t):
+def segment_blocked(a, bx, by, bz, bounds, h_start, sign, plane, end_dist, row, t0, t1, children, pe, st_node, st_t):
     """Whether the segment ``a -> (bx, by, bz)``, ``t in [t0, t1]``, passes through the solid.
 
     Clip to ``bounds`` (as :meth:`BSPTree.clip_to_bounds`), then walk the tree
     (:func:`_walk`) with the start's plane distances ``h_start`` and the end's
-    in row ``row`` of ``end_dist``.
+    in row ``row`` of ``end_dist``. The tree arrays are a :class:`BSPTree`'s
+    (``bounds``, ``node_sign``, ``node_plane``, its children, ``plane_eps``), as
+    :meth:`BSPTree.segments_blocked_from` passes them; ``st_node`` and ``st_t`` are
+    scratch stacks of ``len(children) + 2`` rows, reused from one call to the next.
     """
     for ax in range(3):
         bv = bx if ax == 0 else (by if ax == 1 else bz)

@@ -40,8 +40,8 @@ def add_parser(sub) -> None:
 
 def run_export(args) -> int:
     from .bop import export_bop
-    from .cmd_track import open_recording, report_images
     from .errors import warn
+    from .recording_report import open_recording, report_images
 
     try:  # bad input (InputError is a ValueError) in one line
         rec = open_recording(args.recording, "bop export")

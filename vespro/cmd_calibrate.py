@@ -135,8 +135,8 @@ def board_spec(args):
 def _sim_rig(args, names: list[str] | None = None):
     """The simulated (true) rig: standard or given rig, with --sim-distortion."""
     from .camera import CameraIntrinsics
-    from .cmd_record import rig_path
     from .rig import Rig, RigCamera, load_rig
+    from .sim.rigs import rig_path
 
     rig = load_rig(rig_path(args.sim_rig))
     cams = [RigCamera(c.name, CameraIntrinsics(c.intrinsics.width, c.intrinsics.height, c.intrinsics.K,

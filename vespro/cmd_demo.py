@@ -12,7 +12,7 @@ from pathlib import Path
 
 
 def add_parser(sub) -> None:
-    from .cmd_track import add_symmetry_option
+    from .options import add_model_unit_option, add_symmetry_option
 
     p = sub.add_parser(
         "demo", help="run the whole cell: simulated plant, pose server and servo as three processes",
@@ -25,8 +25,6 @@ def add_parser(sub) -> None:
         ),
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
-    from .cmd_record import add_model_unit_option
-
     p.add_argument("--object", default="bracket",
                    help="box, lblock, bracket, or a model file (STL, OBJ, PLY, ViSP .cao; see --model-unit)")
     add_model_unit_option(p)

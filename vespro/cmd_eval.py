@@ -9,8 +9,8 @@ from pathlib import Path
 
 
 def add_parser(sub) -> None:
-    from .cmd_record import add_model_unit_option
-    from .cmd_track import INPUT_HELP, add_tracker_options
+    from .options import add_model_unit_option, add_tracker_options
+    from .recording_report import INPUT_HELP
 
     p = sub.add_parser(
         "eval", help="track a recording and score it against ground truth",
@@ -66,10 +66,11 @@ def run(args) -> int:
     if args.recording is None:
         print("vespro eval: give a recording folder or --suite SUITE.yaml", file=sys.stderr)
         return 2
-    from .cmd_track import initializer_for, open_recording, report_images, say_symmetry, tracker_config
     from .errors import warn
     from .evaluate import overlay_video, plot_errors, pnp_baseline, score
     from .groundtruth import truth_per_frame
+    from .options import initializer_for, say_symmetry, tracker_config
+    from .recording_report import open_recording, report_images
     from .track import make_tracker, parse_pose, track_recording, write_track
 
     rec = open_recording(args.recording, "eval")

@@ -7,7 +7,7 @@ from pathlib import Path
 
 
 def add_parser(sub) -> None:
-    from .cmd_record import add_model_unit_option
+    from .options import add_model_unit_option
 
     p = sub.add_parser("import", help="bring another tool's data in as a recording (ViSP)",
                        description="Convert another tool's data into a recording (shared/spec/recording.md).")

@@ -11,8 +11,8 @@ from .errors import InputError
 
 
 def add_parser(sub) -> None:
-    from .cmd_record import add_scenario_options
-    from .cmd_track import add_tracker_options
+    from .options import add_tracker_options
+    from .sim.scenario import add_scenario_options
 
     p = sub.add_parser(
         "serve", help="run the pose server: track a source, stream poses over TCP or a serial line",
@@ -124,8 +124,9 @@ def run(args) -> int:
     from .tracker import InitResult, Tracker
     from .wire import HelloMsg
 
-    from .cmd_track import say_symmetry, tracker_config
     from .frames import FrameSet
+    from .options import say_symmetry, tracker_config
+    from .server_record import save_run
 
     camera_rate = args.rate
     if args.rate is None:
@@ -149,15 +150,15 @@ def run(args) -> int:
         if args.source == "replay":
             if not args.recording:
                 raise ValueError("--source replay needs --recording PATH")
-            from .cmd_track import open_recording
+            from .recording_report import open_recording
 
             rec = open_recording(args.recording, "serve")
             source = ReplaySource(rec, clock, loop=args.loop)
             model_file = model_file_in_metres(rec.model_path, args.model_unit)
             model = load_model(model_file, name=rec.object_name)
         elif args.source == "sim":
-            from .cmd_record import build_config
             from .sim.cell import SimCell
+            from .sim.scenario import build_config
 
             config, motion, name = build_config(args)
             cell = SimCell(config, motion)
@@ -166,7 +167,7 @@ def run(args) -> int:
             model_file = config.object_mesh
             model = load_model(model_file, name=name)
         elif args.source == "world":
-            from .cmd_record import build_config
+            from .sim.scenario import build_config
             from .sources import WorldSource
 
             if not args.world_shm:
@@ -176,8 +177,8 @@ def run(args) -> int:
             model_file = config.object_mesh
             model = load_model(model_file, name=name)
         else:
-            from .cmd_record import rig_path
             from .rig import load_rig
+            from .sim.rigs import rig_path
 
             if not args.model:
                 raise ValueError("--source camera needs --model CAD_FILE")
@@ -207,8 +208,7 @@ def run(args) -> int:
             from functools import partial
 
             from .init import make_initializer
-
-            from .cmd_track import init_options
+            from .options import init_options
 
             opts = init_options(args)
             initializer = make_initializer(source.rig, model, **opts)
@@ -308,37 +308,3 @@ def run(args) -> int:
 
 class ServeOptionError(InputError):
     """An option of ``vespro serve`` out of its range."""
-
-
-def save_run(folder: Path, writer, outputs, stats, link_stats, source, shedder=None) -> None:
-    """What a recorded server run leaves for evaluation (the demo's summary)."""
-    import json
-    import pickle
-
-    from .poses import PoseRow, write_poses
-
-    writer.close()
-    t0 = writer.t0_ns or 0
-    write_poses(folder / "poses.csv", [
-        PoseRow(o.index, (o.t_ns - t0) * 1e-9, o.status, o.T_world_object, o.time_ms, o.velocity, o.cov6)
-        for o in outputs])
-    with open(folder / "outputs.pkl", "wb") as f:
-        pickle.dump(outputs, f)
-    info = {
-        # The capture stamp of frame set 0 (the recording's t = 0) on the clock the servo shares.
-        "t0_ns": writer.t0_ns,
-        "frames": stats.frames, "tracking": stats.tracking, "init_attempts": stats.init_attempts,
-        "init_successes": stats.init_successes, "recording_dropped": writer.dropped,
-        "missed_captures": getattr(source, "missed", 0),
-        **stats.summary(),
-        "images": source.images.as_dict() if getattr(source, "images", None) is not None else None,
-        "capture_instants": stats.frames + getattr(source, "missed", 0),
-        # Steps the load shedder took (vespro.loadshed): when (s from the first frame set), what.
-        "load_steps": [] if shedder is None else [
-            {"t_s": (st.t_ns - (writer.t0_ns or st.t_ns)) * 1e-9, "kind": st.kind, "what": st.what,
-             "missed": st.missed, "instants": st.instants} for st in shedder.steps],
-        "link": {"frames_published": link_stats.frames_published, "frames_sent": link_stats.frames_sent,
-                 "drops": link_stats.drops, "clients_accepted": link_stats.clients_accepted,
-                 "errors": link_stats.errors},
-    }
-    (folder / "server.json").write_text(json.dumps(info, indent=2))

@@ -3,6 +3,8 @@
 The folder is indexed once when the library is created: every ``.stl``,
 ``.obj``, ``.ply`` or ViSP ``.cao`` file is a model named by its file stem. Models (and their
 BSP trees) are loaded on first use and cached for the library's lifetime.
+:func:`object_mesh_path` turns an object as the commands take it (a name here, or a
+model file) into a validated file in metres.
 """
 
 from __future__ import annotations
@@ -11,9 +13,9 @@ import threading
 from pathlib import Path
 
 from vespro.bsp import BSPTree, load_or_build_bsp
-from vespro.model import Model, load_model
+from vespro.model import Model, ModelError, load_model, model_file_in_metres
 
-__all__ = ["ModelLibrary", "DEFAULT_ROOT"]
+__all__ = ["ModelLibrary", "DEFAULT_ROOT", "object_mesh_path"]
 
 #: The project's own models.
 DEFAULT_ROOT = Path(__file__).resolve().parents[1] / "models" / "objects"
@@ -95,3 +97,19 @@ class ModelLibrary:
 
     def __repr__(self) -> str:
         return f"ModelLibrary({str(self.root)!r}, names={list(self._paths)})"
+
+
+def object_mesh_path(name_or_path: str, unit: str = "m") -> Path:
+    """A validated CAD file in metres: a model name in ``models/objects``, or a file path.
+
+    A file drawn in ``unit`` is checked (closed, outward, a plausible size) and,
+    unless it is already an STL, OBJ or PLY in metres, converted to one
+    (``vespro.model.model_file_in_metres``).
+    """
+    p = Path(name_or_path)
+    if p.is_file():
+        return model_file_in_metres(p, unit)
+    lib = ModelLibrary()
+    if name_or_path in lib.names:
+        return model_file_in_metres(lib.path(name_or_path), lib.unit)
+    raise ModelError(f"no object {name_or_path!r}; known objects: {', '.join(lib.names)} (or give a mesh path)")

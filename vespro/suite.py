@@ -174,7 +174,8 @@ def _file_hash(p: Path) -> str:
 
 def scenario_key(sc: dict) -> str:
     """Cache key of a scenario's recording: hash of its recording fields, mesh and rig file."""
-    from .cmd_record import object_mesh_path, rig_path
+    from .library import object_mesh_path
+    from .sim.rigs import rig_path
 
     fields = {f: sc[f] for f in RECORDING_FIELDS if f not in _KEYED_WHEN_SET or sc[f] != DEFAULTS[f]}
     payload = {"fields": fields, "mesh": _file_hash(object_mesh_path(str(sc["object"]))),
@@ -183,8 +184,8 @@ def scenario_key(sc: dict) -> str:
 
 
 def _record_args(sc: dict, rig) -> argparse.Namespace:
-    from .cmd_record import _resolution
     from .sim.cell import CameraDropout
+    from .sim.scenario import parse_resolution
 
     kind, speed = MOTIONS[sc["motion"]]
     drops = []
@@ -202,7 +203,7 @@ def _record_args(sc: dict, rig) -> argparse.Namespace:
         coeffs, dist = tuple(float(x) for x in dist), True
     return argparse.Namespace(
         object=str(sc["object"]), rig=str(sc["rig"]), motion=kind, rate=float(sc["rate_hz"]),
-        resolution=_resolution(sc["resolution"]) if sc["resolution"] else None,
+        resolution=parse_resolution(sc["resolution"]) if sc["resolution"] else None,
         speed=sc["speed"] if sc["speed"] is not None else speed, amplitude=sc["amplitude"],
         rot_amplitude_deg=sc["rot_amplitude_deg"], stop_time=sc["stop_time"], noise=float(sc["noise_px"]),
         intensity_noise=float(sc["intensity_noise"]), blur=float(sc["blur_px"]), distortion=bool(dist),
@@ -218,9 +219,10 @@ def ensure_recording(sc: dict, cache_dir: str | Path, log=print) -> Path:
     Written to a temporary folder and renamed, so an interrupted run leaves
     no half recording behind under the final name.
     """
-    from .cmd_record import build_config, rig_path
     from .rig import load_rig
     from .sim.record import record
+    from .sim.rigs import rig_path
+    from .sim.scenario import build_config
 
     cache_dir = Path(cache_dir)
     key = scenario_key(sc)
@@ -566,7 +568,7 @@ def track_scenario(sc: dict, cache_dir: str | Path, log=print, overrides: dict |
         init_pose = T_true[0]  # evaluator-only: scores tracking, not initialisation
     else:
         # With the bank, texture inside a face is clutter to the likelihood: the plain-face checks
-        # stay off, as ``--decision bank`` sets them (vespro.cmd_track.init_options).
+        # stay off, as ``--decision bank`` sets them (vespro.options.init_options).
         tracker.initializer = make_initializer(rec.rig, tracker.model, plain_faces=config.decision != "bank")
     outs = track_recording(rec, tracker, init_pose)
     return {"rec_path": rec_path, "rec": rec, "T_true": T_true, "tracker": tracker, "config": config, "outs": outs}

@@ -30,7 +30,7 @@ from typing import Sequence
 
 import numpy as np
 
-from vespro.bsp import BSPTree, _segment_blocked
+from vespro.bsp import BSPTree, segment_blocked
 from vespro.camera import CameraIntrinsics, distort_normalized, project_points
 from vespro.jit import njit
 from vespro.model import Model
@@ -433,8 +433,8 @@ def _facing_blocked_kernel(c, face_normals, face_offsets, table, corners, facing
         i = idx[m]
         t_lo[m] = min(end_eps / dist[i], 0.5)
         t_hi[m] = 1.0 - t_lo[m]
-        blocked[m] = _segment_blocked(c, corners[i, 0], corners[i, 1], corners[i, 2], bounds, h_start, sign, plane,
-                                      corner_plane_dist, i, t_lo[m], t_hi[m], children, plane_eps, st_node, st_t)
+        blocked[m] = segment_blocked(c, corners[i, 0], corners[i, 1], corners[i, 2], bounds, h_start, sign, plane,
+                                     corner_plane_dist, i, t_lo[m], t_hi[m], children, plane_eps, st_node, st_t)
     return idx, t_lo, t_hi, blocked, cos_best, dist
 
 

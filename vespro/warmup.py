@@ -56,7 +56,7 @@ def uncompiled_kernels() -> list[str]:
 
 
 def _frame_sets(part: str, rig_name: str, n: int, mono: bool):
-    from .cmd_record import object_mesh_path
+    from .library import object_mesh_path
     from .rig import load_rig
     from .sim.cell import CellConfig, SimCell
     from .sim.imaging import ImageEffects
@@ -83,7 +83,7 @@ def warm_up(log=print) -> list[str]:
     """Compile every kernel (and cache the cell's BSP trees); returns the kernels left
     uncompiled (none, unless a kernel is reached only by a path not run here)."""
     from .bsp import load_or_build_bsp
-    from .cmd_record import object_mesh_path
+    from .library import object_mesh_path
     from .model import load_model
     from .visibility import SceneBody
 

@@ -169,8 +169,10 @@ def test_cli_writes_rig_and_coverage_png(captured, tmp_path, capsys):
     assert cv2.imread(str(png)).shape == (480, 640, 3)
     assert "reprojection RMS" in capsys.readouterr().out
     # The written rig drives the simulator (vespro record --rig FILE).
-    from vespro.cmd_record import add_parser, build_config  # noqa: F401
     import argparse
+
+    from vespro.cmd_record import add_parser
+    from vespro.sim.scenario import build_config
 
     p = argparse.ArgumentParser()
     add_parser(p.add_subparsers())

@@ -14,11 +14,11 @@ import pytest
 from strided import Strided
 from trial_frames import trial_frames
 
-from vespro.cmd_record import object_mesh_path
 from vespro.frames import FrameSet
 from vespro.groundtruth import read_groundtruth
 from vespro.init import InitOptions, make_initializer
 from vespro.init.features import EdgeOptions
+from vespro.library import object_mesh_path
 from vespro.metrics import add
 from vespro.model import load_model
 from vespro.recording import Recording

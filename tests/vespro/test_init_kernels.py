@@ -24,10 +24,10 @@ import pytest
 from test_init_search import CAMS, T_WO, K, _pose, render
 
 from vespro.bsp import IN, _plane_dist, load_or_build_bsp
-from vespro.cmd_record import object_mesh_path
 from vespro.init import search
 from vespro.init.features import extract_features, normal_bins
 from vespro.init.modelfeat import model_features
+from vespro.library import object_mesh_path
 from vespro.model import load_model
 from vespro.se3 import exp_so3, invert_transform, transform_from_rt
 

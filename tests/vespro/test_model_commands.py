@@ -122,7 +122,7 @@ def test_bad_model_gives_one_line_and_exit_2(tmp_path, capsys, model_cache, comm
 def test_millimetre_model_is_taken_with_model_unit(tmp_path, model_cache):
     """The fix the message names works: record's scenario is built with the part in metres."""
     model, _ = _bad(tmp_path, "mm")
-    from vespro.cmd_record import build_config
+    from vespro.sim.scenario import build_config
 
     args = build_parser().parse_args(["record", str(tmp_path / "r"), "--object", str(model), "--model-unit", "mm"])
     config, _, name = build_config(args)
@@ -143,7 +143,7 @@ def test_millimetre_model_is_taken_with_model_unit(tmp_path, model_cache):
 def test_inside_out_model_is_turned_once_with_a_note(tmp_path, capsys, model_cache):
     inv = tmp_path / "inv.stl"
     trimesh.Trimesh(BOX.vertices, BOX.faces[:, ::-1], process=False).export(inv)
-    from vespro.cmd_record import build_config
+    from vespro.sim.scenario import build_config
 
     args = build_parser().parse_args(["record", str(tmp_path / "r"), "--object", str(inv)])
     config, _, name = build_config(args)

@@ -182,7 +182,7 @@ def test_textured_parts_are_told_on_the_command_line(recs):
     ``--decision bank`` they are off too (the bank's likelihood takes texture as clutter)."""
     import argparse
 
-    from vespro.cmd_track import add_tracker_options, init_options, initializer_for, tracker_config
+    from vespro.options import add_tracker_options, init_options, initializer_for, tracker_config
     from vespro.model import load_model
     from vespro.recording import Recording
 

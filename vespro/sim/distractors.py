@@ -110,7 +110,7 @@ def _shape(kind: str, part_mesh: Path, rng: np.random.Generator):
         if kind == "near":
             mesh, scale = Path(part_mesh), (1.0, 1.0, NEAR_HEIGHT_SCALE)
         else:
-            from ..cmd_record import object_mesh_path
+            from ..library import object_mesh_path
 
             mesh, scale = object_mesh_path(kind), (1.0, 1.0, 1.0)
         b = trimesh.load(str(mesh), force="mesh").bounds * np.asarray(scale)

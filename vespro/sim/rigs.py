@@ -1,5 +1,7 @@
 """The standard rig files in ``cameras/``, exported from the cell's MuJoCo cameras.
 
+:func:`rig_path` finds one by name (or takes a rig file's path), as the commands do.
+
 ``python -m vespro.sim.rigs`` rewrites them; a test checks they still match
 ``models/cell.xml`` and ``models/arm.xml``. Intrinsics come from each MuJoCo
 camera's ``fovy`` and the resolution (square pixels, centred principal point);
@@ -19,7 +21,7 @@ from ..rig import Rig, RigCamera, save_rig
 from ..se3 import matrix_from_quat, transform_from_rt
 from .scene import CELL_XML, T_CAMERA_GL
 
-__all__ = ["STANDARD_RIGS", "CAMERAS_DIR", "rig_from_model", "write_standard_rigs"]
+__all__ = ["STANDARD_RIGS", "CAMERAS_DIR", "rig_path", "rig_from_model", "write_standard_rigs"]
 
 CAMERAS_DIR = Path(__file__).resolve().parents[2] / "cameras"
 
@@ -31,6 +33,18 @@ STANDARD_RIGS = {
     "hand": ["hand"],
     "hybrid": ["cam_left", "cam_right", "hand"],
 }
+
+
+def rig_path(name_or_path: str) -> Path:
+    """A rig file: an existing path, or a standard rig name in ``cameras/``."""
+    p = Path(name_or_path)
+    if p.is_file():
+        return p
+    q = CAMERAS_DIR / f"{name_or_path}.yaml"
+    if q.is_file():
+        return q
+    names = sorted(x.stem for x in CAMERAS_DIR.glob("*.yaml"))
+    raise ValueError(f"no rig {name_or_path!r}; standard rigs: {', '.join(names)} (or give a cameras.yaml path)")
 
 
 def rig_from_model(model: mujoco.MjModel, names: list[str], width: int = 640, height: int = 480) -> Rig:

@@ -15,10 +15,11 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from ..cmd_record import object_mesh_path, rig_path
+from ..library import object_mesh_path
 from ..rig import Rig, RigCamera, load_rig
 from ..se3 import exp_so3, transform_from_rt
 from .motion import Motion, RandomSmooth, Static
+from .rigs import rig_path
 from .scene import BELT_TOP_Z
 
 __all__ = ["WORK_CENTER", "random_start_pose", "random_rig", "DriftAbout", "trial_config", "model_symmetries"]
