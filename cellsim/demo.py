@@ -407,11 +407,12 @@ def run_demo_lockstep(cfg: DemoConfig, log=print) -> dict:
     and the tick waits until the servo's receiver has it. Reproducible to the bit
     for a given configuration, whatever the machine's speed.
     """
-    from servo.cmd_run import follow_task, write_stats_json
     from servo.link_source import LinkSource
     from servo.loop import LoopConfig, LoopState, Scheduler
+    from servo.planner import follow_task
     from servo.receiver import PoseReceiver
     from servo.recorder import Recorder
+    from servo.report import write_stats_json
     from servo.shm_robot import RobotShm, ShmArm
 
     from vespro.clock import SimClock

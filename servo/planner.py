@@ -74,6 +74,7 @@ __all__ = [
     "JointTrapezoid",
     "CartesianTrapezoid",
     "ViaPath",
+    "follow_task",
 ]
 
 
@@ -761,3 +762,18 @@ class ViaPath:
         x_out[:] = P[k] + self.V[k] * (t - tk[k])
         xd_out[:] = self.V[k]
         xdd_out[:] = 0.0
+
+def follow_task(standoff: float, upright: bool = True):
+    """TCP ``standoff`` above the object origin, pointing down (z against the object's z).
+
+    ``upright``: above in the world (the object's heading only, see
+    :class:`servo.planner.FollowTask`); otherwise along the object's own z axis.
+
+    The approach ends (and following starts) once the reference is within 5 mm,
+    3 degrees and 0.02 m/s of the stand-off target: tolerances above the noise of
+    a vision estimate (about 1 mm and 1 degree), or the switch would wait for luck.
+    """
+    T = np.diag([1.0, -1.0, -1.0, 1.0])
+    T[2, 3] = standoff
+    return FollowTask(T_object_tcp=T, standoff_m=0.10, approach_tol_m=0.005, approach_tol_rad=np.deg2rad(3.0),
+                      approach_tol_mps=0.02, upright=upright)

@@ -85,7 +85,7 @@ def test_each_package_imports_only_the_layers_below_it():
 
 
 #: Command modules: each builds its sub-command and runs it (a module name pattern).
-COMMAND_MODULE = re.compile(r"(vespro\.cmd_\w+|cellsim\.cmd_demo)(\.|$)")
+COMMAND_MODULE = re.compile(r"(vespro\.cmd_\w+|servo\.cmd_\w+|cellsim\.cmd_demo)(\.|$)")
 #: The command-line dispatcher, which may import the command modules (lazily only).
 DISPATCHER = "vespro/cli.py"
 

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from servo.clock import SimClock
-from servo.cmd_run import follow_task
+from servo.planner import follow_task
 from servo.events import EventKind
 from servo.kinematics import ArmKinematics
 from servo.link_source import LinkSource

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from servo.clock import SimClock
-from servo.cmd_run import follow_task
+from servo.planner import follow_task
 from servo.link_source import LinkSource
 from servo.loop import LoopConfig, LoopState, Scheduler
 from servo.receiver import PoseReceiver

@@ -168,7 +168,7 @@ def test_a_refusing_server_s_reason_is_kept_and_shown_and_a_later_seat_is_taken(
     """A server that serves no more clients says why and closes: the receiver counts the
     refusal, keeps the reason for the servo's status line, retries, and is served once a
     seat is free (the reason then goes)."""
-    from servo.cmd_run import status_line
+    from servo.report import status_line
     from servo.loop import LoopConfig, LoopState
 
     pub = PosePublisher.tcp(HELLO, 0, max_clients=1, heartbeat_period_s=0, stamp_send_time=False)

@@ -6,7 +6,8 @@ import json
 import numpy as np
 
 from servo.clock import SimClock
-from servo.cmd_run import follow_task, status_line, write_stats_json
+from servo.planner import follow_task
+from servo.report import status_line, write_stats_json
 from servo.events import EventKind
 from servo.link_source import LinkSource
 from servo.loop import LoopConfig, LoopState, Scheduler
