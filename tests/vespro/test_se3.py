@@ -77,3 +77,31 @@ def test_matrix_from_quat_single_equals_scipy_bit_for_bit():
     # and the batch path agrees with the single one
     Q = rng.normal(size=(50, 4))
     assert np.array_equal(se3.matrix_from_quat(Q), np.array([se3.matrix_from_quat(q) for q in Q]))
+
+
+def test_log_so3_is_scipys_rotation_vector():
+    """The compiled log is SciPy's ``from_matrix(R).as_rotvec()`` to rounding: random
+    rotations, small angles (its series), angles at and near pi, the identity, the
+    coordinate flips (each branch of the quaternion's largest term); a matrix a little
+    off orthonormal gives a rotation within its error."""
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(5)
+    Rs = list(Rotation.random(2000, random_state=rng).as_matrix())
+    axes = rng.normal(size=(60, 3))
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    for a, ang in zip(axes, np.concatenate([np.geomspace(1e-12, 2e-3, 20), np.pi - np.geomspace(1e-12, 1e-2, 20),
+                                            np.full(20, np.pi)])):
+        Rs.append(Rotation.from_rotvec(a * ang).as_matrix())
+    Rs += [np.eye(3), np.diag([1.0, -1, -1]), np.diag([-1.0, 1, -1]), np.diag([-1.0, -1, 1])]
+    off = Rs[0] + 1e-6 * rng.normal(size=(3, 3))
+    np.testing.assert_allclose(se3.log_so3(off), Rotation.from_matrix(off).as_rotvec(), rtol=0, atol=1e-5)
+    for R in Rs:
+        want = Rotation.from_matrix(R).as_rotvec()
+        got = se3.log_so3(R)
+        if np.linalg.norm(want) > np.pi - 1e-6:  # at pi, v and -v are the same rotation
+            assert min(np.abs(got - want).max(), np.abs(got + want).max()) < 1e-9
+        else:
+            np.testing.assert_allclose(got, want, rtol=0, atol=1e-12)
+    with pytest.raises(ValueError):
+        se3.log_so3(np.eye(4))
