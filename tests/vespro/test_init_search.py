@@ -15,7 +15,7 @@ import pytest
 from vespro.camera import CameraIntrinsics
 from vespro.frames import FrameSet
 from vespro.init import InitOptions, make_initializer
-from vespro.init.features import EdgeOptions, drop_transitive_links, extract_features, normal_bins
+from vespro.init.features import EdgeOptions, extract_features, normal_bins
 from vespro.init.initializer import _accept, make_setup
 from vespro.init.modelfeat import model_features
 from vespro.init.search import CameraView, check_pose, refine_pose
@@ -96,12 +96,6 @@ def test_corner_links_of_a_rectangle_are_its_sides():
     assert sides <= L
     assert not (diagonals & L)
 
-
-def test_drop_transitive_links_keeps_neighbours_along_a_line():
-    c = np.array([[0.0, 0], [10, 0], [20, 0], [10, 10]])
-    links = np.array([[0, 1], [1, 2], [0, 2], [1, 3]])
-    out = {tuple(l) for l in drop_transitive_links(c, links)}
-    assert out == {(0, 1), (1, 2), (1, 3)}
 
 
 def test_model_paths_use_long_sharp_edges(box, lblock):

@@ -73,9 +73,6 @@ class EdgeOptions:
         Fraction of the samples along a corner pair's segment that must lie
         within ``link_tol_px`` of an edge of that orientation.
     link_tol_px : float
-    drop_transitive : bool
-        Drop links bridging a corner linked to both ends (fewer paths, but a
-        stray corner on a part edge then breaks that edge's link).
     """
 
     n_bins: int = 12
@@ -95,7 +92,6 @@ class EdgeOptions:
     link_max_frac: float = 0.5
     link_support: float = 0.85
     link_tol_px: float = 1.5
-    drop_transitive: bool = False
 
 
 @dataclass(frozen=True)
@@ -371,31 +367,4 @@ def link_corners(corners: np.ndarray, dt: np.ndarray, opt: EdgeOptions, diag: fl
     pts = corners[i][:, None, :] + fr[None, :, None] * d[:, None, :]
     dist = lookup_dt(dt, np.broadcast_to(bins[:, None], pts.shape[:2]), pts, np.inf)
     keep = np.mean(dist <= opt.link_tol_px, axis=1) >= opt.link_support
-    links = np.stack([i[keep], j[keep]], 1).astype(np.int64)
-    return drop_transitive_links(corners, links) if opt.drop_transitive else links
-
-
-def drop_transitive_links(corners: np.ndarray, links: np.ndarray, tol_px: float = 2.0) -> np.ndarray:
-    """Drop a link i-j when a corner k between them is linked to both.
-
-    Corners strung along one long straight edge would otherwise be linked all
-    to all (quadratically many links, cubically many paths); only the links
-    between neighbours along the edge are kept.
-    """
-    n = len(corners)
-    if len(links) == 0:
-        return links
-    adj = np.zeros((n, n), bool)
-    adj[links[:, 0], links[:, 1]] = adj[links[:, 1], links[:, 0]] = True
-    keep = np.ones(len(links), bool)
-    for m, (i, j) in enumerate(links):
-        ks = np.flatnonzero(adj[i] & adj[j])
-        if ks.size == 0:
-            continue
-        d = corners[j] - corners[i]
-        L2 = d @ d
-        r = corners[ks] - corners[i]
-        t = r @ d / L2
-        perp = np.abs(r[:, 0] * d[1] - r[:, 1] * d[0]) / np.sqrt(L2)
-        keep[m] = not np.any((t > 0.02) & (t < 0.98) & (perp < tol_px))
-    return links[keep]
+    return np.stack([i[keep], j[keep]], 1).astype(np.int64)
