@@ -34,10 +34,11 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
+from vespro.edgefit import refine_pose, refine_subpixel  # noqa: E402
+from vespro.imageedges import visible_samples  # noqa: E402
 from vespro.init import make_initializer  # noqa: E402
 from vespro.init.initializer import _accept_plain, _verdict, _views, initialize  # noqa: E402
-from vespro.init.search import (check_pose, image_paths, p3p_hypotheses, refine_pose, refine_subpixel,  # noqa: E402
-                                visible_samples)
+from vespro.init.search import check_pose, image_paths, p3p_hypotheses  # noqa: E402
 from vespro.library import object_mesh_path  # noqa: E402
 from vespro.metrics import add  # noqa: E402
 from vespro.model import load_model  # noqa: E402

@@ -144,7 +144,7 @@ def profile_tracker(name: str, rig, model, framesets, T_start=None, initializer=
 
 def edgefit_baseline(seq, n_calls: int = 120) -> list[list] | None:
     """The edge fit's calls of a tracker run on ``seq``, each timed (thread CPU) through the
-    compiled :func:`vespro.init.search.refine_subpixel` and through the NumPy formulation it
+    compiled :func:`vespro.edgefit.refine_subpixel` and through the NumPy formulation it
     replaced (kept as the reference of ``tests/vespro/test_init_kernels.py``), interleaved in
     this process: rows (stage, median, p99, ratio). None where the tests are not at hand."""
     tests = Path(__file__).resolve().parents[1] / "tests" / "vespro"

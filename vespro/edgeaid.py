@@ -8,7 +8,7 @@ of the diameter off slid to 11-20% within a few frames while every corner it
 used stayed within 3 px of the truth. The part's visible model edges, found
 in the image by a one-dimensional search along their projected normals
 (hundreds of samples; the initialiser's sub-pixel stage,
-:func:`vespro.init.search.refine_subpixel`, as in RAPiD-style edge trackers),
+:func:`vespro.edgefit.refine_subpixel`, as in RAPiD-style edge trackers),
 fit that pose to 0.2-3% of the diameter in the same frames.
 
 :class:`EdgeAid` turns one camera image and the filter's pose into such a
@@ -35,7 +35,7 @@ from .imageedges import image_gradient as _gradient
 from .imageedges import projection_box
 from .init.features import Undistorter
 from .init.modelfeat import model_features
-from .init.search import CameraView, EdgeFit, refine_subpixel
+from .edgefit import CameraView, EdgeFit, refine_subpixel
 from .model import Model
 from .rig import Rig
 from .se3 import invert_transform
@@ -91,7 +91,7 @@ class EdgeContrast:
     edge the background changes (belt, plate, rail), and an edge's mean
     contrast fitted none of its parts.
 
-    The contrast learnt is :attr:`vespro.init.search.EdgeFit.sample_contrast`,
+    The contrast learnt is :attr:`vespro.edgefit.EdgeFit.sample_contrast`,
     averaged with weight ``rate`` for the new frame over the frames whose
     measurement the filter accepted; a sample is expected once it has
     ``min_frames`` such frames with the same faces of its edge seen (``side``,
@@ -169,7 +169,7 @@ class EdgeAid:
         7% and its std grows to 5-6.5 mm. 0: off.
     spacing_px : float
         An edge's samples weigh together at most one per ``spacing_px`` of its
-        projected length (see :func:`vespro.init.search.refine_subpixel`). 0: off.
+        projected length (see :func:`vespro.edgefit.refine_subpixel`). 0: off.
     edge_outlier_px : float
         An edge the solved step leaves more than this off on average is left
         out of the round (a faint edge found on its neighbour). 0: off.
@@ -187,11 +187,11 @@ class EdgeAid:
     edge_offset_px : float
         Std of an offset common to all samples of one edge (the image edge
         as a whole off the model's), added to the covariance (see
-        :meth:`vespro.init.search.EdgeFit.covariance`). 0: off.
+        :meth:`vespro.edgefit.EdgeFit.covariance`). 0: off.
     near_peak_frac : float
         Each sample takes the nearest gradient peak along its normal among
         those at least this fraction of the highest, not the highest (see
-        :func:`vespro.init.search.refine_subpixel`): a face seen edge on shows
+        :func:`vespro.edgefit.refine_subpixel`): a face seen edge on shows
         as a line a pixel wide, both its sides edges, and the highest may be
         the far one. Box rig seed 1618 frame 30 without image noise, fitted
         from the true pose: with the highest, one silhouette edge taken 1.9 px
@@ -211,7 +211,7 @@ class EdgeAid:
         Given an :class:`EdgeContrast` (:meth:`measure`), a sample whose
         contrast is known takes only image edges of its sign between these
         multiples of its strength (no upper bound for one that saw no edge of
-        its own; :func:`vespro.init.search._normal_search`). None: the memory
+        its own; :func:`vespro.edgefit._normal_search`). None: the memory
         is not used. Measured on 600 one-camera trials (``bench/init.py --rigs
         1 --track 52``): the two tracks that slid past 10% (box and L-block,
         rig seed 1618) now peak at 6% and 9%, 563 published within 1 s against

@@ -5,9 +5,10 @@ correspondence line): which model edges a camera sees at a pose (back-face
 culling, and the BSP line of sight for a non-convex part), where their points
 project, and the image gradient those lines read, with the intensity noise
 that sets how strong a gradient must be to be an edge at all. The
-initialiser's scores and sub-pixel fit (:mod:`vespro.init.search`), the
-tracker's edge fits (:mod:`vespro.edgeaid`) and the pose likelihood
-(:mod:`vespro.likelihood`) all measure through these functions.
+initialiser's scores (:mod:`vespro.init.search`), the pose fits on image edges
+that the initialiser and the tracker's edge aid share (:mod:`vespro.edgefit`)
+and the pose likelihood (:mod:`vespro.likelihood`) all measure through these
+functions.
 
 Model features (edge samples, faces, edges) come from
 :func:`vespro.init.modelfeat.model_features`; any object with the same

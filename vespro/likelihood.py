@@ -25,7 +25,7 @@ its centre and few others gains up to ``log(2 line_px N(0) / 1)``.
 Samples along one straight model edge share its errors (a pose off by a
 little moves all of them at once): an edge's samples weigh together at most
 one per ``spacing_px`` of its projected length, as in the sub-pixel fit
-(:func:`vespro.init.search.refine_subpixel`). The camera's log-likelihood is
+(:func:`vespro.edgefit.refine_subpixel`). The camera's log-likelihood is
 the weighted sum of its lines' log ratios; cameras add.
 """
 

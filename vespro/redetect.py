@@ -4,7 +4,7 @@ When a frame's corner windows miss (the part moved further than the filter
 predicted: a start at an unknown velocity, a sudden turn), the corners found
 are few and chance ones. The part's outline is still near the prediction: the
 pose is refined on the oriented edge distances of the image
-(:func:`vespro.init.search.refine_pose`, the initialiser's refinement, whose
+(:func:`vespro.edgefit.refine_pose`, the initialiser's refinement, whose
 distance maps reach ``EdgeOptions.dt_max`` px), computed over a window around
 the predicted projection only. The result is a pose hypothesis, not a
 measurement: the tracker proposes it to the bank beside the tracked one and the
@@ -22,7 +22,7 @@ import numpy as np
 
 from .imageedges import projection_box
 from .init.features import EdgeOptions, Undistorter, edge_maps
-from .init.search import CameraView, refine_pose
+from .edgefit import CameraView, refine_pose
 from .se3 import invert_transform
 
 __all__ = ["Redetector"]

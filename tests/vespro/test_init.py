@@ -331,7 +331,7 @@ def test_an_image_edge_serves_one_edge_of_a_thin_strip():
     diameter (this was a wrong lock, 12%, on frame 20); with the image edge
     point serving the nearer model edge only, the refinement stays on it."""
     from vespro.init.initializer import _views
-    from vespro.init.search import refine_pose, refine_subpixel
+    from vespro.edgefit import refine_pose, refine_subpixel
 
     setup, model, syms, fs, T_true = _trial_frame("lblock", "1", 38, 15)
     views = _views(setup, fs)

@@ -11,7 +11,7 @@ Every comparison is to the last bit (signs of zeros and NaN positions
 included): the kernels repeat the NumPy code's operations in its order. Two
 facts of this platform make that possible, and are checked first: NumPy's
 small matrix products (OpenBLAS gemm) accumulate each entry as an FMA chain
-over k (``_dot3``), and ``np.einsum("ij,ij->i")`` sums three products as
+over k (``dot3``), and ``np.einsum("ij,ij->i")`` sums three products as
 ``(x0 y0 + x2 y2) + x1 y1``. On a BLAS or NumPy that accumulates otherwise
 (another CPU's OpenBLAS kernel, another NumPy release) those two tests are
 skipped and every comparison is to rounding instead (``assert_same_bits``):
@@ -23,12 +23,15 @@ import numpy as np
 import pytest
 from test_init_search import CAMS, T_WO, K, _pose, render
 
+from vespro import edgefit
 from vespro.bsp import IN, _plane_dist, load_or_build_bsp
+from vespro.imageedges import visible_samples
 from vespro.init import search
 from vespro.init.features import extract_features, normal_bins
 from vespro.init.modelfeat import model_features
 from vespro.library import object_mesh_path
 from vespro.model import load_model
+from vespro.numerics import dot3
 from vespro.se3 import exp_so3, invert_transform, transform_from_rt
 
 NAMES = ("box", "lblock", "bracket")
@@ -43,12 +46,12 @@ def _bits_equal(a, b):
 
 @numba.njit
 def _by_dot3(P, R):
-    """``P @ R[h]^T`` for every h, each entry by ``search._dot3``."""
+    """``P @ R[h]^T`` for every h, each entry by ``dot3``."""
     out = np.empty((R.shape[0], P.shape[0], 3), P.dtype)
     for h in range(R.shape[0]):
         for s in range(P.shape[0]):
             for j in range(3):
-                out[h, s, j] = search._dot3(P[s, 0], P[s, 1], P[s, 2], R[h, j, 0], R[h, j, 1], R[h, j, 2])
+                out[h, s, j] = dot3(P[s, 0], P[s, 1], P[s, 2], R[h, j, 0], R[h, j, 1], R[h, j, 2])
     return out
 
 
@@ -62,7 +65,7 @@ def _all_plane_dist(P, N, D):
 
 
 def _platform_facts():
-    """(small matrix products as ``_dot3``, einsum's three-term sums as ``_plane_dist``)."""
+    """(small matrix products as ``dot3``, einsum's three-term sums as ``_plane_dist``)."""
     rng = np.random.default_rng(11)
     P, R = rng.normal(size=(64, 3)), rng.normal(size=(3, 3, 3))
     gemm = all(_bits_equal(np.matmul(P.astype(d)[None], R.astype(d).transpose(0, 2, 1)),
@@ -261,7 +264,7 @@ def refine_subpixel_ref(T_world_object: np.ndarray, views, mf, tree=None,
                     shared_edge_px: float = 1.5, spacing_px: float = 0.0, edge_outlier_px: float = 0.0,
                     near_peak_frac: float = 0.0, expect: list | None = None,
                     contrast_ratio: tuple[float, float] = (0.4, 3.0), info: bool = False):
-    """``search.refine_subpixel`` with its per-camera work in NumPy, as it was."""
+    """``edgefit.refine_subpixel`` with its per-camera work in NumPy, as it was."""
     T = np.array(T_world_object, float)
     offs = np.arange(-search_px, search_px + 1e-9, 0.5)
     fit = None
@@ -273,7 +276,7 @@ def refine_subpixel_ref(T_world_object: np.ndarray, views, mf, tree=None,
         for iv, v in enumerate(views):
             T_cw = invert_transform(v.T_world_camera)
             T_co = T_cw @ T
-            idx = search.visible_samples(T_co, mf, tree)
+            idx = visible_samples(T_co, mf, tree)
             contrast.append(np.full(len(mf.sample_p), np.nan) if info else None)
             if idx.size == 0:
                 continue
@@ -296,7 +299,7 @@ def refine_subpixel_ref(T_world_object: np.ndarray, views, mf, tree=None,
             z = X[:, 2]
             uv = X[:, :2] / z[:, None] * K[[0, 1], [0, 1]] + K[:2, 2]
             exp = None if expect is None or expect[iv] is None else np.asarray(expect[iv], float)[idx]
-            sstar, ok, c_peak, c0 = search._normal_search(v.feat.grad, uv, n, offs, float(min_grad), float(near_peak_frac),
+            sstar, ok, c_peak, c0 = edgefit._normal_search(v.feat.grad, uv, n, offs, float(min_grad), float(near_peak_frac),
                                                    exp, float(contrast_ratio[0]), float(contrast_ratio[1]))
             if info:
                 contrast[-1][idx] = c0
@@ -305,12 +308,12 @@ def refine_subpixel_ref(T_world_object: np.ndarray, views, mf, tree=None,
             if shared_edge_px > 0:
                 k_ok = np.flatnonzero(ok)
                 tgt = uv[k_ok] + sstar[k_ok, None] * n[k_ok]
-                lost = k_ok[search.shared_edge_losers(tgt, se[k_ok], ub - ua, np.abs(sstar[k_ok]), shared_edge_px)]
+                lost = k_ok[edgefit.shared_edge_losers(tgt, se[k_ok], ub - ua, np.abs(sstar[k_ok]), shared_edge_px)]
                 ok[lost] = False
                 if lost.size:
                     # A face seen edge on shows its two edges as one image edge: there, the
                     # sample that lost it still found its outline.
-                    thin = search.face_widths_px(T_co, K, mf, edge_len) < 2.0 * shared_edge_px
+                    thin = edgefit.face_widths_px(T_co, K, mf, edge_len) < 2.0 * shared_edge_px
                     ef = mf.edge_faces[se[lost]]
                     w_shared += float(dens[lost][np.any(thin[ef], axis=1)].sum())
             if info:
@@ -356,10 +359,10 @@ def refine_subpixel_ref(T_world_object: np.ndarray, views, mf, tree=None,
         if info:  # the record of the round (what the caller asked for; not needed for the pose)
             # Per-edge sums of the weighted rows (JW is the last solve's, with the final weights).
             G = np.stack([np.bincount(inv, JW[:, j], len(u)) for j in range(6)], 1)
-            fit = search.EdgeFit(A, float(np.sqrt(np.sum(w * r * r) / np.sum(w))), int(keep.sum()),
+            fit = edgefit.EdgeFit(A, float(np.sqrt(np.sum(w * r * r) / np.sum(w))), int(keep.sum()),
                           len(np.unique(eid[keep])), n_searched, float(np.sum(dens[keep])),
                           float(np.sum(dens[keep])) + w_shared, w_searched, G.T @ G, tuple(contrast))
-        T = search._perturbed(T, step)
+        T = edgefit._perturbed(T, step)
         if np.linalg.norm(step[:3]) < 1e-5 and np.linalg.norm(step[3:]) < 1e-6:
             break
     return (T, fit) if info else T
@@ -438,7 +441,7 @@ def scene(request):
     views = []
     for i, T_wc in enumerate(CAMS):
         img = render(model, invert_transform(T_wc) @ T_WO, np.random.default_rng(10 + i))
-        views.append(search.CameraView(extract_features(f"c{i}", img, K), T_wc))
+        views.append(edgefit.CameraView(extract_features(f"c{i}", img, K), T_wc))
     return model, model_features(model), load_or_build_bsp(model), views
 
 
@@ -542,7 +545,7 @@ def _setups(scene, T, n_views=2):
     _, mf, tree, views = scene
     out = []
     for v in views[:n_views]:
-        idx, bins = search._camera_setup(T, v, mf, tree)
+        idx, bins = edgefit.camera_setup(T, v, mf, tree)
         out.append((v, invert_transform(v.T_world_camera), mf.sample_p[idx], bins))
     return out
 
@@ -559,7 +562,7 @@ def test_edge_residuals_match_numpy(scene, want_jac):
     n_out = 0
     for x in steps:
         ref = edge_residuals_ref(x, T0, setups, want_jac)
-        got = search.edge_residuals(x, T0, setups, want_jac)
+        got = edgefit.edge_residuals(x, T0, setups, want_jac)
         assert_same_bits(ref, got)
         if not want_jac:
             n_out += np.count_nonzero(ref == 20.0)
@@ -574,7 +577,7 @@ def test_perturbed_matches_numpy():
             x = np.r_[rng.normal(size=3) * scale, rng.normal(size=3) * 0.01]
             if k % 5 == 0:
                 x[k % 3] = 0.0
-            assert_same_bits(_perturbed_ref(T0, x), search._perturbed(T0, x))
+            assert_same_bits(_perturbed_ref(T0, x), edgefit._perturbed(T0, x))
 
 
 def test_normal_search_matches_numpy(scene):
@@ -583,7 +586,7 @@ def test_normal_search_matches_numpy(scene):
     offs = np.arange(-3.0, 3.0 + 1e-9, 0.5)
     for dp in ([0.0, 0.0, 0.0], [0.004, -0.003, 0.002], [0.3, 0.0, 0.0]):  # the last: mostly off the image
         T_co = invert_transform(v.T_world_camera) @ T_WO @ _pose([0.02, 0.0, -0.01], dp)
-        idx = search.visible_samples(T_co, mf, tree)
+        idx = visible_samples(T_co, mf, tree)
         ua, _ = search._project(K, T_co, mf.edge_a)
         ub, _ = search._project(K, T_co, mf.edge_b)
         d = (ub - ua)[mf.sample_edge[idx]]
@@ -592,7 +595,7 @@ def test_normal_search_matches_numpy(scene):
         uv, _ = search._project(K, T_co, mf.sample_p[idx])
         for min_grad in (40.0, 0.0):
             ref = normal_search_ref(v.feat.grad, uv, n, offs, min_grad)
-            got = search._normal_search(v.feat.grad, uv, n, offs, min_grad)
+            got = edgefit._normal_search(v.feat.grad, uv, n, offs, min_grad)
             for a, b in zip(ref, got):
                 assert_same_bits(a, b)
 
@@ -602,14 +605,14 @@ def test_refinements_unchanged(scene, monkeypatch):
     _, mf, tree, views = scene
     rng = np.random.default_rng(6)
     starts = [T_WO @ _pose(rng.normal(size=3) * 0.03, rng.normal(size=3) * 0.004) for _ in range(3)]
-    got = [(search.refine_pose(T, views[:1 + k % 2], mf, tree),
-            search.refine_subpixel(T, views[:1 + k % 2], mf, tree, info=True)) for k, T in enumerate(starts)]
+    got = [(edgefit.refine_pose(T, views[:1 + k % 2], mf, tree),
+            edgefit.refine_subpixel(T, views[:1 + k % 2], mf, tree, info=True)) for k, T in enumerate(starts)]
     monkeypatch.setattr(search, "edge_residuals", edge_residuals_ref)
     monkeypatch.setattr(search, "_perturbed", _perturbed_ref)
     monkeypatch.setattr(search, "_normal_search", normal_search_ref)
     for k, (T, (Tr, (Ts, fit))) in enumerate(zip(starts, got)):
-        assert_same_bits(search.refine_pose(T, views[:1 + k % 2], mf, tree), Tr)
-        Ts_ref, fit_ref = search.refine_subpixel(T, views[:1 + k % 2], mf, tree, info=True)
+        assert_same_bits(edgefit.refine_pose(T, views[:1 + k % 2], mf, tree), Tr)
+        Ts_ref, fit_ref = edgefit.refine_subpixel(T, views[:1 + k % 2], mf, tree, info=True)
         assert_same_bits(Ts_ref, Ts)
         assert_same_bits(fit_ref.normal, fit.normal)
         assert (fit_ref.rms_px, fit_ref.n_samples, fit_ref.n_edges, fit_ref.n_searched) == \
@@ -654,9 +657,9 @@ def test_normal_search_can_take_the_nearest_of_comparable_peaks():
     uv = np.array([[10.0, 10.0]])
     n = np.array([[1.0, 0.0]])
     offs = np.arange(-3.0, 3.0 + 1e-9, 0.5)
-    s_hi, ok_hi = search._normal_search(grad, uv, n, offs, 40.0)[:2]
-    s_near, ok_near = search._normal_search(grad, uv, n, offs, 40.0, 0.6)[:2]
-    s_far = search._normal_search(grad, uv, n, offs, 40.0, 0.9)[0]
+    s_hi, ok_hi = edgefit._normal_search(grad, uv, n, offs, 40.0)[:2]
+    s_near, ok_near = edgefit._normal_search(grad, uv, n, offs, 40.0, 0.6)[:2]
+    s_far = edgefit._normal_search(grad, uv, n, offs, 40.0, 0.9)[0]
     assert ok_hi[0] and ok_near[0]
     assert abs(s_hi[0] - 2.0) < 0.3 and abs(s_near[0]) < 0.3 and abs(s_far[0] - 2.0) < 0.3
 
@@ -679,7 +682,7 @@ def test_normal_search_takes_only_edges_like_the_expected_contrast():
     n = np.array([[1.0, 0.0]] * len(expect))
     offs = np.arange(-3.0, 3.0 + 1e-9, 0.5)
     for sign in (1.0, -1.0):
-        s, ok, c_peak, c0 = search._normal_search(grad, uv, sign * n, offs, 40.0, 0.6, sign * expect, 0.4, 3.0)
+        s, ok, c_peak, c0 = edgefit._normal_search(grad, uv, sign * n, offs, 40.0, 0.6, sign * expect, 0.4, 3.0)
         assert list(ok) == [True, True, True, True, False, True]
         assert np.allclose(sign * s[ok], [-2.0, 2.0, 0.0, -2.0, -2.0], atol=0.3)
         assert np.allclose(sign * c_peak[ok], [400.0, -60.0, 100.0, 400.0, 400.0])
@@ -691,7 +694,7 @@ def _view_rows_ref(T, v, mf, tree, offs, expect, spacing_px=2.0, shared_px=1.5):
     dens, lost, rows of the found samples)."""
     T_cw = invert_transform(v.T_world_camera)
     T_co = T_cw @ T
-    idx = search.visible_samples(T_co, mf, tree)
+    idx = visible_samples(T_co, mf, tree)
     K_ = v.feat.K
     ua, _ = search._project(K_, T_co, mf.edge_a)
     ub, _ = search._project(K_, T_co, mf.edge_b)
@@ -707,11 +710,11 @@ def _view_rows_ref(T, v, mf, tree, offs, expect, spacing_px=2.0, shared_px=1.5):
     z = X[:, 2]
     uv = X[:, :2] / z[:, None] * K_[[0, 1], [0, 1]] + K_[:2, 2]
     exp = None if expect is None else expect[idx]
-    sstar, ok, c_peak, c0 = search._normal_search(v.feat.grad, uv, n, offs, 40.0, 0.6, exp, 0.4, 3.0)
+    sstar, ok, c_peak, c0 = edgefit._normal_search(v.feat.grad, uv, n, offs, 40.0, 0.6, exp, 0.4, 3.0)
     k_ok = np.flatnonzero(ok)
     tgt = uv[k_ok] + sstar[k_ok, None] * n[k_ok]
     lost = np.zeros(idx.size, bool)
-    lost[k_ok[search.shared_edge_losers(tgt, se[k_ok], ub - ua, np.abs(sstar[k_ok]), shared_px)]] = True
+    lost[k_ok[edgefit.shared_edge_losers(tgt, se[k_ok], ub - ua, np.abs(sstar[k_ok]), shared_px)]] = True
     ok = ok & ~lost
     X, z, n, P = X[ok], z[ok], n[ok], P[ok]
     du = np.stack([K_[0, 0] / z, 0 * z, -K_[0, 0] * X[:, 0] / z ** 2], 1)
@@ -732,16 +735,16 @@ def test_subpixel_view_kernel_matches_numpy(scene):
         v = views[k % 2]
         expect = None
         if k >= 2:  # a contrast known for most samples, from the search at the true pose
-            _, fit0 = search.refine_subpixel(T_WO, [v], mf, tree, rounds=1, near_peak_frac=0.6, info=True)
+            _, fit0 = edgefit.refine_subpixel(T_WO, [v], mf, tree, rounds=1, near_peak_frac=0.6, info=True)
             expect = np.where(rng.random(len(mf.sample_p)) < 0.7, fit0.sample_contrast[0], np.nan)
         idx, ok, sstar, c_peak, c0, dens, lost, rows = _view_rows_ref(T, v, mf, tree, offs, expect)
         T_cw = invert_transform(v.T_world_camera)
         K_ = v.feat.K
-        got = search._subpixel_view_kernel(
+        got = edgefit._subpixel_view_kernel(
             v.feat.grad, K_[0, 0], K_[1, 1], K_[0, 2], K_[1, 2], T_cw @ T, np.ascontiguousarray(T[:3, :3]),
             np.ascontiguousarray(T_cw[:3, :3]), idx, mf.sample_p, mf.sample_edge, mf.edge_a, mf.edge_b, offs, 40.0,
             0.6, np.full(idx.size, np.nan) if expect is None else expect[idx], 0.4, 3.0, 2.0, 1.5,
-            search._COS_PARALLEL)
+            edgefit._COS_PARALLEL)
         for a, b in zip((ok, sstar, c_peak, c0, dens, lost), got[:6]):
             assert_same_bits(a, b)
         assert_same_bits(rows, got[7][got[0]])
@@ -760,9 +763,9 @@ def test_refine_subpixel_matches_numpy(scene, expect_known):
         vs = views[:1 + k % 2]
         expect = None
         if expect_known:
-            _, fit0 = search.refine_subpixel(T, vs, mf, tree, **kw)
+            _, fit0 = edgefit.refine_subpixel(T, vs, mf, tree, **kw)
             expect = [np.where(rng.random(c.size) < 0.7, c, np.nan) for c in fit0.sample_contrast]
-        Ta, fa = search.refine_subpixel(T, vs, mf, tree, expect=expect, **kw)
+        Ta, fa = edgefit.refine_subpixel(T, vs, mf, tree, expect=expect, **kw)
         Tb, fb = refine_subpixel_ref(T, vs, mf, tree, expect=expect, **kw)
         np.testing.assert_allclose(Ta, Tb, rtol=0, atol=1e-12)
         for name in ("normal", "offset_gram"):

@@ -16,7 +16,8 @@ from vespro.init import InitOptions
 from vespro.init.features import EdgeOptions, extract_features
 from vespro.init.initializer import _accept_plain, _probe, _rival, _shaded_apart, _upheld, _verdict, make_setup
 from vespro.init.modelfeat import model_features
-from vespro.init.search import CameraView, PoseCheck, _shade_step, check_pose, face_interiors, interior_clutter
+from vespro.edgefit import CameraView
+from vespro.init.search import PoseCheck, _shade_step, check_pose, face_interiors, interior_clutter
 from vespro.model import box_model, load_model
 from vespro.rig import Rig
 from vespro.se3 import exp_so3, invert_transform, transform_from_rt
@@ -94,7 +95,8 @@ def test_creases_are_the_edges_between_two_front_faces(scene):
     over the visible edges; most creases show (two of its faces at an angle
     share a shade under the renderer's single light, and a concave crease is
     a dark corner)."""
-    from vespro.init.search import _front, visible_samples
+    from vespro.imageedges import visible_samples
+    from vespro.init.search import _front
 
     mf, tree, _, feat = scene
     chk = check_pose(T_WO, [CameraView(feat, CAMS[0])], mf, tree)

@@ -18,7 +18,8 @@ from vespro.init import InitOptions, make_initializer
 from vespro.init.features import EdgeOptions, extract_features, normal_bins
 from vespro.init.initializer import _accept, make_setup
 from vespro.init.modelfeat import model_features
-from vespro.init.search import CameraView, check_pose, refine_pose
+from vespro.edgefit import CameraView, refine_pose
+from vespro.init.search import check_pose
 from vespro.model import box_model, load_model
 from vespro.rig import Rig, RigCamera
 from vespro.se3 import exp_so3, invert_transform, transform_from_rt
@@ -136,7 +137,7 @@ CAMS = [_look_at(np.array([0.6, -0.5, 0.5]), [0, 0, 0.03]), _look_at(np.array([0
 
 def test_refine_jacobian_matches_finite_differences(lblock):
     """Analytic IRLS Jacobian == numeric derivative of the residual."""
-    from vespro.init import search
+    from vespro import edgefit
 
     mf = model_features(lblock)
     tree = make_setup(Rig(()), lblock).tree
@@ -144,13 +145,13 @@ def test_refine_jacobian_matches_finite_differences(lblock):
     T0 = T_WO @ _pose([0.01, -0.02, 0.015], [0.003, -0.002, 0.001])
     setups = []
     for v in views:
-        idx, bins = search._camera_setup(T0, v, mf, tree)
+        idx, bins = edgefit.camera_setup(T0, v, mf, tree)
         setups.append((v, invert_transform(v.T_world_camera), mf.sample_p[idx], bins))
 
     def resid(x):
-        return search.edge_residuals(x, T0, setups, False)
+        return edgefit.edge_residuals(x, T0, setups, False)
 
-    J = search.edge_residuals(np.zeros(6), T0, setups, True)
+    J = edgefit.edge_residuals(np.zeros(6), T0, setups, True)
     h = np.array([1e-5] * 3 + [1e-6] * 3)
     Jn = np.stack([(resid(np.eye(6)[k] * h[k]) - resid(-np.eye(6)[k] * h[k])) / (2 * h[k]) for k in range(6)], 1)
     # Bilinear maps are piecewise linear: samples sitting on a cell boundary
@@ -350,7 +351,8 @@ def test_ranking_with_the_tree_drops_the_samples_the_part_hides(rotvec):
     over exactly the samples in line of sight (``visible_samples``), and it
     rises over culling alone (hidden edges no longer count as unsupported)."""
     from vespro.bsp import load_or_build_bsp
-    from vespro.init.search import rank_in_camera, visible_samples
+    from vespro.imageedges import visible_samples
+    from vespro.init.search import rank_in_camera
 
     bracket = load_model(MODELS_DIR / "objects" / "bracket.stl")
     mf = model_features(bracket)
@@ -368,7 +370,7 @@ def test_ranking_with_the_tree_drops_the_samples_the_part_hides(rotvec):
 
 
 def test_shared_edge_losers_keep_the_nearer_of_two_parallel_edges():
-    from vespro.init.search import shared_edge_losers
+    from vespro.edgefit import shared_edge_losers
 
     s = np.arange(0.0, 20.0, 1.0)
     # Edge 0 on the image line (cost 0.2 px), edge 1 parallel 1 px off (cost 0.9),
@@ -393,7 +395,7 @@ def test_subpixel_refinement_does_not_squeeze_an_edge_on_face(box):
     edge (``shared_edge_px``).
     """
     from vespro.init.initializer import _adds
-    from vespro.init.search import refine_subpixel
+    from vespro.edgefit import refine_subpixel
 
     mf = model_features(box)
     T_wo = _pose([1.807, 0.188, -1.487], [0.0, 0.0, 0.0])

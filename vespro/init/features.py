@@ -236,7 +236,7 @@ def extract_features(name: str, img: np.ndarray, K: np.ndarray, opt: EdgeOptions
 
 def edge_maps(name: str, img: np.ndarray, K: np.ndarray, opt: EdgeOptions = EdgeOptions()) -> CameraFeatures:
     """The edge half of :func:`extract_features`: edges, oriented distance maps, gradient and grey
-    image; no corners (what a pose refinement on the edges needs, :func:`vespro.init.search.refine_pose`)."""
+    image; no corners (what a pose refinement on the edges needs, :func:`vespro.edgefit.refine_pose`)."""
     H, W = img.shape[:2]
     dx, dy = _gradient(img, opt.blur_sigma)
     noise = image_noise(img)

@@ -39,6 +39,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from ..bsp import load_or_build_bsp
+from ..edgefit import CameraView, refine_pose, refine_subpixel
 from ..frames import FrameSet
 from ..metrics import add_sym
 from ..model import Model
@@ -47,8 +48,7 @@ from ..se3 import exp_so3, invert_transform, transform_from_rt
 from ..startpose import InitResult
 from .features import EdgeOptions, Undistorter, extract_features
 from .modelfeat import ModelFeatures, model_features
-from .search import (CameraView, check_pose, image_paths, p3p_hypotheses, rank_in_camera, refine_pose,
-                     refine_subpixel, unshared_px)
+from .search import check_pose, image_paths, p3p_hypotheses, rank_in_camera, unshared_px
 
 __all__ = ["InitOptions", "InitSetup", "InitReport", "InitResult", "Initializer", "make_initializer",
            "make_setup", "initialize"]
@@ -218,7 +218,7 @@ class InitOptions:
         best candidates 2-9% of the diameter off. Provisional, so confirmed
         by the next call and then by the tracker (whose edge fits count a
         face seen as a strip as found, see
-        :attr:`vespro.init.search.EdgeFit.found_weight`).
+        :attr:`vespro.edgefit.EdgeFit.found_weight`).
     min_distinct_edges_confirm : int
         ... and this many of them standing apart in the image
         (:attr:`vespro.init.search.PoseCheck.distinct_supported`): a rectangle
@@ -455,7 +455,7 @@ class InitOptions:
         published 12 frames later.
     start_covariance : bool
         Hand the tracker the returned pose's covariance from its sub-pixel edge
-        fit (:meth:`vespro.init.search.EdgeFit.covariance`, as the tracker's own
+        fit (:meth:`vespro.edgefit.EdgeFit.covariance`, as the tracker's own
         edge measurements) instead of leaving it to the tracker's wide default
         (10 mm, 0.05 rad): the first frame's corner windows then fit the pose's
         accuracy. With the default a bracket start 1.8% of the diameter off
