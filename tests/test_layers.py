@@ -146,3 +146,20 @@ def test_no_module_imports_a_private_name_of_another():
             offenders += [f"{rel}:{line}: {module}.{n}" for n in private]
     assert n_from > 300
     assert not offenders, "private names imported from another module (make them public): " + "; ".join(offenders)
+
+
+def test_the_tracker_loads_no_hypothesis_search():
+    """The tracker measures poses on image edges (:mod:`vespro.edgefit`) and reads the
+    initialiser's camera and model helpers; the initialiser itself (its hypothesis search)
+    loads only where one is made. Imported first, the edge measurement loads too (the
+    search imports it, and it imports those helpers)."""
+    import os
+    import subprocess
+    import sys
+
+    code = ("import sys, vespro.edgefit, vespro.tracker; "
+            "print(' '.join(sorted(m for m in sys.modules if m.startswith('vespro.init'))))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                         env={**os.environ, "PYTHONPATH": str(ROOT)}, cwd=ROOT).stdout.split()
+    assert "vespro.init.features" in out and "vespro.init.modelfeat" in out
+    assert "vespro.init.search" not in out and "vespro.init.initializer" not in out

@@ -44,3 +44,4 @@ def _fma0(typingctx, a, b):
 def dot3(a0, a1, a2, b0, b1, b2):
     """A 3-term dot product as OpenBLAS's gemm forms one entry of a matrix product (from a
     zero accumulator: a zero sum is +0, never -0)."""
+    return _fma(a2, b2, _fma(a1, b1, _fma0(a0, b0)))

@@ -607,9 +607,9 @@ def test_refinements_unchanged(scene, monkeypatch):
     starts = [T_WO @ _pose(rng.normal(size=3) * 0.03, rng.normal(size=3) * 0.004) for _ in range(3)]
     got = [(edgefit.refine_pose(T, views[:1 + k % 2], mf, tree),
             edgefit.refine_subpixel(T, views[:1 + k % 2], mf, tree, info=True)) for k, T in enumerate(starts)]
-    monkeypatch.setattr(search, "edge_residuals", edge_residuals_ref)
-    monkeypatch.setattr(search, "_perturbed", _perturbed_ref)
-    monkeypatch.setattr(search, "_normal_search", normal_search_ref)
+    monkeypatch.setattr(edgefit, "edge_residuals", edge_residuals_ref)
+    monkeypatch.setattr(edgefit, "_perturbed", _perturbed_ref)
+    monkeypatch.setattr(edgefit, "_normal_search", normal_search_ref)
     for k, (T, (Tr, (Ts, fit))) in enumerate(zip(starts, got)):
         assert_same_bits(edgefit.refine_pose(T, views[:1 + k % 2], mf, tree), Tr)
         Ts_ref, fit_ref = edgefit.refine_subpixel(T, views[:1 + k % 2], mf, tree, info=True)

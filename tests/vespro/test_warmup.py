@@ -8,7 +8,7 @@ def test_kernel_modules_are_found():
 
     mods = kernel_modules()
     for m in ("vespro.bsp", "vespro.extraction", "vespro.projection", "vespro.selection", "vespro.visibility",
-              "vespro.init.search"):
+              "vespro.init.search", "vespro.edgefit", "vespro.numerics"):
         assert m in mods
     assert "vespro.jit" not in mods and "vespro.warmup" not in mods
 
