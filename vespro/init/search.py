@@ -8,9 +8,9 @@ camera, a concave edge when both do) and, for non-convex models, from the BSP
 line-of-sight query (edge samples hidden by the part itself are dropped). The
 refinement of a pose on the image edges is :mod:`vespro.edgefit`'s.
 
-The inner loop of the ranking of many poses is a compiled kernel
-(:mod:`vespro.jit`) that repeats the NumPy formulation's arithmetic operation
-for operation: its results are the NumPy code's, bit for bit
+The inner loops of the ranking of many poses are compiled kernels
+(:mod:`vespro.jit`) that repeat the NumPy formulation's arithmetic operation
+for operation: their results are the NumPy code's, bit for bit
 (``tests/vespro/test_init_kernels.py`` keeps that code as the reference).
 """
 
