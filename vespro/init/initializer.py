@@ -33,7 +33,9 @@ Method (per call):
 
 from __future__ import annotations
 
+import os
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -674,8 +676,29 @@ def make_setup(rig: Rig, model: Model, options: InitOptions | None = None, tree=
     return InitSetup(rig, model, mf, tree, und, options)
 
 
+def _per_camera(fn, items) -> list:
+    """``[fn(x) for x in items]``, the cameras side by side on the process's cores.
+
+    Each camera's image work (OpenCV, the compiled kernels) lets go of the
+    interpreter, so threads run it in parallel: a search's wall time is then set
+    by the cores' spare time together, not one core's (a live start beside a
+    real-time loop and a simulated plant, each holding part of a core).
+    """
+    items = list(items)
+    if len(items) < 2 or _CORES < 2:
+        return [fn(x) for x in items]
+    global _POOL
+    if _POOL is None:
+        _POOL = ThreadPoolExecutor(max_workers=_CORES, thread_name_prefix="vespro-init-camera")
+    return list(_POOL.map(fn, items))
+
+
+_CORES = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+_POOL: ThreadPoolExecutor | None = None
+
+
 def _views(setup: InitSetup, frameset: FrameSet) -> list[CameraView]:
-    views = []
+    seen = []
     for cam in setup.rig:
         img = frameset.images.get(cam.name)
         if img is None:
@@ -686,10 +709,14 @@ def _views(setup: InitSetup, frameset: FrameSet) -> list[CameraView]:
             T_wc = frameset.T_world_camera.get(cam.name)
             if T_wc is None or not np.all(np.isfinite(T_wc)):
                 continue
-        img = setup.undistort[cam.name](img)
-        feat = extract_features(cam.name, img, cam.intrinsics.K, setup.options.edges)
-        views.append(CameraView(feat, np.asarray(T_wc, float), cam.is_fixed))
-    return views
+        seen.append((cam, img, T_wc))
+
+    def view(item):
+        cam, img, T_wc = item
+        feat = extract_features(cam.name, setup.undistort[cam.name](img), cam.intrinsics.K, setup.options.edges)
+        return CameraView(feat, np.asarray(T_wc, float), cam.is_fixed)
+
+    return _per_camera(view, seen)
 
 
 def _accept(chk, opt: InitOptions) -> tuple[bool, str]:
@@ -1079,14 +1106,14 @@ def _hypotheses(setup: InitSetup, views, attempt: int) -> tuple[np.ndarray, int]
     """P3P hypotheses per camera, ranked in that camera: the best few of each camera
     (``T_world_object``, shape (N, 4, 4)) and how many were generated."""
     opt, mf = setup.options, setup.mf
-    cand, nh = [], 0
-    for v in views:
+
+    def ranked(v):
+        """(this camera's best hypotheses as T_world_object, hypotheses generated)."""
         ip = image_paths(v.feat, max_paths=opt.max_image_paths,
                          one_end=opt.one_end_paths and attempt % 2 == 1 and len(views) == 1)
         R, t = p3p_hypotheses(v.feat, mf, setup.model.vertices, ip)
-        nh += len(R)
         if len(R) == 0:
-            continue
+            return [], 0
         # Two passes: a few samples on the long edges for all, the coarse set for the best.
         sc, _ = rank_in_camera(R, t, v.feat, mf, opt.rank_tol_px, samples=mf.sparse)
         sc = np.where(np.isfinite(sc), sc, -1.0)
@@ -1103,9 +1130,11 @@ def _hypotheses(setup: InitSetup, views, attempt: int) -> tuple[np.ndarray, int]
             sc2 = np.where(np.isfinite(sc2), sc2, -1.0)
         o2 = np.argsort(-sc2)[:opt.keep_per_camera]
         top = top[o2[sc2[o2] > 0]]
-        for k in top:
-            cand.append(v.T_world_camera @ transform_from_rt(R[k], t[k]))
-    return np.asarray(cand).reshape(-1, 4, 4), nh
+        return [v.T_world_camera @ transform_from_rt(R[k], t[k]) for k in top], len(R)
+
+    per = _per_camera(ranked, views)
+    cand = [T for c, _ in per for T in c]
+    return np.asarray(cand).reshape(-1, 4, 4), sum(n for _, n in per)
 
 
 def _verified(setup: InitSetup, views, cand: np.ndarray, attempt: int, pend: _Pending | None,
