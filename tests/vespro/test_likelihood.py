@@ -257,3 +257,96 @@ def test_nothing_to_see_scores_nothing():
     r = lk(T, [(np.eye(4), e)])
     assert r.cameras[0].n_found == 0
     assert r.log_lik == pytest.approx(np.log(1 - lk.options.p_detect) * r.cameras[0].weight)
+
+
+# -- the region term ---------------------------------------------------------------------------
+
+_K = np.array([[600.0, 0, 319.5], [0, 600.0, 239.5], [0, 0, 1]])
+
+
+def _box_scene(shades=(110, 150, 190)):
+    """A box (10 x 8 x 6 cm, three faces seen) at 0.5 m on the left half of a 640 x 480 image:
+    plain grey 60 around it, a 10 px checker (40 / 200) on the right half; faces drawn in
+    ``shades`` (by the axis of the face's normal), smoothed and with 2 grey levels of noise. Returns (features, pose, image)."""
+    mf = model_features(box_model([0.1, 0.08, 0.06]))
+    T = np.eye(4)
+    T[:3, :3] = exp_so3(np.array([0.5, -0.6, 0.2]))
+    T[:3, 3] = [-0.08, 0.0, 0.5]
+    img = np.full((480, 640), 60, np.uint8)
+    yy, xx = np.mgrid[0:480, 0:640]
+    checker = np.where(((yy // 10) + (xx // 10)) % 2 == 0, 40, 200).astype(np.uint8)
+    img[:, 360:] = checker[:, 360:]
+    cam = T[:3, :3].T @ -T[:3, 3]
+    for k, tri in enumerate(mf.tri_p):
+        f = mf.tri_face[k]
+        if mf.face_normals[f] @ cam + mf.face_offsets[f] <= 0:  # back face
+            continue
+        uv, _ = project_points(_K, T, tri)
+        shade = int(shades[int(np.argmax(np.abs(mf.face_normals[f])))])  # by the face's axis
+        cv2.fillPoly(img, [np.round(uv * 16).astype(np.int32)], shade, cv2.LINE_AA, 4)
+    img = cv2.GaussianBlur(img, (0, 0), 0.5)
+    rng = np.random.default_rng(4)
+    img = np.clip(img + rng.normal(0, 2.0, img.shape), 0, 255).astype(np.uint8)
+    return mf, T, img
+
+
+def test_region_term_prefers_the_true_outline():
+    """A box on a plain background: the region part of the true pose is positive and above the
+    same pose shifted 5 px across the image (its lines straddle the outline off centre), and
+    above a pose whose outline lies on a checker pattern (both sides of its lines alike: no
+    evidence of a contour). The edge part alone finds the checker's own edges."""
+    mf, T, img = _box_scene()
+    lk = ImageLikelihood(mf, options=LikelihoodOptions(region=True))
+    v = [(np.eye(4), lk.edge_image(img, _K))]
+    true = lk(T, v).cameras[0]
+    shifted = T.copy()
+    shifted[0, 3] += 5.0 * T[2, 3] / _K[0, 0]
+    on_checker = T.copy()
+    on_checker[0, 3] = 0.12
+    s, c = lk(shifted, v).cameras[0], lk(on_checker, v).cameras[0]
+    assert true.n_outline > 50 and c.n_outline > 50
+    assert true.region_log_lik > 0.0
+    assert true.region_log_lik > s.region_log_lik + 0.2 * true.region_log_lik, (true.region_log_lik, s.region_log_lik)
+    assert true.region_log_lik > c.region_log_lik + 0.5 * true.region_log_lik, (true.region_log_lik, c.region_log_lik)
+    assert true.log_lik == pytest.approx(true.region_log_lik + float(true.edge_log_lik.sum()))
+    off = ImageLikelihood(mf)(T, v).cameras[0]  # without the term: the edge part alone, the same
+    assert off.region_log_lik == 0.0 and off.log_lik == pytest.approx(float(true.edge_log_lik.sum()))
+
+
+def test_edge_without_contrast_costs_nothing_in_the_region_term():
+    """All faces in one shade: the edges between the faces seen show no contrast. The edge
+    lines pay for them (each such edge's log ratio below 0), the region term reads only the
+    outline (0 on every edge inside it) and its part is no lower than with shaded faces."""
+    mf, T, plain = _box_scene(shades=(150, 150, 150))
+    _, _, shaded = _box_scene()
+    lk = ImageLikelihood(mf, options=LikelihoodOptions(region=True))
+    c = lk(T, [(np.eye(4), lk.edge_image(plain, _K))]).cameras[0]
+    cs = lk(T, [(np.eye(4), lk.edge_image(shaded, _K))]).cameras[0]
+    cam = T[:3, :3].T @ -T[:3, 3]
+    front = mf.face_normals @ cam + mf.face_offsets > 0
+    inner = front[mf.edge_faces[:, 0]] & front[mf.edge_faces[:, 1]]
+    outline = front[mf.edge_faces[:, 0]] != front[mf.edge_faces[:, 1]]
+    assert inner.sum() == 3 and outline.sum() == 6
+    assert np.all(c.edge_log_lik[inner] < 0.0)
+    assert np.all(c.edge_region_log_lik[inner] == 0.0)
+    assert np.all(c.edge_region_log_lik[outline] > 0.0)
+    assert c.region_log_lik >= cs.region_log_lik > 0.0
+
+
+def test_region_term_without_an_outline_in_the_image_is_zero():
+    """No outline line in the image (the part beside it; the part so near that its outline lies
+    beyond the image all round), or an image with nothing in it: the region part is 0."""
+    mf, T, img = _box_scene()
+    lk = ImageLikelihood(mf, options=LikelihoodOptions(region=True))
+    v = [(np.eye(4), lk.edge_image(img, _K))]
+    X = T.copy()
+    X[:3, 3] = [5.0, 0.0, 0.5]
+    c = lk(X, v).cameras[0]
+    assert c.n_visible > 0 and c.n_outline == 0 and c.region_log_lik == 0.0
+    X = np.eye(4)
+    X[2, 3] = 0.05  # face on, its near face 2 cm away: it fills the image
+    c = lk(X, v).cameras[0]
+    assert c.n_visible > 0 and c.n_outline == 0 and c.region_log_lik == 0.0
+    blank = [(np.eye(4), lk.edge_image(np.full((480, 640), 90, np.uint8), _K))]
+    c = lk(T, blank).cameras[0]
+    assert c.n_outline > 50 and abs(c.region_log_lik) < 1e-9
