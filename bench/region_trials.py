@@ -47,30 +47,6 @@ AGREE = ("box:0,box:1,box:2,box:3,box:5,lblock:0,lblock:1,lblock:2,lblock:3,lblo
 FRAMES = 26  # the budget to publish in (1 s at 26 Hz)
 
 
-def _views(tracker, fs, lk, poses):
-    """(T_world_camera, EdgeImage) of each camera, over the box that holds every pose's projection."""
-    out = []
-    for cam in tracker.rig:
-        img = fs.grey(cam.name)
-        T_wc = cam.T_world_camera if cam.is_fixed else fs.T_world_camera.get(cam.name)
-        if img is None or T_wc is None:
-            continue
-        K = np.asarray(cam.intrinsics.K, float)
-        T_cw = np.linalg.inv(T_wc)
-        boxes = [b for T in poses if (b := lk.box(K, T_cw @ T, img.shape[1], img.shape[0])) is not None]
-        if not boxes:
-            continue
-        b = np.array(boxes)
-        box = (int(b[:, 0].min()), int(b[:, 1].min()), int(b[:, 2].max()), int(b[:, 3].max()))
-        und = tracker.edge_aid.undistort[cam.name](img, box) if tracker.edge_aid is not None else \
-            img[box[1]:box[3], box[0]:box[2]]
-        Kb = K.copy()
-        Kb[0, 2] -= box[0]
-        Kb[1, 2] -= box[1]
-        out.append((T_wc, lk.edge_image(und, Kb)))
-    return out
-
-
 def _detail(model, syms, frame, rows, label):
     """``on_frame``: on ``frame``, the true pose's and the held hypotheses' likelihood parts into ``rows``."""
 
@@ -83,7 +59,7 @@ def _detail(model, syms, frame, rows, label):
         p = tracker.bank.probabilities()
         poses = [("true pose", T_true, float("nan"))] + [(f"hypothesis {i}", h.ekf.pose, float(p[i]))
                                                         for i, h in enumerate(hyps)]
-        views = _views(tracker, fs, lk, [T for _, T, _ in poses])
+        views = tracker.bank_views(fs, [T_true])
         for name, T, prob in poses:
             pl = lk(T, views)
             region = sum(c.region_log_lik for c in pl.cameras)
