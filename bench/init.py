@@ -140,7 +140,7 @@ def _hidden(config, rig):
     return replace(config, occluders=(OccluderSweep(cam, 0.0, duration=1e3, half_travel=0.0),))
 
 
-def _overrides(text: str) -> dict:
+def parse_overrides(text: str) -> dict:
     """``"a=1,b=off"`` -> ``{"a": 1, "b": "off"}`` (Python literals where they parse, else strings)."""
     out = {}
     for item in filter(None, (s.strip() for s in text.split(","))):
@@ -287,8 +287,8 @@ def main(argv=None):
                          "e.g. region=True")
     ap.add_argument("--verbose", action="store_true")
     a = ap.parse_args(argv)
-    config_set, edge_set, init_set = _overrides(a.set), _overrides(a.edge_aid), _overrides(a.init_set)
-    lk_set = _overrides(a.likelihood_set)
+    config_set, edge_set = parse_overrides(a.set), parse_overrides(a.edge_aid)
+    init_set, lk_set = parse_overrides(a.init_set), parse_overrides(a.likelihood_set)
     if (config_set or edge_set or init_set or lk_set) and not a.track:
         raise SystemExit("--set, --edge-aid, --init-set and --likelihood-set apply to the tracked runs: "
                          "they need --track")

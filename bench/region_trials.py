@@ -30,10 +30,9 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-import numpy as np  # noqa: E402
 
 from bench._table import print_table  # noqa: E402
-from bench.init import Trial, run_tracked, sym_add  # noqa: E402
+from bench.init import Trial, parse_overrides, run_tracked, sym_add  # noqa: E402
 from vespro.cmd_record import object_mesh_path  # noqa: E402
 from vespro.likelihood import ImageLikelihood, LikelihoodOptions  # noqa: E402
 from vespro.model import load_model  # noqa: E402
@@ -88,6 +87,8 @@ def main(argv=None):
     ap.add_argument("--trials", default=",".join((WRONG, RULES_ONLY, AGREE)), metavar="OBJ:SEED,...")
     ap.add_argument("--track", type=int, default=52, help="frames the tracker runs")
     ap.add_argument("--stride", type=int, default=5, help="the initialiser is called every N frames")
+    ap.add_argument("--init-set", default="", metavar="K=V,...",
+                    help="InitOptions fields to change in both runs (as bench/init.py's --init-set)")
     ap.add_argument("--detail", default="lblock:18:22", metavar="OBJ:SEED:FRAME",
                     help="print the likelihood parts of the true pose and the held hypotheses on this frame")
     a = ap.parse_args(argv)
@@ -95,6 +96,7 @@ def main(argv=None):
     groups = {p: g for g, text in (("wrong lock", WRONG), ("rules only", RULES_ONLY), ("both", AGREE))
               for p in ((o, int(s)) for o, s in (i.split(":") for i in text.split(",")))}
     d_obj, d_seed, d_frame = a.detail.split(":") if a.detail else (None, -1, -1)
+    init_set = parse_overrides(a.init_set)
     models = {}
     rows, detail, totals = [], [], {"edges": [0, 0], "edges + region": [0, 0]}
     t0 = time.perf_counter()
@@ -107,7 +109,8 @@ def main(argv=None):
         res = []
         for label, lset in (("edges", None), ("edges + region", {"region": True})):
             hook = _detail(model, syms, int(d_frame), detail, label) if (obj, seed) == (d_obj, int(d_seed)) else None
-            s = _summary(run_tracked(trial, a.track, {"decision": "bank"}, likelihood_set=lset, on_frame=hook))
+            s = _summary(run_tracked(trial, a.track, {"decision": "bank"}, init_set=init_set, likelihood_set=lset,
+                                     on_frame=hook))
             totals[label][0] += s[3]
             totals[label][1] += s[4]
             res.append(s)
@@ -117,7 +120,8 @@ def main(argv=None):
                      _fmt(res[1]), "wrong" if res[1][4] else "", change])
         print(f"done {obj} {seed} ({time.perf_counter() - t0:.0f} s)", flush=True)
     print_table(["object", "seed", "group", "edges: frame ADD max", "", "+ region: frame ADD max", "", "change"], rows,
-                title=f"One camera, decision bank, tracker run {a.track} frames: first frame published, its ADD and "
+                title=f"One camera, decision bank{(', ' + a.init_set) if a.init_set else ''}, tracker run {a.track} "
+                      f"frames: first frame published, its ADD and "
                       f"the worst published (% of the diameter)")
     n = len(pairs)
     for label, (ok, wrong) in totals.items():

@@ -267,7 +267,8 @@ _K = np.array([[600.0, 0, 319.5], [0, 600.0, 239.5], [0, 0, 1]])
 def _box_scene(shades=(110, 150, 190)):
     """A box (10 x 8 x 6 cm, three faces seen) at 0.5 m on the left half of a 640 x 480 image:
     plain grey 60 around it, a 10 px checker (40 / 200) on the right half; faces drawn in
-    ``shades`` (by the axis of the face's normal), smoothed and with 2 grey levels of noise. Returns (features, pose, image)."""
+    ``shades`` (by the axis of the face's normal), smoothed and with 2 grey levels of noise.
+    Returns (features, pose, image)."""
     mf = model_features(box_model([0.1, 0.08, 0.06]))
     T = np.eye(4)
     T[:3, :3] = exp_so3(np.array([0.5, -0.6, 0.2]))
