@@ -30,7 +30,6 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-
 from bench._table import print_table  # noqa: E402
 from bench.init import Trial, parse_overrides, run_tracked, sym_add  # noqa: E402
 from vespro.cmd_record import object_mesh_path  # noqa: E402
