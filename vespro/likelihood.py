@@ -321,27 +321,32 @@ def region_evidence(grey, uv, n, offs, sigma, width, llr):
     logw -= top + np.log(np.sum(np.exp(logw - top)))
     a = (offs[1] - offs[0]) / offs[O - 1]  # the pixels of one side of a line: one observation
     L = np.empty(D)
+    P = np.empty(D)
     for s in range(S):
         llr[s] = 0.0
         if not ok[s]:
             continue
-        lf = 0.0
-        lb = 0.0
+        # Products over the line's pixels, one log each: every factor is at least about one over
+        # the histograms' pixels, so 2 line_px + 1 of them stay far above the least double.
+        qf = 1.0
+        qb = 1.0
         for k in range(D):
-            L[k] = logw[k]
+            P[k] = 1.0
         for o in range(O):
             b = bins[s, o]
             if b < 0:
                 continue
             p = pf[b]
-            lf += np.log(p)
-            lb += np.log(1.0 - p)
+            qf *= p
+            qb *= 1.0 - p
             for k in range(D):
-                L[k] += a * np.log(h[k, o] * p + (1.0 - h[k, o]) * (1.0 - p))
+                P[k] *= h[k, o] * p + (1.0 - h[k, o]) * (1.0 - p)
+        for k in range(D):
+            L[k] = logw[k] + a * np.log(P[k])
         top = L.max()
         switch = top + np.log(np.sum(np.exp(L - top)))
-        lf *= a
-        lb *= a
+        lf = a * np.log(qf)
+        lb = a * np.log(qb)
         top = max(lf, lb)
         llr[s] = switch - (top + np.log(0.5 * (np.exp(lf - top) + np.exp(lb - top))))
     return inside
