@@ -55,7 +55,10 @@ pixels on its side). A line across a true outline gains up to about
 region); a model edge inside the outline is not read at all, so an edge
 between two faces lit alike costs nothing here. Outline lines weigh per edge
 as the edge lines do (``spacing_px``); the camera's region part
-(``CameraLikelihood.region_log_lik``) adds to its log-likelihood.
+(``CameraLikelihood.region_log_lik``) adds to its log-likelihood. It is off
+by default: grey levels cannot tell a part face in the background's shade
+from the background, and with one camera a pose that calls such a face
+background can then outscore the part's own (``bench/results/region_trials.md``).
 """
 
 from __future__ import annotations
