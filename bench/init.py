@@ -66,6 +66,7 @@ import numpy as np  # noqa: E402
 from bench._table import print_table, stats_ms  # noqa: E402
 from vespro.init import make_initializer  # noqa: E402
 from vespro.library import object_mesh_path  # noqa: E402
+from vespro.likelihood import ImageLikelihood  # noqa: E402
 from vespro.metrics import add, add_sym  # noqa: E402
 from vespro.model import load_model  # noqa: E402
 from vespro.sim.cell import OccluderSweep, SimCell  # noqa: E402
@@ -139,7 +140,7 @@ def _hidden(config, rig):
     return replace(config, occluders=(OccluderSweep(cam, 0.0, duration=1e3, half_travel=0.0),))
 
 
-def _overrides(text: str) -> dict:
+def parse_overrides(text: str) -> dict:
     """``"a=1,b=off"`` -> ``{"a": 1, "b": "off"}`` (Python literals where they parse, else strings)."""
     out = {}
     for item in filter(None, (s.strip() for s in text.split(","))):
@@ -154,12 +155,14 @@ def _overrides(text: str) -> dict:
 
 
 def run_tracked(trial: Trial, track_frames: int, config_set: dict | None = None, edge_set: dict | None = None,
-                init_set: dict | None = None):
+                init_set: dict | None = None, likelihood_set: dict | None = None, on_frame=None):
     """One trial through the tracker: the initialiser as its hook; status and ADD per frame.
 
     ``config_set``: ``TrackerConfig`` fields to change; ``edge_set``: attributes
     of the tracker's ``EdgeAid`` to change; ``init_set``: ``InitOptions`` fields to
-    change (all for A/B runs from the command line).
+    change; ``likelihood_set``: ``LikelihoodOptions`` fields of the hypothesis bank's
+    likelihood to change (all for A/B runs from the command line). ``on_frame(k, fs,
+    tracker, T_true)``, if given, is called after each frame is processed.
     """
     model, syms, frames = trial.model, trial.syms, trial.frames
     rig, config, motion = trial.cell_setup()
@@ -172,6 +175,11 @@ def run_tracked(trial: Trial, track_frames: int, config_set: dict | None = None,
         if tracker.edge_aid is None or not hasattr(tracker.edge_aid, k):
             raise SystemExit(f"the tracker's edge aid has no attribute {k!r}")
         setattr(tracker.edge_aid, k, v)
+    if likelihood_set:
+        if tracker.bank is None:
+            raise SystemExit("likelihood settings apply to the hypothesis bank: they need decision=bank")
+        lk = tracker.bank.likelihood
+        tracker.bank.likelihood = ImageLikelihood(lk.mf, lk.tree, replace(lk.options, **likelihood_set))
     o = dict(frame=None, add=None, calls=[], cpu=[], to_first=0.0, err_p=None, err_r=None,
              track_frame=None, track_add=None, wrong_frame=None, wrong_add=None, max_track_add=None)
     with SimCell(config, motion) as cell:
@@ -181,6 +189,8 @@ def run_tracked(trial: Trial, track_frames: int, config_set: dict | None = None,
             n_before = len(gate.results)
             out = tracker.process(fs)
             T_true = cell.true_object_pose()
+            if on_frame is not None:
+                on_frame(k, fs, tracker, T_true)
             for idx, res, r in gate.results[n_before:]:
                 o["calls"].append(r.wall_s)
                 o["cpu"].append(r.cpu_s)
@@ -272,11 +282,16 @@ def main(argv=None):
                     help="with --track: attributes of the tracker's EdgeAid to change, e.g. spacing_px=0,edge_outlier_px=0")
     ap.add_argument("--init-set", default="", metavar="K=V,...",
                     help="with --track: InitOptions fields to change, e.g. min_supported_edges_confirm=5")
+    ap.add_argument("--likelihood-set", default="", metavar="K=V,...",
+                    help="with --track and decision=bank: LikelihoodOptions fields of the bank's likelihood, "
+                         "e.g. region=True")
     ap.add_argument("--verbose", action="store_true")
     a = ap.parse_args(argv)
-    config_set, edge_set, init_set = _overrides(a.set), _overrides(a.edge_aid), _overrides(a.init_set)
-    if (config_set or edge_set or init_set) and not a.track:
-        raise SystemExit("--set, --edge-aid and --init-set apply to the tracked runs: they need --track")
+    config_set, edge_set = parse_overrides(a.set), parse_overrides(a.edge_aid)
+    init_set, lk_set = parse_overrides(a.init_set), parse_overrides(a.likelihood_set)
+    if (config_set or edge_set or init_set or lk_set) and not a.track:
+        raise SystemExit("--set, --edge-aid, --init-set and --likelihood-set apply to the tracked runs: "
+                         "they need --track")
     if a.track:
         a.no_baseline = True
         a.track = max(a.track, a.frames)
@@ -293,7 +308,7 @@ def main(argv=None):
         for rk in a.rigs.split(","):
             trials = [Trial(obj, model, syms, rk, a.seed + i, a.frames, a.stride, a.hide) for i in range(a.trials)]
             if a.track:
-                res = [{"ours": run_tracked(t, a.track, config_set, edge_set, init_set)} for t in trials]
+                res = [{"ours": run_tracked(t, a.track, config_set, edge_set, init_set, lk_set)} for t in trials]
             else:
                 res = [run_trial(t, not a.no_baseline) for t in trials]
             row = [obj, rk, a.trials]

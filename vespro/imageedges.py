@@ -26,7 +26,7 @@ import numpy as np
 from .se3 import invert_transform
 
 __all__ = ["EdgeImage", "image_gradient", "image_noise", "sobel_noise_gain", "project_points", "projection_box",
-           "front_faces", "edge_visible", "visible_samples"]
+           "front_faces", "edge_visible", "visible_samples", "silhouette_sides"]
 
 
 def image_gradient(img: np.ndarray, sigma: float) -> tuple[np.ndarray, np.ndarray]:
@@ -165,6 +165,71 @@ def visible_samples(T_camera_object: np.ndarray, mf, tree=None) -> np.ndarray:
     return idx
 
 
+def silhouette_sides(T_camera_object: np.ndarray, mf, idx: np.ndarray, normals: np.ndarray, K: np.ndarray,
+                     tree=None, clear_px: float = 3.0) -> np.ndarray:
+    """Which visible samples lie on the part's outline at a pose, and on which side of their line the part is.
+
+    A sample is on the outline when its edge is convex with one face seen from outside and the
+    other not (the part's pixels on one side of the projected edge, the background's on the
+    other). The part's side is that of the seen face: its direction away from the edge within
+    the face points against the other face's outward normal (a convex edge). For a non-convex
+    part the background side must show past the part: the line of sight ``clear_px`` beyond
+    the outline must miss it (else the edge is outlined against the part's own faces).
+
+    Parameters
+    ----------
+    T_camera_object : ndarray, shape (4, 4)
+    mf : ModelFeatures
+    idx : ndarray, shape (S,), int64
+        Visible samples (:func:`visible_samples`).
+    normals : ndarray, shape (S, 2)
+        Unit normals of their projected edges, px.
+    K : ndarray, shape (3, 3)
+    tree : BSPTree or None
+        For a non-convex part (self-occluding outlines).
+    clear_px : float
+        How far beyond the outline the background is checked, px.
+
+    Returns
+    -------
+    side : ndarray, shape (S,), float
+        +1: the part lies where the normal points; -1: opposite; 0: not on the outline.
+    """
+    R, t = T_camera_object[:3, :3], T_camera_object[:3, 3]
+    se = mf.sample_edge[idx]
+    ef = mf.edge_faces[se]
+    front = front_faces(R[None], t[None], mf)[0]
+    seen = np.where(ef >= 0, front[np.maximum(ef, 0)], False)
+    sil = mf.edge_convex[se] & (seen[:, 0] != seen[:, 1])
+    side = np.zeros(len(idx))
+    if not sil.any():
+        return side
+    k = np.flatnonzero(sil)
+    f_seen = np.where(seen[k, 0], ef[k, 0], ef[k, 1])
+    f_other = np.where(seen[k, 0], ef[k, 1], ef[k, 0])
+    tdir = (mf.edge_b - mf.edge_a)[se[k]]
+    u = np.cross(mf.face_normals[f_seen], tdir)
+    n_other = np.where((f_other >= 0)[:, None], mf.face_normals[np.maximum(f_other, 0)], 0.0)
+    u *= np.where(np.einsum("ij,ij->i", u, n_other) > 0, -1.0, 1.0)[:, None]
+    u /= np.linalg.norm(u, axis=1, keepdims=True) + 1e-300
+    P = mf.sample_p[idx[k]]
+    X = P @ R.T + t
+    D = u @ R.T
+    z = X[:, 2]
+    duv = np.stack([K[0, 0] * (D[:, 0] * z - X[:, 0] * D[:, 2]), K[1, 1] * (D[:, 1] * z - X[:, 1] * D[:, 2])], 1)
+    side[k] = np.sign(np.einsum("ij,ij->i", duv, normals[k]))
+    if tree is not None and not mf.convex:
+        cam_o = -R.T @ t
+        r = P - cam_o
+        r /= np.linalg.norm(r, axis=1, keepdims=True)
+        w = u - np.einsum("ij,ij->i", u, r)[:, None] * r
+        w /= np.linalg.norm(w, axis=1, keepdims=True) + 1e-300
+        out = P - (clear_px * z / K[0, 0])[:, None] * w
+        blocked = tree.segments_blocked(cam_o, cam_o + 3.0 * (out - cam_o), t_lo=0.0, t_hi=1.0, min_length=1e-9)
+        side[k[blocked]] = 0.0
+    return side
+
+
 @dataclass(frozen=True)
 class EdgeImage:
     """What a correspondence line reads of one camera image: its gradient and noise.
@@ -179,11 +244,15 @@ class EdgeImage:
     noise : float
         Std of one gradient component due to the image's intensity noise
         (:func:`image_noise` times :func:`sobel_noise_gain`), same unit as ``grad``.
+    grey : ndarray, shape (H, W), uint8, or None
+        The smoothed image the gradient is of, grey levels (of a colour image:
+        its luma); the region term of :mod:`vespro.likelihood` reads it.
     """
 
     K: np.ndarray
     grad: np.ndarray
     noise: float
+    grey: np.ndarray | None = None
 
     @classmethod
     def from_image(cls, img: np.ndarray, K: np.ndarray, box: tuple[int, int, int, int] | None = None,
@@ -195,8 +264,13 @@ class EdgeImage:
             img = img[y0:y1, x0:x1]
             K[0, 2] -= x0
             K[1, 2] -= y0
-        dx, dy = image_gradient(img, blur_sigma)
+        f = cv2.GaussianBlur(img, (0, 0), blur_sigma) if blur_sigma > 0 else img
+        dx, dy = image_gradient(f, 0.0)
         grad = np.stack([dx, dy]).astype(np.float32)
-        grad.setflags(write=False)
-        K.setflags(write=False)
-        return cls(K, grad, image_noise(img) * sobel_noise_gain(blur_sigma))
+        if f.ndim == 3:
+            grey = cv2.cvtColor(f, cv2.COLOR_RGB2GRAY)
+        else:
+            grey = f.copy() if f is img else f  # (the caller's pixels stay writable)
+        for a in (grad, K, grey):
+            a.setflags(write=False)
+        return cls(K, grad, image_noise(img) * sobel_noise_gain(blur_sigma), grey)

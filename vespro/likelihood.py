@@ -27,19 +27,53 @@ little moves all of them at once): an edge's samples weigh together at most
 one per ``spacing_px`` of its projected length, as in the sub-pixel fit
 (:func:`vespro.edgefit.refine_subpixel`). The camera's log-likelihood is
 the weighted sum of its lines' log ratios; cameras add.
+
+The region term (``LikelihoodOptions.region``; the region modality of SRT3D
+and ICG) judges the outline by what lies either side of it. A line of an
+outline sample (:func:`vespro.imageedges.silhouette_sides`: its edge convex,
+one face seen and the other not) reads the smoothed grey image, one pixel per
+px, the part on one side of it. The part's and the background's grey-level
+histograms are the pose's own: the pixels of its outline lines at least
+``2 sigma_px`` inside and outside (32 bins of 8 grey levels, one count added
+to every bin: the uniform Dirichlet prior). Per pixel they give the posterior
+``p_f`` that it shows the part (equal priors), ``p_b = 1 - p_f``. Along the
+line, at offset ``x`` towards the part, a contour at ``d`` makes the pixel the
+part's with probability ``h(x - d) = Phi((x - d) / w)`` (``w``: the smoothing
+``blur_sigma`` and the pixel's own width, ``sqrt(blur^2 + 1/12)``), so
+``P(pixel | d) ~ h p_f + (1 - h) p_b`` (SRT3D's pixel-wise posteriors). The
+line's ratio sets "the contour at ``d ~ N(0, sigma_px^2)``" against "no
+contour on the line" (every pixel the part's, or every one the
+background's, equally likely):
+
+    sum_d N(d) prod_x P(x | d)^a  /  (prod_x p_f^a + prod_x p_b^a) / 2.
+
+The pixels of one side of a line show one surface, so they are one
+observation: each pixel weighs ``a = 1 / line_px`` (its log divided by the
+pixels on its side). A line across a true outline gains up to about
+``log(2 / (p_b(in) p_f(out)))``; a line whose two sides look alike gains 0
+(the histograms do not tell them apart) or loses (both sides look like one
+region); a model edge inside the outline is not read at all, so an edge
+between two faces lit alike costs nothing here. Outline lines weigh per edge
+as the edge lines do (``spacing_px``); the camera's region part
+(``CameraLikelihood.region_log_lik``) adds to its log-likelihood. It is off
+by default: grey levels cannot tell a part face in the background's shade
+from the background, and with one camera a pose that calls such a face
+background can then outscore the part's own (``bench/results/region_trials.md``).
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 
-from .imageedges import EdgeImage, project_points, projection_box, visible_samples
+from .imageedges import EdgeImage, project_points, projection_box, silhouette_sides, visible_samples
 from .jit import njit
 from .se3 import invert_transform
 
-__all__ = ["LikelihoodOptions", "CameraLikelihood", "PoseLikelihood", "ImageLikelihood", "line_evidence"]
+__all__ = ["LikelihoodOptions", "CameraLikelihood", "PoseLikelihood", "ImageLikelihood", "line_evidence",
+           "region_evidence"]
 
 
 @dataclass(frozen=True)
@@ -62,6 +96,8 @@ class LikelihoodOptions:
         Samples of one edge weigh together at most one per this length, px.
     blur_sigma : float
         Smoothing before the gradient, px.
+    region : bool
+        Also weigh the outline by the grey levels either side of it (the region term, see the module).
     """
 
     sigma_px: float = 1.0
@@ -71,6 +107,7 @@ class LikelihoodOptions:
     min_contrast: float = 20.0
     spacing_px: float = 2.0
     blur_sigma: float = 0.8
+    region: bool = False
 
     def __post_init__(self):
         for name in ("sigma_px", "line_px", "spacing_px"):
@@ -87,7 +124,8 @@ class CameraLikelihood:
     Attributes
     ----------
     log_lik : float
-        Weighted sum of the lines' log likelihood ratios (against all clutter).
+        Weighted sum of the lines' log likelihood ratios (against all clutter), the region
+        part included.
     n_visible : int
         Edge samples the camera sees at the pose.
     n_observed : int
@@ -104,6 +142,12 @@ class CameraLikelihood:
         Per model edge, the weighted fraction of its observed samples found (NaN: none observed).
     noise : float
         The image's gradient noise std the peaks were judged by.
+    region_log_lik : float
+        The region term's part of ``log_lik`` (0 without it).
+    n_outline : int
+        Observed samples on the outline (the region term's lines).
+    edge_region_log_lik : ndarray, shape (E,), or None
+        Per model edge, its outline lines' weighted region log ratios (None without the term).
     """
 
     log_lik: float
@@ -115,6 +159,9 @@ class CameraLikelihood:
     edge_log_lik: np.ndarray
     edge_found: np.ndarray
     noise: float
+    region_log_lik: float = 0.0
+    n_outline: int = 0
+    edge_region_log_lik: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -199,6 +246,115 @@ def line_evidence(grad, uv, n, offs, thr, sigma, p_detect, llr, nearest, n_peaks
     return inside
 
 
+REGION_SHIFT = 3  # grey levels to histogram bins: 8 levels a bin, 32 bins
+
+
+@njit
+def region_evidence(grey, uv, n, offs, sigma, width, llr):
+    """The region term's outline lines of :mod:`vespro.likelihood`, compiled.
+
+    Parameters
+    ----------
+    grey : ndarray, shape (H, W), uint8
+        The smoothed image.
+    uv : ndarray, shape (S, 2)
+        Projected outline points, px (NaN: no line).
+    n : ndarray, shape (S, 2)
+        Unit normals pointing into the part, px.
+    offs : ndarray, shape (O,)
+        Offsets along the normal, one per px, from ``-line_px`` to ``line_px``.
+    sigma : float
+        Std of the contour's offset from the projected point, px.
+    width : float
+        Std of the smoothed step of grey level across a contour, px.
+    llr : ndarray, shape (S,)
+        Out: each line's log likelihood ratio (0 for a point outside the image). The image is
+        read bilinearly; pixels beyond it are left out of both hypotheses.
+
+    Returns
+    -------
+    int
+        Lines whose point lies inside the image.
+    """
+    H, W = grey.shape
+    umax, vmax = W - 1.001, H - 1.001
+    S, O = uv.shape[0], offs.shape[0]
+    nb = 256 >> REGION_SHIFT
+    bins = np.full((S, O), -1, np.int64)
+    ok = np.zeros(S, np.bool_)
+    hf = np.zeros(nb)
+    hb = np.zeros(nb)
+    inner = 2.0 * sigma
+    inside = 0
+    for s in range(S):
+        u0c, v0c = uv[s, 0], uv[s, 1]
+        if not (np.isfinite(u0c) and np.isfinite(v0c) and u0c >= 0 and v0c >= 0 and u0c <= umax and v0c <= vmax):
+            continue
+        ok[s] = True
+        inside += 1
+        for o in range(O):
+            u = u0c + offs[o] * n[s, 0]
+            v = v0c + offs[o] * n[s, 1]
+            if u >= 0 and v >= 0 and u <= umax and v <= vmax:
+                iu, iv = np.int64(u), np.int64(v)
+                fu, fv = u - iu, v - iv
+                g = (grey[iv, iu] * (1 - fu) + grey[iv, iu + 1] * fu) * (1 - fv) \
+                    + (grey[iv + 1, iu] * (1 - fu) + grey[iv + 1, iu + 1] * fu) * fv
+                b = min(np.int64(g + 0.5) >> REGION_SHIFT, nb - 1)
+                bins[s, o] = b
+                if offs[o] >= inner:
+                    hf[b] += 1.0
+                elif offs[o] <= -inner:
+                    hb[b] += 1.0
+    pf = np.empty(nb)
+    tf, tb = hf.sum() + nb, hb.sum() + nb
+    for b in range(nb):
+        qf, qb = (hf[b] + 1.0) / tf, (hb[b] + 1.0) / tb
+        pf[b] = qf / (qf + qb)
+    m = np.int64(np.ceil(3.0 * sigma / 0.5))  # the contour's offsets d: 0.5 px apart over 3 sigma
+    D = 2 * m + 1
+    logw = np.empty(D)
+    h = np.empty((D, O))
+    for k in range(D):
+        d = (k - m) * 0.5
+        logw[k] = -0.5 * (d / sigma) ** 2
+        for o in range(O):
+            h[k, o] = 0.5 * (1.0 + math.erf((offs[o] - d) / (np.sqrt(2.0) * width)))
+    top = logw.max()
+    logw -= top + np.log(np.sum(np.exp(logw - top)))
+    a = (offs[1] - offs[0]) / offs[O - 1]  # the pixels of one side of a line: one observation
+    L = np.empty(D)
+    P = np.empty(D)
+    for s in range(S):
+        llr[s] = 0.0
+        if not ok[s]:
+            continue
+        # Products over the line's pixels, one log each: every factor is at least about one over
+        # the histograms' pixels, so 2 line_px + 1 of them stay far above the least double.
+        qf = 1.0
+        qb = 1.0
+        for k in range(D):
+            P[k] = 1.0
+        for o in range(O):
+            b = bins[s, o]
+            if b < 0:
+                continue
+            p = pf[b]
+            qf *= p
+            qb *= 1.0 - p
+            for k in range(D):
+                P[k] *= h[k, o] * p + (1.0 - h[k, o]) * (1.0 - p)
+        for k in range(D):
+            L[k] = logw[k] + a * np.log(P[k])
+        top = L.max()
+        switch = top + np.log(np.sum(np.exp(L - top)))
+        lf = a * np.log(qf)
+        lb = a * np.log(qb)
+        top = max(lf, lb)
+        llr[s] = switch - (top + np.log(0.5 * (np.exp(lf - top) + np.exp(lb - top))))
+    return inside
+
+
 class ImageLikelihood:
     """The edge likelihood of poses of one model (set-up: its edge samples and tree).
 
@@ -218,6 +374,9 @@ class ImageLikelihood:
         step = 0.5
         m = int(np.ceil(options.line_px / step))
         self.offs = np.arange(-m, m + 1) * step
+        r = max(int(round(options.line_px)), 1)
+        self.region_offs = np.arange(-r, r + 1, dtype=float)  # the region lines: one pixel per px
+        self.region_width = float(np.hypot(options.blur_sigma, np.sqrt(1.0 / 12.0)))
 
     def edge_image(self, img: np.ndarray, K: np.ndarray, box=None) -> EdgeImage:
         """An undistorted image's :class:`~vespro.imageedges.EdgeImage` (of ``box`` only, if given)."""
@@ -266,9 +425,21 @@ class ImageLikelihood:
         ew = np.bincount(se, w, E)
         with np.errstate(invalid="ignore", divide="ignore"):
             edge_found = np.where(ew > 0, np.bincount(se, w * found, E) / ew, np.nan)
-        return CameraLikelihood(float(np.dot(w, llr)), int(S), int(observed.sum()), int(found.sum()), wsum,
-                                float(np.dot(w, found)) / wsum if wsum > 0 else 0.0, edge_ll, edge_found,
-                                eimg.noise)
+        region_ll, n_outline, edge_region = 0.0, 0, None
+        if o.region and eimg.grey is not None:
+            side = silhouette_sides(T_co, mf, idx, nrm, K, self.tree)
+            line = observed & (side != 0)
+            n_outline = int(line.sum())
+            rllr = np.zeros(S)
+            if n_outline:
+                region_evidence(eimg.grey, np.ascontiguousarray(np.where(line[:, None], uv, np.nan)),
+                                np.ascontiguousarray(nrm * side[:, None]), self.region_offs, float(o.sigma_px),
+                                self.region_width, rllr)
+            region_ll = float(np.dot(w, rllr))
+            edge_region = np.bincount(se, w * rllr, E)
+        return CameraLikelihood(float(np.dot(w, llr)) + region_ll, int(S), int(observed.sum()), int(found.sum()),
+                                wsum, float(np.dot(w, found)) / wsum if wsum > 0 else 0.0, edge_ll, edge_found,
+                                eimg.noise, region_ll, n_outline, edge_region)
 
     def __call__(self, T_world_object: np.ndarray, views) -> PoseLikelihood:
         """The pose's :class:`PoseLikelihood` over ``views``: (T_world_camera, EdgeImage) per camera."""

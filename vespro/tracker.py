@@ -1462,10 +1462,11 @@ class Tracker:
         if not (np.all(np.isfinite(h.ekf.pose)) and np.all(np.isfinite(h.ekf.pose_covariance))):
             self.bank.remove(h)
 
-    def _bank_views(self, fs: FrameSet) -> list:
+    def bank_views(self, fs: FrameSet, poses=()) -> list:
         """(T_world_camera, EdgeImage) of each camera with an image, over the box that holds every
-        hypothesis's projection."""
+        hypothesis's projection and those of ``poses`` (T_world_object each), as the bank weighs them."""
         lk = self.bank.likelihood
+        poses = [h.ekf.pose for h in self.bank.hypotheses] + list(poses)
         views = []
         for cam in self.rig:
             img = fs.grey(cam.name)
@@ -1474,8 +1475,7 @@ class Tracker:
                 continue
             K = np.asarray(cam.intrinsics.K, float)
             T_cw = np.linalg.inv(T_wc)
-            boxes = [b for h in self.bank.hypotheses
-                     if (b := lk.box(K, T_cw @ h.ekf.pose, img.shape[1], img.shape[0])) is not None]
+            boxes = [b for T in poses if (b := lk.box(K, T_cw @ T, img.shape[1], img.shape[0])) is not None]
             if not boxes:
                 continue
             b = np.array(boxes)
@@ -1504,7 +1504,7 @@ class Tracker:
             if not np.all(np.isfinite(ekf.pose)) or pos_std > c.max_pos_std:
                 bank.remove(main)  # the filter has diverged
                 main = None
-        bank.weigh(self._bank_views(fs))
+        bank.weigh(self.bank_views(fs))
         bank.tidy(keep=main)
         stage["bank"] = time.perf_counter() - t
         p = bank.probability(main) if main is not None else 0.0

@@ -76,7 +76,19 @@ def _track(rig, model, frame_sets, selection: str, decision: str = "rules") -> i
 
     tracker = Tracker(rig, model, TrackerConfig(selection=selection, decision=decision),
                       initializer=make_initializer(rig, model, plain_faces=decision != "bank"))
-    return sum(tracker.process(fs).status == "tracking" for fs in frame_sets)
+    n = sum(tracker.process(fs).status == "tracking" for fs in frame_sets)
+    if tracker.bank is not None:  # the likelihood's optional region term (LikelihoodOptions.region)
+        import numpy as np
+
+        from .likelihood import ImageLikelihood, LikelihoodOptions
+
+        cam = rig.cameras[0]
+        lk = tracker.bank.likelihood
+        region = ImageLikelihood(lk.mf, lk.tree, LikelihoodOptions(region=True))
+        T = np.array(cam.T_world_camera, float)
+        T[:3, 3] += 0.6 * T[:3, 2]  # the part 0.6 m along the camera's axis: its outline in view
+        region(T, [(cam.T_world_camera, region.edge_image(frame_sets[-1].grey(cam.name), cam.intrinsics.K))])
+    return n
 
 
 def warm_up(log=print) -> list[str]:
