@@ -1000,3 +1000,39 @@ def test_a_start_whose_corners_and_edges_tell_two_poses_is_not_published():
     (measured: nothing in 52 frames)."""
     assert max(_published_one_camera("box", 5006, 38, tracker=NO_GAP), default=0.0) >= 0.1
     assert max(_published_one_camera("box", 5006, 38), default=0.0) < 0.1
+
+
+def test_the_cameras_searched_side_by_side_give_the_same_answer_and_survive_a_fork(monkeypatch):
+    """Each camera's features and hypotheses run on threads of their own: the answer is the
+    one-camera-at-a-time answer to the bit, and a process forked after a search (the
+    server's start worker) searches with threads of its own (its parent's are not there:
+    without a fresh pool it waited for them for ever)."""
+    import multiprocessing as mp
+
+    from vespro.init import initializer as init_mod
+
+    setup, model, syms, fs, T_true = _trial_frame("box", "3", 4, 0)
+    ini = init_mod.Initializer(setup)
+    side = ini(fs)
+    assert side is not None and _sym_add_frac(side.T_world_object, T_true, model, syms) < 0.1
+    assert init_mod._POOL is not None or init_mod._CORES < 2  # (the cameras were searched side by side)
+    monkeypatch.setattr(init_mod, "_CORES", 1)
+    one = ini(fs)
+    assert np.array_equal(one.T_world_object, side.T_world_object)
+    monkeypatch.undo()
+
+    def child(q):
+        res = ini(fs)
+        q.put(None if res is None else res.T_world_object)
+
+    ctx = mp.get_context("fork")
+    q = ctx.Queue()
+    p = ctx.Process(target=child, args=(q,))
+    p.start()
+    try:
+        got = q.get(timeout=60)
+    finally:
+        p.join(5)
+        if p.is_alive():
+            p.kill()
+    assert np.array_equal(got, side.T_world_object)
