@@ -883,3 +883,39 @@ def test_up_picks_one_frame_among_a_cubes_quarter_turns():
         "cube is symmetric: 24 poses look alike; the tracker reports the one with z most nearly up in the world " \
         "(--symmetry up)"
     assert describe("bracket", 1, "up", False, True) is None
+
+
+FIRST_FRAME = """
+import json, sys
+from vespro.groundtruth import read_groundtruth
+from vespro.jit import KERNELS
+from vespro.model import load_model
+from vespro.recording import Recording
+from vespro.rig import Rig
+from vespro.tracker import InitResult, Tracker
+rec = Recording(sys.argv[1])
+_, _, T = read_groundtruth(sys.argv[1])
+tr = Tracker(Rig((rec.rig.cameras[0],)), load_model(rec.model_path))  # one camera: the edge fit runs too
+before = {id(k): set(k.signatures) for k in KERNELS}
+fs = rec.frameset(0)
+tr.start(InitResult(T[0]), fs.t_ns)
+out = tr.process(fs)
+late = [k.py_func.__qualname__ for k in KERNELS if set(k.signatures) - before.get(id(k), set())]
+print(json.dumps({"late": late, "stages": sorted(out.stage_ms)}))
+"""
+
+
+def test_the_first_frame_loads_no_compiled_kernel(recs):
+    """The tracker loads its compiled kernels when it is made, not on its first frame (in a
+    fresh process: a one-camera tracker's first frame took 42 ms instead of 5, loading the
+    edge fit's last kernels)."""
+    import json
+    import subprocess
+    import sys
+
+    r = subprocess.run([sys.executable, "-c", FIRST_FRAME, str(recs["box_conveyor"])], capture_output=True,
+                       text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    got = json.loads(r.stdout.strip().splitlines()[-1])
+    assert "edges" in got["stages"]  # the edge fit ran on that frame
+    assert got["late"] == []
