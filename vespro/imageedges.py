@@ -268,7 +268,7 @@ class EdgeImage:
         dx, dy = image_gradient(f, 0.0)
         grad = np.stack([dx, dy]).astype(np.float32)
         if f.ndim == 3:
-            grey = cv2.cvtColor(f, cv2.COLOR_RGB2GRAY)
+            grey = cv2.cvtColor(f, cv2.COLOR_BGR2GRAY)  # (images are BGR, as OpenCV reads them)
         else:
             grey = f.copy() if f is img else f  # (the caller's pixels stay writable)
         for a in (grad, K, grey):
