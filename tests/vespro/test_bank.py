@@ -211,3 +211,16 @@ def test_bank_starts_on_a_real_textured_cube_with_no_flag_and_no_pose():
     if outs[0].status == "tracking":
         syms = discrete_symmetries(model.vertices)
         assert add_sym(outs[0].T_world_object, T0, model.vertices, syms) < 0.1 * model.diameter
+
+
+def test_the_banks_logsumexp_is_scipys():
+    from scipy.special import logsumexp
+
+    from vespro.bank import _logsumexp
+
+    rng = np.random.default_rng(2)
+    for n in (1, 2, 5, 40):
+        v = list(rng.normal(0, 300, n))
+        assert _logsumexp(v) == pytest.approx(float(logsumexp(v)), rel=1e-12, abs=1e-12)
+    assert _logsumexp([-np.inf, -np.inf]) == -np.inf and _logsumexp([-np.inf, 2.0]) == 2.0
+    assert _logsumexp([800.0, 800.0]) == pytest.approx(800.0 + np.log(2.0))  # no overflow
