@@ -18,11 +18,45 @@ of raising).
 
 from __future__ import annotations
 
+import os
+from pathlib import Path
+
 import numba
 
-__all__ = ["njit", "KERNELS", "compiled_count"]
+__all__ = ["njit", "KERNELS", "compiled_count", "drop_stale_caches"]
+
+#: Helpers other files' kernels compile into themselves (:mod:`vespro.numerics`).
+SHARED_HELPERS = Path(__file__).with_name("numerics.py")
 
 KERNELS: list = []  # every kernel made here, in the order its module was imported (vespro.warmup)
+
+
+def drop_stale_caches(root: Path = Path(__file__).parent, shared: Path = SHARED_HELPERS) -> int:
+    """Forget every cached kernel older than ``shared``; returns how many were forgotten.
+
+    numba checks a cached kernel against its own source file only, but a kernel
+    compiles the helpers it calls into itself: after a change to the shared helpers,
+    the kernels of other files would still load the old machine code. Their cache
+    indexes (``__pycache__/*.nbi`` under ``root``) older than the helpers' file are
+    removed, so those kernels compile again on first use (once). Nothing happens
+    where the cache lives elsewhere or cannot be written.
+    """
+    try:
+        t = shared.stat().st_mtime
+    except OSError:
+        return 0
+    n = 0
+    for idx in root.rglob("__pycache__/*.nbi"):
+        try:
+            if idx.stat().st_mtime < t:
+                os.remove(idx)
+                n += 1
+        except OSError:
+            pass
+    return n
+
+
+drop_stale_caches()
 
 
 def njit(fn):
