@@ -256,8 +256,9 @@ class EdgeImage:
 
     @classmethod
     def from_image(cls, img: np.ndarray, K: np.ndarray, box: tuple[int, int, int, int] | None = None,
-                   blur_sigma: float = 0.8) -> "EdgeImage":
-        """From an undistorted image (grey or colour, uint8), or its pixels ``box = (x0, y0, x1, y1)``."""
+                   blur_sigma: float = 0.8, keep_grey: bool = True) -> "EdgeImage":
+        """From an undistorted image (grey or colour, uint8), or its pixels ``box = (x0, y0, x1, y1)``;
+        ``keep_grey``: also keep the smoothed grey levels (:attr:`grey`, else None)."""
         K = np.array(K, float)
         if box is not None:
             x0, y0, x1, y1 = box
@@ -267,10 +268,11 @@ class EdgeImage:
         f = cv2.GaussianBlur(img, (0, 0), blur_sigma) if blur_sigma > 0 else img
         dx, dy = image_gradient(f, 0.0)
         grad = np.stack([dx, dy]).astype(np.float32)
-        if f.ndim == 3:
+        grey = None
+        if keep_grey and f.ndim == 3:
             grey = cv2.cvtColor(f, cv2.COLOR_BGR2GRAY)  # (images are BGR, as OpenCV reads them)
-        else:
+        elif keep_grey:
             grey = f.copy() if f is img else f  # (the caller's pixels stay writable)
-        for a in (grad, K, grey):
+        for a in (grad, K) if grey is None else (grad, K, grey):
             a.setflags(write=False)
         return cls(K, grad, image_noise(img) * sobel_noise_gain(blur_sigma), grey)

@@ -380,7 +380,7 @@ class ImageLikelihood:
 
     def edge_image(self, img: np.ndarray, K: np.ndarray, box=None) -> EdgeImage:
         """An undistorted image's :class:`~vespro.imageedges.EdgeImage` (of ``box`` only, if given)."""
-        return EdgeImage.from_image(img, K, box, self.options.blur_sigma)
+        return EdgeImage.from_image(img, K, box, self.options.blur_sigma, keep_grey=self.options.region)
 
     def box(self, K: np.ndarray, T_camera_object: np.ndarray, width: int, height: int, margin_px: float = 0.0):
         """Pixel box ``(x0, y0, x1, y1)`` around the part's projection with room for the lines, or
