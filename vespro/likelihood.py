@@ -22,6 +22,12 @@ so a textured part's faces neither support nor refute a pose; a line whose
 own edge is missing costs ``log(1 - p_detect)``; a line with a sharp peak at
 its centre and few others gains up to ``log(2 line_px N(0) / 1)``.
 
+Two nearly parallel model edges projected within 1.5 px of each other (a
+face seen edge on) show as one image edge: each image edge point serves the
+nearer model edge (:func:`vespro.edgefit.shared_edge_losers`, as in the
+sub-pixel fit), so a pose that turns a face edge on does not read one image
+edge twice.
+
 Samples along one straight model edge share its errors (a pose off by a
 little moves all of them at once): an edge's samples weigh together at most
 one per ``spacing_px`` of its projected length, as in the sub-pixel fit
@@ -68,6 +74,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .edgefit import shared_edge_losers
 from .imageedges import EdgeImage, project_points, projection_box, silhouette_sides, visible_samples
 from .jit import njit
 from .se3 import invert_transform
@@ -419,6 +426,7 @@ class ImageLikelihood:
         edge_len = np.linalg.norm(ub - ua, axis=1)
         per_edge = np.bincount(se[observed], minlength=E)
         w = np.where(observed, np.minimum(1.0, edge_len[se] / (o.spacing_px * np.maximum(per_edge[se], 1))), 0.0)
+        w[shared_edge_losers(uv, se, ub - ua, nearest)] = 0.0  # one image edge, one line
         found = observed & (nearest <= 2.0 * o.sigma_px)
         wsum = float(w.sum())
         edge_ll = np.bincount(se, w * llr, E)

@@ -239,6 +239,29 @@ def test_visp_cube_start_pose_scores_above_its_neighbours():
     assert start.cameras[0].found_frac > 0.5
 
 
+def test_a_face_seen_edge_on_does_not_read_its_image_edge_twice():
+    """A box whose side face lies in a plane through the camera centre, turned 0.3 deg one
+    way (the face unseen) and the other (seen, 0.3 px wide: its two long edges project onto
+    the one image edge of the outline), over an image of its filled outline: the turn adds
+    two model edges on that image edge, and the likelihood counts the image edge once (the
+    pose seeing the face gains less than half of one long edge's share, not a whole edge)."""
+    model = box_model([0.1, 0.08, 0.06])
+    lk = ImageLikelihood(model_features(model))
+    K = np.array([[600.0, 0, 319.5], [0, 600.0, 239.5], [0, 0, 1]])
+    out = []
+    for deg in (-0.3, 0.3):
+        T = np.eye(4)
+        T[:3, :3] = exp_so3(np.array([0.0, np.deg2rad(deg), 0.0]))
+        T[:3, 3] = [-0.05, 0.0, 0.5]  # the +x face's plane through the camera centre
+        img = np.full((480, 640), 40, np.uint8)
+        uv, _ = project_points(K, T, model.vertices)
+        cv2.fillConvexPoly(img, cv2.convexHull(np.round(uv * 16).astype(np.int32)), 180, cv2.LINE_AA, 4)
+        out.append(lk(T, [(np.eye(4), lk.edge_image(img, K))]).cameras[0])
+    unseen, seen = out
+    assert seen.n_observed > unseen.n_observed  # the thin face's edges are there
+    assert seen.log_lik - unseen.log_lik < 0.5 * unseen.edge_log_lik.max(), (seen.log_lik, unseen.log_lik)
+
+
 def test_nothing_to_see_scores_nothing():
     """A pose behind the camera, or an image outside the part's projection: no samples
     observed, log-likelihood 0 (no data, not evidence)."""
