@@ -23,7 +23,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from .imageedges import project_points as _project
 from .imageedges import visible_samples
@@ -201,13 +200,47 @@ def shared_edge_losers(uv: np.ndarray, edge: np.ndarray, edge_dir: np.ndarray, c
     ndarray, shape (S,), bool
     """
     lose = np.zeros(len(uv), bool)
-    ok = np.all(np.isfinite(uv), axis=1)
-    if ok.sum() < 2:
+    sel = np.flatnonzero(np.all(np.isfinite(uv), axis=1))
+    if sel.size < 2:
         return lose
-    sel = np.flatnonzero(ok)
-    pairs = cKDTree(uv[sel]).query_pairs(radius_px, output_type="ndarray")
-    if len(pairs) == 0:
-        return lose
+    d = np.asarray(edge_dir, float)
+    dn = d / (np.linalg.norm(d, axis=1, keepdims=True) + 1e-12)
+    lose[sel] = _sweep_losers(np.ascontiguousarray(uv[sel, 0], float), np.ascontiguousarray(uv[sel, 1], float),
+                              np.ascontiguousarray(edge[sel], np.int64), np.ascontiguousarray(dn),
+                              np.ascontiguousarray(cost[sel], float), float(radius_px),
+                              float(np.cos(np.deg2rad(max_angle_deg))))
+    return lose
+
+
+@njit
+def _sweep_losers(u, v, edge, dn, cost, radius, cos_par):
+    """The losers of :func:`shared_edge_losers` among points ``(u, v)`` (m,) of model edges
+    ``edge`` (m,) with unit projected directions ``dn`` (E, 2): the pairs within ``radius``
+    (a sweep along ``u``; the pairs of ``cKDTree.query_pairs``), of different edges at most
+    ``arccos(cos_par)`` apart, the one of larger ``cost`` losing (the later on a tie)."""
+    m = u.shape[0]
+    lose = np.zeros(m, np.bool_)
+    order = np.argsort(u)
+    r2 = radius * radius
+    for a in range(m):
+        ia = order[a]
+        for b in range(a + 1, m):
+            ib = order[b]
+            du = u[ib] - u[ia]
+            if du > radius:
+                break
+            dv = v[ib] - v[ia]
+            if du * du + dv * dv > r2:
+                continue
+            i, j = min(ia, ib), max(ia, ib)
+            ei, ej = edge[i], edge[j]
+            if ei == ej or abs(dn[ei, 0] * dn[ej, 0] + dn[ei, 1] * dn[ej, 1]) < cos_par:
+                continue
+            if cost[i] > cost[j]:
+                lose[i] = True
+            else:
+                lose[j] = True
+    return lose
     i, j = sel[pairs[:, 0]], sel[pairs[:, 1]]
     ei, ej = edge[i], edge[j]
     dn = edge_dir / (np.linalg.norm(edge_dir, axis=1, keepdims=True) + 1e-12)
@@ -607,7 +640,6 @@ def _subpixel_view_kernel(grad, fx, fy, cx, cy, T_co, R_wo, R_cw, idx, sample_p,
             if np.isfinite(u) and np.isfinite(v):
                 tu[m], tv[m], k_ok[m] = u, v, i
                 m += 1
-        tu, tv, k_ok = tu[:m], tv[:m], k_ok[:m]
         if m >= 2:
             dn = np.empty((E, 2))
             for e in range(E):
@@ -615,26 +647,15 @@ def _subpixel_view_kernel(grad, fx, fy, cx, cy, T_co, R_wo, R_cw, idx, sample_p,
                 nn = np.sqrt(dx * dx + dy * dy) + 1e-12
                 dn[e, 0] = dx / nn
                 dn[e, 1] = dy / nn
-            order = np.argsort(tu)
-            r2 = shared_px * shared_px
+            edge_ok = np.empty(m, np.int64)
+            cost_ok = np.empty(m)
             for a in range(m):
-                ia = order[a]
-                for b in range(a + 1, m):
-                    ib = order[b]
-                    du = tu[ib] - tu[ia]
-                    if du > shared_px:
-                        break
-                    dv = tv[ib] - tv[ia]
-                    if du * du + dv * dv > r2:
-                        continue
-                    i, j = k_ok[min(ia, ib)], k_ok[max(ia, ib)]
-                    ei, ej = sample_edge[idx[i]], sample_edge[idx[j]]
-                    if ei == ej or abs(dn[ei, 0] * dn[ej, 0] + dn[ei, 1] * dn[ej, 1]) < cos_par:
-                        continue
-                    if abs(sstar[i]) > abs(sstar[j]):
-                        lost[i] = True
-                    else:
-                        lost[j] = True
+                edge_ok[a] = sample_edge[idx[k_ok[a]]]
+                cost_ok[a] = abs(sstar[k_ok[a]])
+            lose = _sweep_losers(tu[:m], tv[:m], edge_ok, dn, cost_ok, shared_px, cos_par)
+            for a in range(m):
+                if lose[a]:
+                    lost[k_ok[a]] = True
         for i in range(S):
             if lost[i]:
                 ok[i] = False

@@ -859,3 +859,43 @@ def _links_all_samples(corners, dt, opt, diag):
     dist = lookup_dt(dt, np.broadcast_to(bins[:, None], pts.shape[:2]), pts, np.inf)
     keep = np.mean(dist <= opt.link_tol_px, axis=1) >= opt.link_support
     return np.stack([i[keep], j[keep]], 1).astype(np.int64)
+
+
+def test_shared_edge_losers_are_those_of_the_k_d_tree_pairs():
+    """The compiled sweep against the pairs of SciPy's k-d tree within the radius (the
+    formulation it replaced): random points of a few parallel and crossing edges, ties in
+    cost included, NaN points in no pair; the same losers."""
+    from scipy.spatial import cKDTree
+
+    from vespro.edgefit import shared_edge_losers
+
+    def reference(uv, edge, edge_dir, cost, radius_px=1.5, max_angle_deg=10.0):
+        lose = np.zeros(len(uv), bool)
+        sel = np.flatnonzero(np.all(np.isfinite(uv), axis=1))
+        if sel.size < 2:
+            return lose
+        pairs = cKDTree(uv[sel]).query_pairs(radius_px, output_type="ndarray")
+        if len(pairs) == 0:
+            return lose
+        i, j = sel[pairs[:, 0]], sel[pairs[:, 1]]
+        dn = edge_dir / (np.linalg.norm(edge_dir, axis=1, keepdims=True) + 1e-12)
+        par = np.abs(np.sum(dn[edge[i]] * dn[edge[j]], axis=1)) >= np.cos(np.deg2rad(max_angle_deg))
+        m = (edge[i] != edge[j]) & par
+        i, j = i[m], j[m]
+        lose[np.where(cost[i] > cost[j], i, j)] = True
+        return lose
+
+    rng = np.random.default_rng(5)
+    for trial in range(40):
+        E = 6
+        dirs = rng.normal(size=(E, 2))
+        dirs[1] = dirs[0] * -2.0 + rng.normal(0, 0.05, 2)  # nearly parallel pairs
+        dirs[3] = dirs[2] * 0.5
+        S = int(rng.integers(2, 400))
+        uv = rng.uniform(0, 30, (S, 2))
+        uv[rng.random(S) < 0.05] = np.nan
+        edge = rng.integers(0, E, S)
+        cost = np.round(rng.uniform(0, 2, S), 1)  # ties
+        got = shared_edge_losers(uv, edge, dirs, cost)
+        assert np.array_equal(got, reference(uv, edge, dirs, cost)), trial
+        assert trial > 0 or got.any()
