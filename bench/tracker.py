@@ -109,8 +109,8 @@ def main() -> None:
         sb = score([o.T_world_object for o in outsb], [o.status for o in outsb], T, rec.t, trb.model)
         totb = np.array([o.time_ms for o in outsb])
         vb = np.array([o.stage_ms.get("bank", np.nan) for o in outsb])
-        rows.append([rig_name, "bank (weighing, decision bank)", float(np.nanmedian(vb)), float(np.nanpercentile(vb, 99)),
-                     "", ""])
+        rows.append([rig_name, "bank (weighing, decision bank)", float(np.nanmedian(vb)),
+                     float(np.nanpercentile(vb, 99)), "", ""])
         rows.append([rig_name, "whole frame, decision bank", float(np.median(totb)), float(np.percentile(totb, 99)),
                      f"{sb['position_rmse_mm']:.2f}", f"{np.median(totb) / np.median(tot):.1f}x (bank/rules)"])
         rows.append([rig_name, "baseline solvePnP", b_med, float(np.percentile(base, 99)), "",

@@ -33,7 +33,7 @@ from .numerics import dot3
 from .se3 import invert_transform
 
 __all__ = ["CameraView", "EdgeFit", "camera_setup", "edge_residuals", "face_widths_px", "refine_pose",
-           "refine_subpixel", "shared_edge_losers"]
+           "refine_subpixel", "shared_edge_losers", "sweep_shared_losers"]
 
 
 def _edge_bins(uv_a, uv_b, n_bins):
@@ -205,7 +205,7 @@ def shared_edge_losers(uv: np.ndarray, edge: np.ndarray, edge_dir: np.ndarray, c
         return lose
     d = np.asarray(edge_dir, float)
     dn = d / (np.linalg.norm(d, axis=1, keepdims=True) + 1e-12)
-    lose[sel] = _sweep_losers(np.ascontiguousarray(uv[sel, 0], float), np.ascontiguousarray(uv[sel, 1], float),
+    lose[sel] = sweep_shared_losers(np.ascontiguousarray(uv[sel, 0], float), np.ascontiguousarray(uv[sel, 1], float),
                               np.ascontiguousarray(edge[sel], np.int64), np.ascontiguousarray(dn),
                               np.ascontiguousarray(cost[sel], float), float(radius_px),
                               float(np.cos(np.deg2rad(max_angle_deg))))
@@ -213,8 +213,8 @@ def shared_edge_losers(uv: np.ndarray, edge: np.ndarray, edge_dir: np.ndarray, c
 
 
 @njit
-def _sweep_losers(u, v, edge, dn, cost, radius, cos_par):
-    """The losers of :func:`shared_edge_losers` among points ``(u, v)`` (m,) of model edges
+def sweep_shared_losers(u, v, edge, dn, cost, radius, cos_par):
+    """Compiled: the losers of :func:`shared_edge_losers` among points ``(u, v)`` (m,) of model edges
     ``edge`` (m,) with unit projected directions ``dn`` (E, 2): the pairs within ``radius``
     (a sweep along ``u``; the pairs of ``cKDTree.query_pairs``), of different edges at most
     ``arccos(cos_par)`` apart, the one of larger ``cost`` losing (the later on a tie)."""
@@ -652,7 +652,7 @@ def _subpixel_view_kernel(grad, fx, fy, cx, cy, T_co, R_wo, R_cw, idx, sample_p,
             for a in range(m):
                 edge_ok[a] = sample_edge[idx[k_ok[a]]]
                 cost_ok[a] = abs(sstar[k_ok[a]])
-            lose = _sweep_losers(tu[:m], tv[:m], edge_ok, dn, cost_ok, shared_px, cos_par)
+            lose = sweep_shared_losers(tu[:m], tv[:m], edge_ok, dn, cost_ok, shared_px, cos_par)
             for a in range(m):
                 if lose[a]:
                     lost[k_ok[a]] = True

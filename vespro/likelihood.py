@@ -74,13 +74,17 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .edgefit import shared_edge_losers
-from .imageedges import EdgeImage, project_points, projection_box, silhouette_sides, visible_samples
+from .edgefit import sweep_shared_losers
+from .imageedges import EdgeImage, projection_box, silhouette_sides, visible_samples
 from .jit import njit
 from .se3 import invert_transform
 
+#: An image edge point within this of two nearly parallel model edges (within 10 deg) serves
+#: the nearer, px (as :func:`vespro.edgefit.shared_edge_losers`' defaults).
+_SHARED_PX, _COS_PARALLEL = 1.5, float(np.cos(np.deg2rad(10.0)))
+
 __all__ = ["LikelihoodOptions", "CameraLikelihood", "PoseLikelihood", "ImageLikelihood", "line_evidence",
-           "region_evidence"]
+           "camera_lines", "region_evidence"]
 
 
 @dataclass(frozen=True)
@@ -253,6 +257,101 @@ def line_evidence(grad, uv, n, offs, thr, sigma, p_detect, llr, nearest, n_peaks
     return inside
 
 
+@njit
+def camera_lines(grad, K, T_co, idx, sample_p, sample_edge, edge_a, edge_b, offs, thr, sigma, p_detect, spacing,
+                 radius, cos_par):
+    """One camera's correspondence lines of :mod:`vespro.likelihood` at a pose, compiled.
+
+    The visible samples ``idx`` and the model edges are projected (``K``, ``T_co``; a point
+    at depth 1e-6 m or less, or on an edge with such an end, is not observed), each line
+    read along its edge's projected normal (:func:`line_evidence`), weighed one per
+    ``spacing`` px of its edge's projected length, and an image edge point within
+    ``radius`` of two nearly parallel edges (``cos_par``) left to the nearer
+    (:func:`vespro.edgefit.sweep_shared_losers`).
+
+    Returns
+    -------
+    uv, nrm : ndarray, shape (S, 2)
+        Projected points (NaN: not in front) and unit normals.
+    llr, nearest : ndarray, shape (S,)
+        As :func:`line_evidence`.
+    w : ndarray, shape (S,)
+        Each line's weight (0: not observed, or its image edge served a nearer edge).
+    observed : ndarray, shape (S,), bool
+        Point inside the image.
+    """
+    E, S = edge_a.shape[0], idx.shape[0]
+    H, W = grad.shape[1], grad.shape[2]
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    ends = np.empty((2, E, 2))
+    zend = np.empty((2, E))
+    for k in range(2):
+        P = edge_a if k == 0 else edge_b
+        for e in range(E):
+            x = P[e, 0] * T_co[0, 0] + P[e, 1] * T_co[0, 1] + P[e, 2] * T_co[0, 2] + T_co[0, 3]
+            y = P[e, 0] * T_co[1, 0] + P[e, 1] * T_co[1, 1] + P[e, 2] * T_co[1, 2] + T_co[1, 3]
+            z = P[e, 0] * T_co[2, 0] + P[e, 1] * T_co[2, 1] + P[e, 2] * T_co[2, 2] + T_co[2, 3]
+            ends[k, e, 0] = x / z * fx + cx
+            ends[k, e, 1] = y / z * fy + cy
+            zend[k, e] = z
+    dn = np.empty((E, 2))
+    elen = np.empty(E)
+    for e in range(E):
+        dx, dy = ends[1, e, 0] - ends[0, e, 0], ends[1, e, 1] - ends[0, e, 1]
+        elen[e] = np.sqrt(dx * dx + dy * dy)
+        dn[e, 0] = dx / (elen[e] + 1e-12)
+        dn[e, 1] = dy / (elen[e] + 1e-12)
+    uv = np.empty((S, 2))
+    nrm = np.empty((S, 2))
+    edge = np.empty(S, np.int64)
+    for s in range(S):
+        e = sample_edge[idx[s]]
+        edge[s] = e
+        p = sample_p[idx[s]]
+        x = p[0] * T_co[0, 0] + p[1] * T_co[0, 1] + p[2] * T_co[0, 2] + T_co[0, 3]
+        y = p[0] * T_co[1, 0] + p[1] * T_co[1, 1] + p[2] * T_co[1, 2] + T_co[1, 3]
+        z = p[0] * T_co[2, 0] + p[1] * T_co[2, 1] + p[2] * T_co[2, 2] + T_co[2, 3]
+        if z > 1e-6 and zend[0, e] > 1e-6 and zend[1, e] > 1e-6:
+            uv[s, 0] = x / z * fx + cx
+            uv[s, 1] = y / z * fy + cy
+        else:
+            uv[s, 0] = np.nan
+            uv[s, 1] = np.nan
+        nrm[s, 0] = -dn[e, 1]
+        nrm[s, 1] = dn[e, 0]
+    llr = np.empty(S)
+    nearest = np.empty(S)
+    n_peaks = np.empty(S, np.int64)
+    line_evidence(grad, uv, nrm, offs, thr, sigma, p_detect, llr, nearest, n_peaks)
+    observed = np.zeros(S, np.bool_)
+    count = np.zeros(E, np.int64)
+    for s in range(S):
+        u, v = uv[s, 0], uv[s, 1]
+        observed[s] = u >= 0 and v >= 0 and u <= W - 1.001 and v <= H - 1.001  # (False for NaN)
+        if observed[s]:
+            count[edge[s]] += 1
+    w = np.zeros(S)
+    m = 0
+    for s in range(S):
+        if observed[s]:
+            w[s] = min(1.0, elen[edge[s]] / (spacing * max(count[edge[s]], 1)))
+        if np.isfinite(uv[s, 0]) and np.isfinite(uv[s, 1]):
+            m += 1
+    if m >= 2:
+        pu, pv, pe, pc = np.empty(m), np.empty(m), np.empty(m, np.int64), np.empty(m)
+        rows = np.empty(m, np.int64)
+        k = 0
+        for s in range(S):
+            if np.isfinite(uv[s, 0]) and np.isfinite(uv[s, 1]):
+                pu[k], pv[k], pe[k], pc[k], rows[k] = uv[s, 0], uv[s, 1], edge[s], nearest[s], s
+                k += 1
+        lose = sweep_shared_losers(pu, pv, pe, dn, pc, radius, cos_par)
+        for k in range(m):
+            if lose[k]:
+                w[rows[k]] = 0.0
+    return uv, nrm, llr, nearest, w, observed
+
+
 REGION_SHIFT = 3  # grey levels to histogram bins: 8 levels a bin, 32 bins
 
 
@@ -406,27 +505,13 @@ class ImageLikelihood:
         if idx.size == 0:
             return empty
         K = eimg.K
-        ua, za = project_points(K, T_co, mf.edge_a)
-        ub, zb = project_points(K, T_co, mf.edge_b)
         se = mf.sample_edge[idx]
-        uv, z = project_points(K, T_co, mf.sample_p[idx])
-        front = (z > 1e-6) & (za[se] > 1e-6) & (zb[se] > 1e-6)
-        d = (ub - ua)[se]
-        nrm = np.stack([-d[:, 1], d[:, 0]], 1)
-        nrm /= np.linalg.norm(nrm, axis=1, keepdims=True) + 1e-12
-        uv = np.where(front[:, None], uv, np.nan)
         S = idx.size
-        llr, nearest, n_peaks = np.empty(S), np.empty(S), np.empty(S, np.int64)
         thr = max(o.min_snr * eimg.noise, o.min_contrast)
-        line_evidence(eimg.grad, np.ascontiguousarray(uv), np.ascontiguousarray(nrm), self.offs, float(thr),
-                      float(o.sigma_px), float(o.p_detect), llr, nearest, n_peaks)
-        H, W = eimg.grad.shape[1:]
-        with np.errstate(invalid="ignore"):  # (NaN: behind the camera, not observed)
-            observed = (uv[:, 0] >= 0) & (uv[:, 1] >= 0) & (uv[:, 0] <= W - 1.001) & (uv[:, 1] <= H - 1.001)
-        edge_len = np.linalg.norm(ub - ua, axis=1)
-        per_edge = np.bincount(se[observed], minlength=E)
-        w = np.where(observed, np.minimum(1.0, edge_len[se] / (o.spacing_px * np.maximum(per_edge[se], 1))), 0.0)
-        w[shared_edge_losers(uv, se, ub - ua, nearest)] = 0.0  # one image edge, one line
+        uv, nrm, llr, nearest, w, observed = camera_lines(
+            eimg.grad, np.ascontiguousarray(K, float), np.ascontiguousarray(T_co, float), idx, mf.sample_p,
+            mf.sample_edge, mf.edge_a, mf.edge_b, self.offs, float(thr), float(o.sigma_px), float(o.p_detect),
+            float(o.spacing_px), _SHARED_PX, _COS_PARALLEL)
         found = observed & (nearest <= 2.0 * o.sigma_px)
         wsum = float(w.sum())
         edge_ll = np.bincount(se, w * llr, E)

@@ -739,6 +739,9 @@ class Tracker:
             grey = np.zeros((intr.height, intr.width), np.uint8)
             cv2.fillConvexPoly(grey, cv2.convexHull(np.round(uv).astype(np.int32)), 200)
             self.edge_aid.measure(cam.name, grey, T_wc, T_wo)
+        if self.bank is not None:  # the likelihood's lines, on the same made-up view
+            lk = self.bank.likelihood
+            lk(T_wo, [(T_wc, lk.edge_image(img, intr.K))])
         log_so3(T_wo[:3, :3])
 
     # -- starting and stopping ----------------------------------------------

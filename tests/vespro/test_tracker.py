@@ -892,10 +892,11 @@ from vespro.jit import KERNELS
 from vespro.model import load_model
 from vespro.recording import Recording
 from vespro.rig import Rig
-from vespro.tracker import InitResult, Tracker
+from vespro.tracker import InitResult, Tracker, TrackerConfig
 rec = Recording(sys.argv[1])
 _, _, T = read_groundtruth(sys.argv[1])
-tr = Tracker(Rig((rec.rig.cameras[0],)), load_model(rec.model_path))  # one camera: the edge fit runs too
+tr = Tracker(Rig((rec.rig.cameras[0],)), load_model(rec.model_path),  # one camera: the edge fit runs too
+             TrackerConfig(decision=sys.argv[2]))
 before = {id(k): set(k.signatures) for k in KERNELS}
 fs = rec.frameset(0)
 tr.start(InitResult(T[0]), fs.t_ns)
@@ -905,15 +906,16 @@ print(json.dumps({"late": late, "stages": sorted(out.stage_ms)}))
 """
 
 
-def test_the_first_frame_loads_no_compiled_kernel(recs):
+@pytest.mark.parametrize("decision", ["rules", "bank"])
+def test_the_first_frame_loads_no_compiled_kernel(recs, decision):
     """The tracker loads its compiled kernels when it is made, not on its first frame (in a
     fresh process: a one-camera tracker's first frame took 42 ms instead of 5, loading the
-    edge fit's last kernels)."""
+    edge fit's last kernels), with either decision (the bank's likelihood has its own)."""
     import json
     import subprocess
     import sys
 
-    r = subprocess.run([sys.executable, "-c", FIRST_FRAME, str(recs["box_conveyor"])], capture_output=True,
+    r = subprocess.run([sys.executable, "-c", FIRST_FRAME, str(recs["box_conveyor"]), decision], capture_output=True,
                        text=True, timeout=300)
     assert r.returncode == 0, r.stderr
     got = json.loads(r.stdout.strip().splitlines()[-1])
