@@ -206,9 +206,9 @@ def shared_edge_losers(uv: np.ndarray, edge: np.ndarray, edge_dir: np.ndarray, c
     d = np.asarray(edge_dir, float)
     dn = d / (np.linalg.norm(d, axis=1, keepdims=True) + 1e-12)
     lose[sel] = sweep_shared_losers(np.ascontiguousarray(uv[sel, 0], float), np.ascontiguousarray(uv[sel, 1], float),
-                              np.ascontiguousarray(edge[sel], np.int64), np.ascontiguousarray(dn),
-                              np.ascontiguousarray(cost[sel], float), float(radius_px),
-                              float(np.cos(np.deg2rad(max_angle_deg))))
+                                    np.ascontiguousarray(edge[sel], np.int64), np.ascontiguousarray(dn),
+                                    np.ascontiguousarray(cost[sel], float), float(radius_px),
+                                    float(np.cos(np.deg2rad(max_angle_deg))))
     return lose
 
 
@@ -240,14 +240,6 @@ def sweep_shared_losers(u, v, edge, dn, cost, radius, cos_par):
                 lose[i] = True
             else:
                 lose[j] = True
-    return lose
-    i, j = sel[pairs[:, 0]], sel[pairs[:, 1]]
-    ei, ej = edge[i], edge[j]
-    dn = edge_dir / (np.linalg.norm(edge_dir, axis=1, keepdims=True) + 1e-12)
-    par = np.abs(np.sum(dn[ei] * dn[ej], axis=1)) >= np.cos(np.deg2rad(max_angle_deg))
-    m = (ei != ej) & par
-    i, j = i[m], j[m]
-    lose[np.where(cost[i] > cost[j], i, j)] = True
     return lose
 
 
