@@ -59,6 +59,16 @@ def bench_recording(cache: Path, obj: str, rig_name: str, frames: int, mono: boo
     return path
 
 
+def _tracked(rec, T, config, clock: str):
+    """The recording tracked from its first true pose: (outputs, frame times ms, position RMSE mm,
+    the tracker's model)."""
+    tr = make_tracker(rec) if config is None else make_tracker(rec, config)
+    with tracker_clock(clock):
+        outs = track_recording(rec, tr, T[0])
+    s = score([o.T_world_object for o in outs], [o.status for o in outs], T, rec.t, tr.model)
+    return outs, np.array([o.time_ms for o in outs]), s["position_rmse_mm"], tr.model
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--frames", type=int, default=78)
@@ -74,48 +84,33 @@ def main() -> None:
         path = bench_recording(args.cache, args.object, rig_name, args.frames, args.mono)
         rec = Recording(path)
         _, _, T = read_groundtruth(path)
-        tr = make_tracker(rec)
-        with tracker_clock(args.clock):
-            outs = track_recording(rec, tr, T[0])
-        s = score([o.T_world_object for o in outs], [o.status for o in outs], T, rec.t, tr.model)
+        outs, tot, rmse, model = _tracked(rec, T, None, args.clock)
         # Baseline on the same detections, timed in this process.
-        t0 = time.perf_counter()
         base = []
         now = time.thread_time if args.clock == "cpu" else time.perf_counter
         for o in outs:
             t = now()
-            pnp_baseline(rec, [o], tr.model)
+            pnp_baseline(rec, [o], model)
             base.append((now() - t) * 1e3)
         b_med = float(np.median(base))
-        tot = np.array([o.time_ms for o in outs])
         for stage in ("visibility", "selection", "extraction", "update", "edges"):
             v = np.array([o.stage_ms.get(stage, np.nan) for o in outs])
             if np.all(np.isnan(v)):
                 continue
             rows.append([rig_name, stage, float(np.nanmedian(v)), float(np.nanpercentile(v, 99)), "", ""])
-        rows.append([rig_name, "whole frame", float(np.median(tot)), float(np.percentile(tot, 99)),
-                     f"{s['position_rmse_mm']:.2f}", ""])
+        rows.append([rig_name, "whole frame", float(np.median(tot)), float(np.percentile(tot, 99)), f"{rmse:.2f}", ""])
         if any("edges" in o.stage_ms for o in outs):
-            tr0 = make_tracker(rec, TrackerConfig(edge_aid="off"))
-            with tracker_clock(args.clock):
-                outs0 = track_recording(rec, tr0, T[0])
-            s0 = score([o.T_world_object for o in outs0], [o.status for o in outs0], T, rec.t, tr0.model)
-            tot0 = np.array([o.time_ms for o in outs0])
+            _, tot0, rmse0, _ = _tracked(rec, T, TrackerConfig(edge_aid="off"), args.clock)
             rows.append([rig_name, "whole frame, corners only", float(np.median(tot0)), float(np.percentile(tot0, 99)),
-                         f"{s0['position_rmse_mm']:.2f}", f"{np.median(tot) / np.median(tot0):.1f}x (edges/off)"])
-        trb = make_tracker(rec, TrackerConfig(decision="bank"))
-        with tracker_clock(args.clock):
-            outsb = track_recording(rec, trb, T[0])
-        sb = score([o.T_world_object for o in outsb], [o.status for o in outsb], T, rec.t, trb.model)
-        totb = np.array([o.time_ms for o in outsb])
+                         f"{rmse0:.2f}", f"{np.median(tot) / np.median(tot0):.1f}x (edges/off)"])
+        outsb, totb, rmseb, _ = _tracked(rec, T, TrackerConfig(decision="bank"), args.clock)
         vb = np.array([o.stage_ms.get("bank", np.nan) for o in outsb])
         rows.append([rig_name, "bank (weighing, decision bank)", float(np.nanmedian(vb)),
                      float(np.nanpercentile(vb, 99)), "", ""])
         rows.append([rig_name, "whole frame, decision bank", float(np.median(totb)), float(np.percentile(totb, 99)),
-                     f"{sb['position_rmse_mm']:.2f}", f"{np.median(totb) / np.median(tot):.1f}x (bank/rules)"])
+                     f"{rmseb:.2f}", f"{np.median(totb) / np.median(tot):.1f}x (bank/rules)"])
         rows.append([rig_name, "baseline solvePnP", b_med, float(np.percentile(base, 99)), "",
                      f"{np.median(tot) / b_med:.1f}x"])
-        _ = t0
     print_table(["rig", "stage", "median ms", "p99 ms", "pos RMSE mm", "frame/baseline"], rows,
                 title=f"Tracker {args.clock} time per frame set ({args.object}, {args.frames} frames, 640x480 "
                       f"{'grey' if args.mono else 'colour'}, 0.5 px noise)")

@@ -33,7 +33,16 @@ from .numerics import dot3
 from .se3 import invert_transform
 
 __all__ = ["CameraView", "EdgeFit", "camera_setup", "edge_residuals", "face_widths_px", "refine_pose",
-           "refine_subpixel", "shared_edge_losers", "sweep_shared_losers"]
+           "refine_subpixel", "shared_edge_losers", "sweep_shared_losers", "SHARED_EDGE_PX", "PARALLEL_DEG",
+           "COS_PARALLEL"]
+
+
+#: An image edge point within this of two nearly parallel model edges serves only the nearer, px
+#: (:func:`shared_edge_losers`) ...
+SHARED_EDGE_PX = 1.5
+#: ... the edges counting as parallel within this angle, deg; |cos| of it.
+PARALLEL_DEG = 10.0
+COS_PARALLEL = float(np.cos(np.deg2rad(PARALLEL_DEG)))
 
 
 def _edge_bins(uv_a, uv_b, n_bins):
@@ -173,7 +182,7 @@ def _normal_search(grad, uv, n, offs, min_grad, near_frac=0.0, expect=None, rati
 
 
 def shared_edge_losers(uv: np.ndarray, edge: np.ndarray, edge_dir: np.ndarray, cost: np.ndarray,
-                       radius_px: float = 1.5, max_angle_deg: float = 10.0) -> np.ndarray:
+                       radius_px: float = SHARED_EDGE_PX, max_angle_deg: float = PARALLEL_DEG) -> np.ndarray:
     """Samples that share their image edge with a nearer sample of another, parallel model edge.
 
     Two nearly parallel model edges projected close together (a face seen
@@ -559,9 +568,6 @@ class EdgeFit:
         return 0.5 * (cov + cov.T)
 
 
-#: |cos| of the largest angle between two projected edges that count as parallel
-#: (``shared_edge_losers``' ``max_angle_deg`` = 10).
-_COS_PARALLEL = float(np.cos(np.deg2rad(10.0)))
 
 
 @njit
@@ -770,7 +776,7 @@ def _solve_edges(J, r, dens, eid, f_scale, edge_outlier_px):
 
 def refine_subpixel(T_world_object: np.ndarray, views: list[CameraView], mf: ModelFeatures, tree=None,
                     rounds: int = 4, search_px: float = 3.0, min_grad: float = 40.0, f_scale: float = 0.7,
-                    shared_edge_px: float = 1.5, spacing_px: float = 0.0, edge_outlier_px: float = 0.0,
+                    shared_edge_px: float = SHARED_EDGE_PX, spacing_px: float = 0.0, edge_outlier_px: float = 0.0,
                     near_peak_frac: float = 0.0, expect: list | None = None,
                     contrast_ratio: tuple[float, float] = (0.4, 3.0), info: bool = False):
     """Final sub-pixel refinement by 1D edge search along the projected normals.
@@ -838,7 +844,7 @@ def refine_subpixel(T_world_object: np.ndarray, views: list[CameraView], mf: Mod
                 v.feat.grad, K[0, 0], K[1, 1], K[0, 2], K[1, 2], T_co, R, np.ascontiguousarray(T_cw[:3, :3]), idx,
                 mf.sample_p, mf.sample_edge, mf.edge_a, mf.edge_b, offs, float(min_grad), float(near_peak_frac), exp,
                 float(contrast_ratio[0]), float(contrast_ratio[1]), float(spacing_px), float(shared_edge_px),
-                _COS_PARALLEL)
+                COS_PARALLEL)
             se = mf.sample_edge[idx]
             w_searched += float(dens.sum())
             if info:

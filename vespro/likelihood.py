@@ -74,14 +74,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .edgefit import sweep_shared_losers
+from .edgefit import COS_PARALLEL, SHARED_EDGE_PX, sweep_shared_losers
 from .imageedges import EdgeImage, projection_box, silhouette_sides, visible_samples
 from .jit import njit
 from .se3 import invert_transform
-
-#: An image edge point within this of two nearly parallel model edges (within 10 deg) serves
-#: the nearer, px (as :func:`vespro.edgefit.shared_edge_losers`' defaults).
-_SHARED_PX, _COS_PARALLEL = 1.5, float(np.cos(np.deg2rad(10.0)))
 
 __all__ = ["LikelihoodOptions", "CameraLikelihood", "PoseLikelihood", "ImageLikelihood", "line_evidence",
            "camera_lines", "region_evidence"]
@@ -511,7 +507,7 @@ class ImageLikelihood:
         uv, nrm, llr, nearest, w, observed = camera_lines(
             eimg.grad, np.ascontiguousarray(K, float), np.ascontiguousarray(T_co, float), idx, mf.sample_p,
             mf.sample_edge, mf.edge_a, mf.edge_b, self.offs, float(thr), float(o.sigma_px), float(o.p_detect),
-            float(o.spacing_px), _SHARED_PX, _COS_PARALLEL)
+            float(o.spacing_px), SHARED_EDGE_PX, COS_PARALLEL)
         found = observed & (nearest <= 2.0 * o.sigma_px)
         wsum = float(w.sum())
         edge_ll = np.bincount(se, w * llr, E)

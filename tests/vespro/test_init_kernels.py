@@ -744,7 +744,7 @@ def test_subpixel_view_kernel_matches_numpy(scene):
             v.feat.grad, K_[0, 0], K_[1, 1], K_[0, 2], K_[1, 2], T_cw @ T, np.ascontiguousarray(T[:3, :3]),
             np.ascontiguousarray(T_cw[:3, :3]), idx, mf.sample_p, mf.sample_edge, mf.edge_a, mf.edge_b, offs, 40.0,
             0.6, np.full(idx.size, np.nan) if expect is None else expect[idx], 0.4, 3.0, 2.0, 1.5,
-            edgefit._COS_PARALLEL)
+            edgefit.COS_PARALLEL)
         for a, b in zip((ok, sstar, c_peak, c0, dens, lost), got[:6]):
             assert_same_bits(a, b)
         assert_same_bits(rows, got[7][got[0]])

@@ -41,7 +41,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from ..bsp import load_or_build_bsp
-from ..edgefit import CameraView, refine_pose, refine_subpixel
+from ..edgefit import SHARED_EDGE_PX, CameraView, refine_pose, refine_subpixel
 from ..frames import FrameSet
 from ..metrics import add_sym
 from ..model import Model
@@ -574,7 +574,7 @@ class InitOptions:
     seed_only: bool = False
     require_fixed_view: bool = True
     subpixel: bool = True
-    shared_edge_px: float = 1.5
+    shared_edge_px: float = SHARED_EDGE_PX
     plain_faces: bool = True
     plain_max_interior_edge_frac: float = 0.005
     plain_max_shade_step: float = 0.1
