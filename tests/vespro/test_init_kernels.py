@@ -259,6 +259,43 @@ def normal_search_ref(grad, uv, n, offs, min_grad, near_frac=0.0, expect=None, r
     return sstar, ok, c[np.arange(S), kk], np.ascontiguousarray(c[:, np.argmin(np.abs(offs))])
 
 
+def face_widths_px_ref(T_camera_object, K, mf, edge_len_px):
+    """``edgefit.face_widths_px`` in NumPy, as it was."""
+    R, t = T_camera_object[:3, :3], T_camera_object[:3, 3]
+    X = mf.tri_p @ R.T + t  # (T, 3, 3)
+    F = len(mf.face_normals)
+    if np.any(X[..., 2] <= 1e-9):
+        return np.full(F, np.inf)
+    uv = X[..., :2] / X[..., 2:3] * K[[0, 1], [0, 1]]
+    d1, d2 = uv[:, 1] - uv[:, 0], uv[:, 2] - uv[:, 0]
+    area = np.bincount(mf.tri_face, 0.5 * np.abs(d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0]), F)
+    longest = np.zeros(F)
+    for k in range(2):
+        np.maximum.at(longest, mf.edge_faces[:, k], edge_len_px)
+    return area / np.maximum(longest, 1e-9)
+
+
+def test_face_widths_match_numpy(scene):
+    """The compiled face widths against the NumPy code, at poses about the scene's and with a
+    NaN edge length (its faces' widths NaN), to rounding (1e-12 relative; the products'
+    order may differ from NumPy's); inf for all faces with a corner behind the camera."""
+    _, mf, _, views = scene
+    rng = np.random.default_rng(5)
+    for k in range(4):
+        v = views[k % 2]
+        T_co = invert_transform(v.T_world_camera) @ T_WO @ _pose(rng.normal(size=3) * 0.05, rng.normal(size=3) * 0.01)
+        edge_len = rng.uniform(0.0, 80.0, len(mf.edge_a))
+        if k == 3:
+            edge_len[0] = np.nan
+        a = edgefit.face_widths_px(T_co, v.feat.K, mf, edge_len)
+        b = face_widths_px_ref(T_co, v.feat.K, mf, edge_len)
+        np.testing.assert_allclose(a, b, rtol=1e-12, atol=0)
+        assert np.isnan(a).any() == (k == 3) and np.isfinite(a).sum() >= len(a) - 2
+    behind = np.eye(4)
+    behind[2, 3] = -1.0
+    assert np.all(edgefit.face_widths_px(behind, views[0].feat.K, mf, np.ones(len(mf.edge_a))) == np.inf)
+
+
 def refine_subpixel_ref(T_world_object: np.ndarray, views, mf, tree=None,
                     rounds: int = 4, search_px: float = 3.0, min_grad: float = 40.0, f_scale: float = 0.7,
                     shared_edge_px: float = 1.5, spacing_px: float = 0.0, edge_outlier_px: float = 0.0,
@@ -313,7 +350,7 @@ def refine_subpixel_ref(T_world_object: np.ndarray, views, mf, tree=None,
                 if lost.size:
                     # A face seen edge on shows its two edges as one image edge: there, the
                     # sample that lost it still found its outline.
-                    thin = edgefit.face_widths_px(T_co, K, mf, edge_len) < 2.0 * shared_edge_px
+                    thin = face_widths_px_ref(T_co, K, mf, edge_len) < 2.0 * shared_edge_px
                     ef = mf.edge_faces[se[lost]]
                     w_shared += float(dens[lost][np.any(thin[ef], axis=1)].sum())
             if info:
@@ -744,7 +781,7 @@ def test_subpixel_view_kernel_matches_numpy(scene):
             v.feat.grad, K_[0, 0], K_[1, 1], K_[0, 2], K_[1, 2], T_cw @ T, np.ascontiguousarray(T[:3, :3]),
             np.ascontiguousarray(T_cw[:3, :3]), idx, mf.sample_p, mf.sample_edge, mf.edge_a, mf.edge_b, offs, 40.0,
             0.6, np.full(idx.size, np.nan) if expect is None else expect[idx], 0.4, 3.0, 2.0, 1.5,
-            edgefit.COS_PARALLEL)
+            edgefit.COS_PARALLEL, mf.tri_p, mf.tri_face, mf.edge_faces, len(mf.face_normals))
         for a, b in zip((ok, sstar, c_peak, c0, dens, lost), got[:6]):
             assert_same_bits(a, b)
         assert_same_bits(rows, got[7][got[0]])
