@@ -25,7 +25,7 @@ from test_init_search import CAMS, T_WO, K, _pose, render
 
 from vespro import edgefit
 from vespro.bsp import IN, _plane_dist, load_or_build_bsp
-from vespro.imageedges import visible_samples
+from vespro.imageedges import edge_visible, front_faces, visible_samples
 from vespro.init import search
 from vespro.init.features import extract_features, normal_bins
 from vespro.init.modelfeat import model_features
@@ -257,6 +257,48 @@ def normal_search_ref(grad, uv, n, offs, min_grad, near_frac=0.0, expect=None, r
         frac = np.where(np.abs(den) > 1e-9, 0.5 * (gm - gp) / den, 0.0)
     sstar = offs[kk] + np.clip(frac, -0.5, 0.5) * 0.5
     return sstar, ok, c[np.arange(S), kk], np.ascontiguousarray(c[:, np.argmin(np.abs(offs))])
+
+
+def visible_samples_ref(T_camera_object, mf, tree=None):
+    """``imageedges.visible_samples`` in NumPy, as it was."""
+    R, t = T_camera_object[None, :3, :3], T_camera_object[None, :3, 3]
+    vis_e = edge_visible(front_faces(R, t, mf), mf)[0]
+    idx = np.flatnonzero(vis_e[mf.sample_edge])
+    if tree is not None and not mf.convex and idx.size:
+        cam_o = invert_transform(T_camera_object)[:3, 3]
+        A = mf.sample_p[idx]
+        seg = np.linalg.norm(cam_o - A, axis=1)
+        blocked = tree.segments_blocked(A, np.broadcast_to(cam_o, A.shape), t_lo=np.minimum(2e-4 / seg, 0.1),
+                                        t_hi=1.0, min_length=1e-9)
+        idx = idx[~blocked]
+    return idx
+
+
+def test_visible_samples_match_numpy(scene):
+    """The compiled culling and lines of sight against the NumPy code: the same samples at
+    random poses about both cameras' (and without the tree), and where a face is seen
+    exactly edge on (the camera centre in its plane)."""
+    _, mf, tree, views = scene
+    rng = np.random.default_rng(3)
+    n_front = []
+    for k in range(40):
+        T_co = invert_transform(views[k % 2].T_world_camera) @ T_WO @ _pose(rng.normal(size=3) * 0.6,
+                                                                            rng.normal(size=3) * 0.02)
+        for tr in (tree, None):
+            a, b = visible_samples(T_co, mf, tr), visible_samples_ref(T_co, mf, tr)
+            assert a.dtype == b.dtype and np.array_equal(a, b)
+        n_front.append(front_faces(T_co[None, :3, :3], T_co[None, :3, 3], mf)[0].sum())
+    assert len(set(n_front)) > 1  # poses that see different faces
+    # A camera centre on the plane of face 0: its offset n.c - d is 0 up to rounding.
+    n, d = mf.face_normals[0], mf.face_offsets[0]
+    u = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
+    c = -d * n + 3.0 * mf.diameter * u / np.linalg.norm(u)
+    z = -c / np.linalg.norm(c)  # looking at the object origin
+    x = np.cross([0.0, 0.0, 1.0] if abs(z[2]) < 0.9 else [0.0, 1.0, 0.0], z)
+    x /= np.linalg.norm(x)
+    R_oc = np.stack([x, np.cross(z, x), z], 1)
+    T_co = invert_transform(transform_from_rt(R_oc, c))
+    assert np.array_equal(visible_samples(T_co, mf, tree), visible_samples_ref(T_co, mf, tree))
 
 
 def face_widths_px_ref(T_camera_object, K, mf, edge_len_px):
