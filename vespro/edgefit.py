@@ -137,6 +137,8 @@ def _normal_search(grad, uv, n, offs, min_grad, near_frac=0.0, expect=None, rati
     0 (the sample's own position).
     """
     _, H, W = grad.shape
+    gxi, gyi = grad[0], grad[1]
+    one = np.uint64(1)
     umax, vmax = W - 1.001, H - 1.001
     S, O = uv.shape[0], offs.shape[0]
     sstar = np.empty(S)
@@ -155,12 +157,14 @@ def _normal_search(grad, uv, n, offs, min_grad, near_frac=0.0, expect=None, rati
             u = uv[s, 0] + offs[o] * n0
             v = uv[s, 1] + offs[o] * n1
             if np.isfinite(u) and np.isfinite(v) and u >= 0 and v >= 0 and u <= umax and v <= vmax:
-                u0, v0 = np.int64(np.floor(u)), np.int64(np.floor(v))
-                fu, fv = u - u0, v - v0
-                gx = (grad[0, v0, u0] * (1 - fu) + grad[0, v0, u0 + 1] * fu) * (1 - fv) \
-                    + (grad[0, v0 + 1, u0] * (1 - fu) + grad[0, v0 + 1, u0 + 1] * fu) * fv
-                gy = (grad[1, v0, u0] * (1 - fu) + grad[1, v0, u0 + 1] * fu) * (1 - fv) \
-                    + (grad[1, v0 + 1, u0] * (1 - fu) + grad[1, v0 + 1, u0 + 1] * fu) * fv
+                fu0, fv0 = np.floor(u), np.floor(v)
+                u0, v0 = np.uint64(fu0), np.uint64(fv0)  # (unsigned: no negative-index wrap to test)
+                u1, v1 = u0 + one, v0 + one
+                fu, fv = u - fu0, v - fv0
+                gx = (gxi[v0, u0] * (1 - fu) + gxi[v0, u1] * fu) * (1 - fv) \
+                    + (gxi[v1, u0] * (1 - fu) + gxi[v1, u1] * fu) * fv
+                gy = (gyi[v0, u0] * (1 - fu) + gyi[v0, u1] * fu) * (1 - fv) \
+                    + (gyi[v1, u0] * (1 - fu) + gyi[v1, u1] * fu) * fv
                 co = gx * n0 + gy * n1
                 cs[o] = co if np.isfinite(co) else 0.0
             else:
