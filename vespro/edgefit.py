@@ -65,20 +65,48 @@ def face_widths_px(T_camera_object: np.ndarray, K: np.ndarray, mf: ModelFeatures
 
     A face seen nearly edge on is a strip this wide (inf for every face when
     part of the model is behind the camera: no face is judged thin there).
-    ``edge_len_px`` (E,): the model edges' projected lengths.
+    ``edge_len_px`` (E,): the model edges' projected lengths. Compiled
+    (:func:`_face_widths_kernel`).
     """
-    R, t = T_camera_object[:3, :3], T_camera_object[:3, 3]
-    X = mf.tri_p @ R.T + t  # (T, 3, 3)
-    F = len(mf.face_normals)
-    if np.any(X[..., 2] <= 1e-9):
-        return np.full(F, np.inf)
-    uv = X[..., :2] / X[..., 2:3] * K[[0, 1], [0, 1]]
-    d1, d2 = uv[:, 1] - uv[:, 0], uv[:, 2] - uv[:, 0]
-    area = np.bincount(mf.tri_face, 0.5 * np.abs(d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0]), F)
+    return _face_widths_kernel(np.ascontiguousarray(T_camera_object, dtype=float), float(K[0, 0]), float(K[1, 1]),
+                               mf.tri_p, mf.tri_face, mf.edge_faces, len(mf.face_normals),
+                               np.ascontiguousarray(edge_len_px, dtype=float))
+
+
+@njit
+def _face_widths_kernel(T_co, fx, fy, tri_p, tri_face, edge_faces, F, edge_len):
+    """:func:`face_widths_px`: the triangles' projected areas summed per face (in triangle
+    order, as ``np.bincount``), over the longest projected edge of each face (at least
+    1e-9); the points in the camera by ``dot3`` (as OpenBLAS's product). inf for every
+    face when a triangle's corner is within 1e-9 of the camera plane or behind it."""
+    n_tri = tri_p.shape[0]
+    X = np.empty((n_tri, 3, 3))
+    for i in range(n_tri):
+        for k in range(3):
+            for r in range(3):
+                X[i, k, r] = dot3(tri_p[i, k, 0], tri_p[i, k, 1], tri_p[i, k, 2],
+                                  T_co[r, 0], T_co[r, 1], T_co[r, 2]) + T_co[r, 3]
+            if X[i, k, 2] <= 1e-9:
+                return np.full(F, np.inf)
+    area = np.zeros(F)
+    for i in range(n_tri):
+        u0, v0 = X[i, 0, 0] / X[i, 0, 2] * fx, X[i, 0, 1] / X[i, 0, 2] * fy
+        u1, v1 = X[i, 1, 0] / X[i, 1, 2] * fx, X[i, 1, 1] / X[i, 1, 2] * fy
+        u2, v2 = X[i, 2, 0] / X[i, 2, 2] * fx, X[i, 2, 1] / X[i, 2, 2] * fy
+        d1u, d1v, d2u, d2v = u1 - u0, v1 - v0, u2 - u0, v2 - v0
+        area[tri_face[i]] += 0.5 * abs(d1u * d2v - d1v * d2u)
     longest = np.zeros(F)
-    for k in range(2):
-        np.maximum.at(longest, mf.edge_faces[:, k], edge_len_px)
-    return area / np.maximum(longest, 1e-9)
+    for e in range(edge_faces.shape[0]):
+        for k in range(2):
+            f = edge_faces[e, k]
+            if f < 0:
+                f += F  # (NumPy's negative index)
+            if edge_len[e] > longest[f] or np.isnan(edge_len[e]):
+                longest[f] = edge_len[e]  # np.maximum: NaN wins
+    out = np.empty(F)
+    for f in range(F):
+        out[f] = area[f] / max(longest[f], 1e-9) if not np.isnan(longest[f]) else np.nan
+    return out
 
 
 @njit
@@ -109,6 +137,8 @@ def _normal_search(grad, uv, n, offs, min_grad, near_frac=0.0, expect=None, rati
     0 (the sample's own position).
     """
     _, H, W = grad.shape
+    gxi, gyi = grad[0], grad[1]
+    one = np.uint64(1)
     umax, vmax = W - 1.001, H - 1.001
     S, O = uv.shape[0], offs.shape[0]
     sstar = np.empty(S)
@@ -127,12 +157,14 @@ def _normal_search(grad, uv, n, offs, min_grad, near_frac=0.0, expect=None, rati
             u = uv[s, 0] + offs[o] * n0
             v = uv[s, 1] + offs[o] * n1
             if np.isfinite(u) and np.isfinite(v) and u >= 0 and v >= 0 and u <= umax and v <= vmax:
-                u0, v0 = np.int64(np.floor(u)), np.int64(np.floor(v))
-                fu, fv = u - u0, v - v0
-                gx = (grad[0, v0, u0] * (1 - fu) + grad[0, v0, u0 + 1] * fu) * (1 - fv) \
-                    + (grad[0, v0 + 1, u0] * (1 - fu) + grad[0, v0 + 1, u0 + 1] * fu) * fv
-                gy = (grad[1, v0, u0] * (1 - fu) + grad[1, v0, u0 + 1] * fu) * (1 - fv) \
-                    + (grad[1, v0 + 1, u0] * (1 - fu) + grad[1, v0 + 1, u0 + 1] * fu) * fv
+                fu0, fv0 = np.floor(u), np.floor(v)
+                u0, v0 = np.uint64(fu0), np.uint64(fv0)  # (unsigned: no negative-index wrap to test)
+                u1, v1 = u0 + one, v0 + one
+                fu, fv = u - fu0, v - fv0
+                gx = (gxi[v0, u0] * (1 - fu) + gxi[v0, u1] * fu) * (1 - fv) \
+                    + (gxi[v1, u0] * (1 - fu) + gxi[v1, u1] * fu) * fv
+                gy = (gyi[v0, u0] * (1 - fu) + gyi[v0, u1] * fu) * (1 - fv) \
+                    + (gyi[v1, u0] * (1 - fu) + gyi[v1, u1] * fu) * fv
                 co = gx * n0 + gy * n1
                 cs[o] = co if np.isfinite(co) else 0.0
             else:
@@ -572,7 +604,8 @@ class EdgeFit:
 
 @njit
 def _subpixel_view_kernel(grad, fx, fy, cx, cy, T_co, R_wo, R_cw, idx, sample_p, sample_edge, edge_a, edge_b, offs,
-                          min_grad, near_frac, expect, ratio_lo, ratio_hi, spacing_px, shared_px, cos_par):
+                          min_grad, near_frac, expect, ratio_lo, ratio_hi, spacing_px, shared_px, cos_par,
+                          tri_p, tri_face, edge_faces, n_faces):
     """One camera's share of a :func:`refine_subpixel` round, compiled: for the visible
     samples ``idx`` (S,), their projection and normals, the edge search
     (:func:`_normal_search`), the samples losing their image edge to a nearer parallel
@@ -580,11 +613,12 @@ def _subpixel_view_kernel(grad, fx, fy, cx, cy, T_co, R_wo, R_cw, idx, sample_p,
     ``n^T d(uv)/dx``. The NumPy code's operations in its order (products with a
     rotation as ``dot3``), so the same bits.
 
-    Returns ``(ok, sstar, c_peak, c0, dens, lost, edge_len, J)``: per sample (S,) whether
+    Returns ``(ok, sstar, c_peak, c0, dens, lost, w_strip, J)``: per sample (S,) whether
     it found its edge (and kept it), the edge point's offset along the normal, the
     contrast there and at the sample, its weight (``spacing_px``), whether it lost its
-    image edge to another sample; the projected length of every model edge (E,); the
-    rows (S, 6), valid where ``ok``.
+    image edge to another sample; the summed weight of the samples that lost theirs on
+    an edge of a face seen as a strip under ``2 shared_px`` wide
+    (:func:`face_widths_px`, summed in sample order); the rows (S, 6), valid where ``ok``.
     """
     E = edge_a.shape[0]
     S = idx.shape[0]
@@ -657,6 +691,18 @@ def _subpixel_view_kernel(grad, fx, fy, cx, cy, T_co, R_wo, R_cw, idx, sample_p,
         for i in range(S):
             if lost[i]:
                 ok[i] = False
+    w_strip = 0.0
+    if lost.any():
+        # A face seen edge on shows its two edges as one image edge: there, the
+        # sample that lost it still found its outline.
+        width = _face_widths_kernel(T_co, fx, fy, tri_p, tri_face, edge_faces, n_faces, edge_len)
+        for i in range(S):
+            if lost[i]:
+                e = sample_edge[idx[i]]
+                f0, f1 = edge_faces[e, 0], edge_faces[e, 1]
+                if width[f0 + n_faces if f0 < 0 else f0] < 2.0 * shared_px or \
+                        width[f1 + n_faces if f1 < 0 else f1] < 2.0 * shared_px:
+                    w_strip += dens[i]
     J = np.empty((S, 6))
     for i in range(S):
         if not ok[i]:
@@ -673,7 +719,7 @@ def _subpixel_view_kernel(grad, fx, fy, cx, cy, T_co, R_wo, R_cw, idx, sample_p,
         g2 = dot3(m0, m1, m2, R_cw[0, 2], R_cw[1, 2], R_cw[2, 2])
         p = sample_p[idx[i]]
         _pose_row(p[0], p[1], p[2], g0, g1, g2, R_wo, J, i)
-    return ok, sstar, c_peak, c0, dens, lost, edge_len, J
+    return ok, sstar, c_peak, c0, dens, lost, w_strip, J
 
 
 @njit
@@ -840,21 +886,16 @@ def refine_subpixel(T_world_object: np.ndarray, views: list[CameraView], mf: Mod
             K = v.feat.K
             exp = np.full(idx.size, np.nan) if expect is None or expect[iv] is None else \
                 np.asarray(expect[iv], float)[idx]
-            ok, sstar, c_peak, c0, dens, lost, edge_len, Jv = _subpixel_view_kernel(
+            ok, sstar, c_peak, c0, dens, lost, w_strip, Jv = _subpixel_view_kernel(
                 v.feat.grad, K[0, 0], K[1, 1], K[0, 2], K[1, 2], T_co, R, np.ascontiguousarray(T_cw[:3, :3]), idx,
                 mf.sample_p, mf.sample_edge, mf.edge_a, mf.edge_b, offs, float(min_grad), float(near_peak_frac), exp,
                 float(contrast_ratio[0]), float(contrast_ratio[1]), float(spacing_px), float(shared_edge_px),
-                COS_PARALLEL)
+                COS_PARALLEL, mf.tri_p, mf.tri_face, mf.edge_faces, len(mf.face_normals))
             se = mf.sample_edge[idx]
             w_searched += float(dens.sum())
             if info:
                 contrast[-1][idx] = c0
-            if lost.any():
-                # A face seen edge on shows its two edges as one image edge: there, the
-                # sample that lost it still found its outline.
-                thin = face_widths_px(T_co, K, mf, edge_len) < 2.0 * shared_edge_px
-                ef = mf.edge_faces[se[lost]]
-                w_shared += float(dens[lost][np.any(thin[ef], axis=1)].sum())
+            w_shared += w_strip
             if not ok.any():
                 continue
             if info:

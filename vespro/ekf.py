@@ -341,8 +341,13 @@ def predict(x: np.ndarray, P: np.ndarray, dt: float, q_acc: float, q_alpha: floa
     zero before the step: the nominal state carries the mean).
     """
     F = transition_jacobian(x, dt)
-    _, P_new = kf_predict(np.zeros(12), P, F, _process_noise_cached(float(dt), float(q_acc), float(q_alpha)))
-    return motion_model(x, dt), 0.5 * (P_new + P_new.T)
+    return motion_model(x, dt), _propagate(P, F, _process_noise_cached(float(dt), float(q_acc), float(q_alpha)))
+
+
+def _propagate(P: np.ndarray, F: np.ndarray, Q: np.ndarray) -> np.ndarray:
+    """``F P F^T + Q`` (filterpy's ``predict``), symmetrised."""
+    _, P_new = kf_predict(np.zeros(12), P, F, Q)
+    return 0.5 * (P_new + P_new.T)
 
 
 # --------------------------------------------------------------------------- measurement update
@@ -651,9 +656,13 @@ class PoseEKF:
         if not np.isfinite(dt) or dt < 0.0:
             return Status.BAD_DT
         x = self.x
-        self.x, self.P = predict(x, self.P, float(dt), self.q_acc, self.q_alpha)
+        dt = float(dt)
+        # One transition and process noise for the filter's covariance and the published one.
+        F = transition_jacobian(x, dt)
+        Q = _process_noise_cached(dt, float(self.q_acc), float(self.q_alpha))
+        self.x, self.P = motion_model(x, dt), _propagate(self.P, F, Q)
         if self.P_pub is not None:
-            _, self.P_pub = predict(x, self.P_pub, float(dt), self.q_acc, self.q_alpha)
+            self.P_pub = _propagate(self.P_pub, F, Q)
         return Status.OK
 
     def update(self, z, h, J_pose) -> UpdateResult:

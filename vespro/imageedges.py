@@ -23,6 +23,8 @@ from functools import lru_cache
 import cv2
 import numpy as np
 
+from .jit import njit
+from .numerics import dot3
 from .se3 import invert_transform
 
 __all__ = ["EdgeImage", "image_gradient", "image_noise", "sobel_noise_gain", "project_points", "projection_box",
@@ -151,18 +153,69 @@ def visible_samples(T_camera_object: np.ndarray, mf, tree=None) -> np.ndarray:
     -------
     idx : ndarray, shape (S,), int64
         Indices into ``mf.sample_p``.
+
+    Notes
+    -----
+    The culling and each sample's segment to the camera centre in one compiled
+    pass (:func:`_visible_kernel`), then the tree's walk: the NumPy code's
+    arithmetic (:func:`front_faces`, :func:`edge_visible`), the same samples.
     """
-    R, t = T_camera_object[None, :3, :3], T_camera_object[None, :3, 3]
-    vis_e = edge_visible(front_faces(R, t, mf), mf)[0]
-    idx = np.flatnonzero(vis_e[mf.sample_edge])
-    if tree is not None and not mf.convex and idx.size:
-        cam_o = invert_transform(T_camera_object)[:3, 3]
-        A = mf.sample_p[idx]
-        seg = np.linalg.norm(cam_o - A, axis=1)
-        blocked = tree.segments_blocked(A, np.broadcast_to(cam_o, A.shape), t_lo=np.minimum(2e-4 / seg, 0.1),
-                                        t_hi=1.0, min_length=1e-9)
-        idx = idx[~blocked]
+    T = np.ascontiguousarray(T_camera_object, dtype=float)
+    with_tree = tree is not None and not mf.convex
+    cam_o = invert_transform(T)[:3, 3] if with_tree else np.zeros(3)
+    idx, A, B, t_lo = _visible_kernel(T, mf.face_normals, mf.face_offsets, mf.edge_faces, mf.edge_convex,
+                                      mf.sample_edge, mf.sample_p, cam_o, with_tree)
+    if with_tree and idx.size:
+        idx = idx[~tree.segments_blocked(A, B, t_lo=t_lo, t_hi=1.0, min_length=1e-9)]
     return idx
+
+
+@njit
+def _visible_kernel(T, face_normals, face_offsets, edge_faces, edge_convex, sample_edge, sample_p, cam_o, segments):
+    """The samples of the edges :func:`edge_visible` keeps at pose ``T`` (4, 4), and with
+    ``segments`` their lines of sight for the tree: starts ``A`` (the samples), ends ``B``
+    (``cam_o``, the camera centre in the object frame) and ``t_lo`` (``2e-4 m`` of each
+    segment's length, at most 0.1), (K, 3), (K, 3), (K,). The face test's products as
+    NumPy's (``np.matmul``'s OpenBLAS order: ``dot3``, and for the offset its matrix-vector
+    kernel's order), the same bits."""
+    F = face_normals.shape[0]
+    front = np.empty(F, np.bool_)
+    for f in range(F):
+        n0, n1, n2 = face_normals[f, 0], face_normals[f, 1], face_normals[f, 2]
+        a0 = dot3(n0, n1, n2, T[0, 0], T[0, 1], T[0, 2])
+        a1 = dot3(n0, n1, n2, T[1, 0], T[1, 1], T[1, 2])
+        a2 = dot3(n0, n1, n2, T[2, 0], T[2, 1], T[2, 2])
+        front[f] = face_offsets[f] + dot3(a1, a0, a2, T[1, 3], T[0, 3], T[2, 3]) < 0
+    E = edge_faces.shape[0]
+    vis_e = np.empty(E, np.bool_)
+    for e in range(E):
+        f0, f1 = edge_faces[e, 0], edge_faces[e, 1]
+        s0 = front[f0 + F if f0 < 0 else f0]  # (NumPy's negative index)
+        s1 = front[f1 + F if f1 < 0 else f1]
+        vis_e[e] = (s0 or s1) if edge_convex[e] else (s0 and s1)
+    n = 0
+    for i in range(sample_edge.shape[0]):
+        if vis_e[sample_edge[i]]:
+            n += 1
+    idx = np.empty(n, np.int64)
+    k = 0
+    for i in range(sample_edge.shape[0]):
+        if vis_e[sample_edge[i]]:
+            idx[k] = i
+            k += 1
+    m = n if segments else 0
+    A = np.empty((m, 3))
+    B = np.empty((m, 3))
+    t_lo = np.empty(m)
+    for j in range(m):
+        for r in range(3):
+            A[j, r] = sample_p[idx[j], r]
+            B[j, r] = cam_o[r]
+        d0, d1, d2 = cam_o[0] - A[j, 0], cam_o[1] - A[j, 1], cam_o[2] - A[j, 2]
+        seg = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+        t = 2e-4 / seg
+        t_lo[j] = t if t < 0.1 or np.isnan(t) else 0.1  # np.minimum: NaN stays NaN
+    return idx, A, B, t_lo
 
 
 def silhouette_sides(T_camera_object: np.ndarray, mf, idx: np.ndarray, normals: np.ndarray, K: np.ndarray,

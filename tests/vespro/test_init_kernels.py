@@ -25,7 +25,7 @@ from test_init_search import CAMS, T_WO, K, _pose, render
 
 from vespro import edgefit
 from vespro.bsp import IN, _plane_dist, load_or_build_bsp
-from vespro.imageedges import visible_samples
+from vespro.imageedges import edge_visible, front_faces, visible_samples
 from vespro.init import search
 from vespro.init.features import extract_features, normal_bins
 from vespro.init.modelfeat import model_features
@@ -259,6 +259,85 @@ def normal_search_ref(grad, uv, n, offs, min_grad, near_frac=0.0, expect=None, r
     return sstar, ok, c[np.arange(S), kk], np.ascontiguousarray(c[:, np.argmin(np.abs(offs))])
 
 
+def visible_samples_ref(T_camera_object, mf, tree=None):
+    """``imageedges.visible_samples`` in NumPy, as it was."""
+    R, t = T_camera_object[None, :3, :3], T_camera_object[None, :3, 3]
+    vis_e = edge_visible(front_faces(R, t, mf), mf)[0]
+    idx = np.flatnonzero(vis_e[mf.sample_edge])
+    if tree is not None and not mf.convex and idx.size:
+        cam_o = invert_transform(T_camera_object)[:3, 3]
+        A = mf.sample_p[idx]
+        seg = np.linalg.norm(cam_o - A, axis=1)
+        blocked = tree.segments_blocked(A, np.broadcast_to(cam_o, A.shape), t_lo=np.minimum(2e-4 / seg, 0.1),
+                                        t_hi=1.0, min_length=1e-9)
+        idx = idx[~blocked]
+    return idx
+
+
+def test_visible_samples_match_numpy(scene):
+    """The compiled culling and lines of sight against the NumPy code: the same samples at
+    random poses about both cameras' (and without the tree), and where a face is seen
+    exactly edge on (the camera centre in its plane)."""
+    _, mf, tree, views = scene
+    rng = np.random.default_rng(3)
+    n_front = []
+    for k in range(40):
+        T_co = invert_transform(views[k % 2].T_world_camera) @ T_WO @ _pose(rng.normal(size=3) * 0.6,
+                                                                            rng.normal(size=3) * 0.02)
+        for tr in (tree, None):
+            a, b = visible_samples(T_co, mf, tr), visible_samples_ref(T_co, mf, tr)
+            assert a.dtype == b.dtype and np.array_equal(a, b)
+        n_front.append(front_faces(T_co[None, :3, :3], T_co[None, :3, 3], mf)[0].sum())
+    assert len(set(n_front)) > 1  # poses that see different faces
+    # A camera centre on the plane of face 0: its offset n.c - d is 0 up to rounding.
+    n, d = mf.face_normals[0], mf.face_offsets[0]
+    u = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
+    c = -d * n + 3.0 * mf.diameter * u / np.linalg.norm(u)
+    z = -c / np.linalg.norm(c)  # looking at the object origin
+    x = np.cross([0.0, 0.0, 1.0] if abs(z[2]) < 0.9 else [0.0, 1.0, 0.0], z)
+    x /= np.linalg.norm(x)
+    R_oc = np.stack([x, np.cross(z, x), z], 1)
+    T_co = invert_transform(transform_from_rt(R_oc, c))
+    assert np.array_equal(visible_samples(T_co, mf, tree), visible_samples_ref(T_co, mf, tree))
+
+
+def face_widths_px_ref(T_camera_object, K, mf, edge_len_px):
+    """``edgefit.face_widths_px`` in NumPy, as it was."""
+    R, t = T_camera_object[:3, :3], T_camera_object[:3, 3]
+    X = mf.tri_p @ R.T + t  # (T, 3, 3)
+    F = len(mf.face_normals)
+    if np.any(X[..., 2] <= 1e-9):
+        return np.full(F, np.inf)
+    uv = X[..., :2] / X[..., 2:3] * K[[0, 1], [0, 1]]
+    d1, d2 = uv[:, 1] - uv[:, 0], uv[:, 2] - uv[:, 0]
+    area = np.bincount(mf.tri_face, 0.5 * np.abs(d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0]), F)
+    longest = np.zeros(F)
+    for k in range(2):
+        np.maximum.at(longest, mf.edge_faces[:, k], edge_len_px)
+    return area / np.maximum(longest, 1e-9)
+
+
+def test_face_widths_match_numpy(scene):
+    """The compiled face widths against the NumPy code, at poses about the scene's and with a
+    NaN edge length (its faces' widths NaN), to rounding (1e-12 relative; the products'
+    order may differ from NumPy's); inf for all faces with a corner behind the camera."""
+    _, mf, _, views = scene
+    rng = np.random.default_rng(5)
+    for k in range(4):
+        v = views[k % 2]
+        T_co = invert_transform(v.T_world_camera) @ T_WO @ _pose(rng.normal(size=3) * 0.05, rng.normal(size=3) * 0.01)
+        edge_len = rng.uniform(0.0, 80.0, len(mf.edge_a))
+        if k == 3:
+            edge_len[0] = np.nan
+        a = edgefit.face_widths_px(T_co, v.feat.K, mf, edge_len)
+        b = face_widths_px_ref(T_co, v.feat.K, mf, edge_len)
+        np.testing.assert_allclose(a, b, rtol=1e-12, atol=0)
+        assert np.isnan(a).any() == (k == 3) and np.isfinite(a).sum() >= len(a) - 2
+    behind = np.eye(4)
+    behind[2, 3] = -1.0
+    assert np.all(edgefit.face_widths_px(behind, views[0].feat.K, mf, np.ones(len(mf.edge_a))) == np.inf)
+
+
 def refine_subpixel_ref(T_world_object: np.ndarray, views, mf, tree=None,
                     rounds: int = 4, search_px: float = 3.0, min_grad: float = 40.0, f_scale: float = 0.7,
                     shared_edge_px: float = 1.5, spacing_px: float = 0.0, edge_outlier_px: float = 0.0,
@@ -313,7 +392,7 @@ def refine_subpixel_ref(T_world_object: np.ndarray, views, mf, tree=None,
                 if lost.size:
                     # A face seen edge on shows its two edges as one image edge: there, the
                     # sample that lost it still found its outline.
-                    thin = edgefit.face_widths_px(T_co, K, mf, edge_len) < 2.0 * shared_edge_px
+                    thin = face_widths_px_ref(T_co, K, mf, edge_len) < 2.0 * shared_edge_px
                     ef = mf.edge_faces[se[lost]]
                     w_shared += float(dens[lost][np.any(thin[ef], axis=1)].sum())
             if info:
@@ -744,7 +823,7 @@ def test_subpixel_view_kernel_matches_numpy(scene):
             v.feat.grad, K_[0, 0], K_[1, 1], K_[0, 2], K_[1, 2], T_cw @ T, np.ascontiguousarray(T[:3, :3]),
             np.ascontiguousarray(T_cw[:3, :3]), idx, mf.sample_p, mf.sample_edge, mf.edge_a, mf.edge_b, offs, 40.0,
             0.6, np.full(idx.size, np.nan) if expect is None else expect[idx], 0.4, 3.0, 2.0, 1.5,
-            edgefit.COS_PARALLEL)
+            edgefit.COS_PARALLEL, mf.tri_p, mf.tri_face, mf.edge_faces, len(mf.face_normals))
         for a, b in zip((ok, sstar, c_peak, c0, dens, lost), got[:6]):
             assert_same_bits(a, b)
         assert_same_bits(rows, got[7][got[0]])
