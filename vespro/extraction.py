@@ -700,7 +700,9 @@ def extract_corners(
     why = np.full(K, int(Why.INVALID), dtype=np.int8)
     ncand = np.zeros(K, dtype=int)
     try:
-        r_all = np.broadcast_to(np.asarray(half_size, dtype=float), (K,))
+        r_all = np.asarray(half_size, dtype=float)
+        if r_all.shape != (K,):  # (broadcast_to costs more than a frame's other checks)
+            r_all = np.broadcast_to(r_all, (K,))
     except Exception:  # noqa: BLE001
         return ExtractionResult(uv_out, np.zeros(K, bool), why, ncand)
 
@@ -748,7 +750,7 @@ def extract_corners(
     c0 = np.array(cxy, np.float32).reshape(-1, 1, 2)
     ref = np.full((len(picked), 2), np.nan)
     sh_all = np.maximum(2, np.minimum(subpix_half, r_int[picked])).astype(int)
-    for sh in np.unique(sh_all).tolist():
+    for sh in sorted(set(sh_all.tolist())):
         rows = np.flatnonzero(sh_all == sh)
         try:
             ref[rows] = cv2.cornerSubPix(img, c0[rows].copy(), (sh, sh), (-1, -1), crit).reshape(-1, 2)
