@@ -754,17 +754,20 @@ def extract_corners(
     # The windows' tensors side by side in one buffer (OpenCV writes each into its place),
     # then the candidate search of all windows in one compiled call.
     geo_go = np.ascontiguousarray(geo[go])
-    offs = np.zeros(go.size + 1, np.int64)
-    np.cumsum((geo_go[:, 2] - geo_go[:, 1] + 1) * (geo_go[:, 4] - geo_go[:, 3] + 1) * 6, out=offs[1:])
-    buf = np.empty(int(offs[-1]), np.float32)
+    patches = geo_go[:, 1:5].tolist()
+    offs = [0]
+    for py0, py1, px0, px1 in patches:
+        offs.append(offs[-1] + (py1 - py0 + 1) * (px1 - px0 + 1) * 6)
+    buf = np.empty(offs[-1], np.float32)
     done = np.ones(go.size, np.bool_)
-    for n, (py0, py1, px0, px1) in enumerate(geo_go[:, 1:5].tolist()):
+    for n, (py0, py1, px0, px1) in enumerate(patches):
         try:
             cv2.cornerEigenValsAndVecs(img[py0 : py1 + 1, px0 : px1 + 1], block_size, ksize=3,
                                        dst=buf[offs[n] : offs[n + 1]].reshape(py1 - py0 + 1, px1 - px0 + 1, 6))
         except cv2.error:
             why[go[n]] = Why.INVALID
             done[n] = False
+    offs = np.array(offs, np.int64)
     code, n_cand, c0 = _window_candidates(buf, offs, geo_go, done, np.ascontiguousarray(uv32[go]), *params)
     ncand[go[done]] = n_cand[done]
     why[go[done]] = code[done]
