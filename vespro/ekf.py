@@ -471,12 +471,14 @@ def update(
         raise ValueError(f"update: expected z (M,2), h (M,2), J_pose (M,2,6); got {z.shape}, {h.shape}, {J_pose.shape}")
 
     try:
-        sig2 = np.broadcast_to(np.asarray(sigma_px, dtype=float) ** 2, (M,))
+        sig2 = np.asarray(sigma_px, dtype=float) ** 2
+        if sig2.shape != (M,):  # (broadcast_to costs more than the checks around it)
+            sig2 = np.broadcast_to(sig2, (M,))
     except ValueError:
         raise ValueError(f"update: sigma_px must be a scalar or shape ({M},), got {np.shape(sigma_px)}") from None
 
     y_all = z - h
-    finite = np.all(np.isfinite(y_all), axis=1) & np.all(np.isfinite(J_pose), axis=(1, 2))
+    finite = np.isfinite(y_all).all(axis=1) & np.isfinite(J_pose.reshape(M, 12)).all(axis=1)
     finite &= np.isfinite(sig2) & (sig2 > 0)
     nonfinite = ~finite
     accepted = finite.copy()

@@ -244,6 +244,30 @@ def _window_candidate(ev, iy0, iy1, ix0, ix1, px0, py0, u32, v32, min_eig, rel_q
 
 
 @njit
+def _window_candidates(buf, offs, geo, done, uv32, min_eig, rel_quality32, min_isotropy32, ambiguity32, nms_radius):
+    """:func:`_window_candidate` of each window whose ``cv2.cornerEigenValsAndVecs`` patch
+    is stored in ``buf[offs[n]:offs[n + 1]]`` (``done[n]``; ``geo``: its rows of
+    :func:`_window_geometry`). Returns (why (N,) int8, n_candidates (N,), candidates (N, 2)
+    float32, meaningful where why is FOUND)."""
+    N = geo.shape[0]
+    why = np.full(N, 6, dtype=np.int8)  # Why.INVALID where not done
+    n_cand = np.zeros(N, dtype=np.int64)
+    cxy = np.zeros((N, 2), dtype=np.float32)
+    for n in range(N):
+        if not done[n]:
+            continue
+        py0, py1, px0, px1 = geo[n, 1], geo[n, 2], geo[n, 3], geo[n, 4]
+        ev = buf[offs[n] : offs[n + 1]].reshape((py1 - py0 + 1, px1 - px0 + 1, 6))
+        code, k, cx, cy = _window_candidate(ev, geo[n, 5], geo[n, 6], geo[n, 7], geo[n, 8], px0, py0, uv32[n, 0],
+                                            uv32[n, 1], min_eig, rel_quality32, min_isotropy32, ambiguity32, nms_radius)
+        why[n] = code
+        n_cand[n] = k
+        cxy[n, 0] = cx
+        cxy[n, 1] = cy
+    return why, n_cand, cxy
+
+
+@njit
 def _edge_pixels(img, q, radius, tip2, rel_grad2_32):
     """Gradient pixels around each corner that :func:`_refine_lines` uses.
 
@@ -700,7 +724,9 @@ def extract_corners(
     why = np.full(K, int(Why.INVALID), dtype=np.int8)
     ncand = np.zeros(K, dtype=int)
     try:
-        r_all = np.broadcast_to(np.asarray(half_size, dtype=float), (K,))
+        r_all = np.asarray(half_size, dtype=float)
+        if r_all.shape != (K,):  # (broadcast_to costs more than a frame's other checks)
+            r_all = np.broadcast_to(r_all, (K,))
     except Exception:  # noqa: BLE001
         return ExtractionResult(uv_out, np.zeros(K, bool), why, ncand)
 
@@ -725,30 +751,37 @@ def extract_corners(
     uv32 = uv_pred.astype(np.float32)  # NumPy 2 computes with the float32 response in float32
     params = (float(min_eig), np.float32(rel_quality), np.float32(min_isotropy), np.float32(ambiguity_ratio),
               int(nms_radius))
-    picked, cxy = [], []  # features with a candidate, and the candidate (float32 pixels)
-    for i, (_, py0, py1, px0, px1, iy0, iy1, ix0, ix1) in zip(go.tolist(), geo[go].tolist()):
+    # The windows' tensors side by side in one buffer (OpenCV writes each into its place),
+    # then the candidate search of all windows in one compiled call.
+    geo_go = np.ascontiguousarray(geo[go])
+    patches = geo_go[:, 1:5].tolist()
+    offs = [0]
+    for py0, py1, px0, px1 in patches:
+        offs.append(offs[-1] + (py1 - py0 + 1) * (px1 - px0 + 1) * 6)
+    buf = np.empty(offs[-1], np.float32)
+    done = np.ones(go.size, np.bool_)
+    for n, (py0, py1, px0, px1) in enumerate(patches):
         try:
-            ev = cv2.cornerEigenValsAndVecs(img[py0 : py1 + 1, px0 : px1 + 1], block_size, ksize=3)
+            cv2.cornerEigenValsAndVecs(img[py0 : py1 + 1, px0 : px1 + 1], block_size, ksize=3,
+                                       dst=buf[offs[n] : offs[n + 1]].reshape(py1 - py0 + 1, px1 - px0 + 1, 6))
         except cv2.error:
-            why[i] = Why.INVALID
-            continue
-        code, n, cx, cy = _window_candidate(ev, iy0, iy1, ix0, ix1, px0, py0, uv32[i, 0], uv32[i, 1], *params)
-        ncand[i] = n
-        if code != _FOUND:
-            why[i] = code
-            continue
-        picked.append(i)
-        cxy.append((cx, cy))
-    if not picked:
+            why[go[n]] = Why.INVALID
+            done[n] = False
+    offs = np.array(offs, np.int64)
+    code, n_cand, c0 = _window_candidates(buf, offs, geo_go, done, np.ascontiguousarray(uv32[go]), *params)
+    ncand[go[done]] = n_cand[done]
+    why[go[done]] = code[done]
+    hit = done & (code == _FOUND)
+    if not hit.any():
         return ExtractionResult(uv_out, why == Why.FOUND, why, ncand)
 
     # Sub-pixel refinement, all corners of one sub-window size in one call (OpenCV refines
     # each point on its own: the same result as one call per corner).
-    picked = np.array(picked)
-    c0 = np.array(cxy, np.float32).reshape(-1, 1, 2)
+    picked = go[hit]
+    c0 = c0[hit].reshape(-1, 1, 2)
     ref = np.full((len(picked), 2), np.nan)
     sh_all = np.maximum(2, np.minimum(subpix_half, r_int[picked])).astype(int)
-    for sh in np.unique(sh_all).tolist():
+    for sh in sorted(set(sh_all.tolist())):
         rows = np.flatnonzero(sh_all == sh)
         try:
             ref[rows] = cv2.cornerSubPix(img, c0[rows].copy(), (sh, sh), (-1, -1), crit).reshape(-1, 2)

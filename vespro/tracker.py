@@ -49,7 +49,7 @@ from .projection import project_with_jacobian
 from .redetect import Redetector
 from .rig import Rig
 from .se3 import check_transform, log_so3
-from .selection import eligible_mask, select_information_joint, select_quality
+from .selection import eligible_mask, select_information_joint, select_quality, window_clearance
 from .startpose import InitResult
 from .symmetry import RULES as SYMMETRY_RULES
 from .symmetry import choose as choose_equivalent
@@ -918,8 +918,9 @@ class Tracker:
         S[:, 1, 1] += r2
         return window_half_sizes(S, n_sigma=self.config.window_sigma)
 
-    def _unambiguous(self, k: int, uv: np.ndarray, J: np.ndarray, vis: "_Candidates", P6: np.ndarray) -> np.ndarray:
-        """Candidates whose search window holds no other predicted corner, as a pool to select from.
+    def _unambiguous(self, k: int, uv: np.ndarray, J: np.ndarray, vis: "_Candidates", P6: np.ndarray) -> tuple:
+        """Candidates whose search window holds no other predicted corner, as a pool to select from,
+        and every candidate's window half-size (None when all qualify without them).
 
         The extractor takes the corner nearest the prediction: when the pose is
         uncertain (a start, a coast) the windows are large, and a window that
@@ -931,15 +932,12 @@ class Tracker:
         """
         n = len(uv)
         if n <= self.config.features_per_camera:
-            return np.arange(n)
+            return np.arange(n), None
         half = self._window_half_sizes(k, J, vis.indices, P6)
-        diff = uv[:, None, :] - uv[None, :, :]
-        d2 = np.einsum("ijk,ijk->ij", diff, diff)
-        np.fill_diagonal(d2, np.inf)
-        margin = np.sqrt(d2.min(axis=1)) - (half + 2.0)  # the neighbour must be clear of the window
+        margin = window_clearance(uv, half)  # the neighbour must be clear of the window
         n_clear = int((margin > 0).sum())
         order = np.argsort(-margin, kind="stable")
-        return np.sort(order[:max(n_clear, self.config.features_per_camera)])
+        return np.sort(order[:max(n_clear, self.config.features_per_camera)]), half
 
     def _track(self, fs: FrameSet) -> TrackerOutput:
         c = self.config
@@ -1123,7 +1121,7 @@ class Tracker:
 
         # Selection.
         t = time.perf_counter()
-        chosen = {}
+        chosen, halves = {}, {}
         if cands:
             if c.selection == "information":
                 picks = select_information_joint(
@@ -1135,11 +1133,13 @@ class Tracker:
             else:
                 for k, uv, J, vis in cands:
                     intr = self.rig.cameras[k].intrinsics
-                    pool = self._unambiguous(k, uv, J, vis, P6)
+                    pool, half = self._unambiguous(k, uv, J, vis, P6)
                     picks = np.asarray(select_quality(
                         uv[pool], vis.view_angle[pool], vis.silhouette_distance[pool], (intr.width, intr.height),
                         k=c.features_per_camera), dtype=int)
                     chosen[k] = pool[picks]
+                    if half is not None:  # the same windows as _window_half_sizes of the chosen alone
+                        halves[k] = half[chosen[k]]
         stage["selection"] += time.perf_counter() - t
 
         # Windowed extraction.
@@ -1159,7 +1159,7 @@ class Tracker:
                 continue
             Jk = J[sel]
             fid = vis.indices[sel]
-            half = self._window_half_sizes(k, Jk, fid, P6)
+            half = halves[k] if k in halves else self._window_half_sizes(k, Jk, fid, P6)
             max_half = max(max_half, int(half.max()))
             ext = extract_corners(img, uv[sel], half)
             found = ext.found
@@ -1174,7 +1174,10 @@ class Tracker:
             else:
                 hs.append(np.zeros((0, 2)))
                 Js.append(np.zeros((0, 2, 6)))
-            keys.append(np.stack([np.full(int(found.sum()), k), fid[found]], axis=1))
+            key_k = np.empty((np.count_nonzero(found), 2), np.int64)  # (camera, corner) of each found one
+            key_k[:, 0] = k
+            key_k[:, 1] = fid[found]
+            keys.append(key_k)
             owners.append((len(obs), np.flatnonzero(found)))
             obs.append(CameraObservation(cam.name, True, int(vis.indices.size), vis.indices[sel], uv[sel], half,
                                          ext.uv, np.zeros(sel.size, bool)))
@@ -1217,14 +1220,11 @@ class Tracker:
                     a = c.feature_noise_rate
                     f = (1 - a) * self.feature_factor[kk[:, 0], kk[:, 1]] + a * raw
                     self.feature_factor[kk[:, 0], kk[:, 1]] = np.clip(f, 1.0, c.feature_noise_max)
-                # Mark accepted features per camera.
+                # Mark accepted features per camera (in the arrays made for them above).
                 offset = 0
-                obs = list(obs)
                 for oi, found_idx in owners:
-                    acc = np.zeros(obs[oi].feature_ids.size, bool)
-                    acc[found_idx] = res.accepted[offset:offset + found_idx.size]
+                    obs[oi].accepted[found_idx] = res.accepted[offset:offset + found_idx.size]
                     offset += found_idx.size
-                    obs[oi] = CameraObservation(**{**obs[oi].__dict__, "accepted": acc})
         stage["update"] += time.perf_counter() - t
         return obs, len(z), n_acc, mean_nis, max_half, updated
 

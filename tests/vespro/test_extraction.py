@@ -314,3 +314,29 @@ def test_line_refinement_matches_the_numpy_formulation():
                 np.testing.assert_allclose(got, want, rtol=0, atol=1e-9)
                 n_refined += 1
     assert n_refined > 40 and n_none > 20
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_all_windows_at_once_equal_one_window_at_a_time(seed):
+    """The windows' structure tensors are computed into one buffer and searched in one
+    compiled call: each feature's result is the one it gets alone, to the bit (SHARED,
+    which compares features, aside)."""
+    img, corners = _scene(seed)
+    rng = np.random.default_rng(200 + seed)
+    # squares 9 px wide, 20 px apart: windows holding several like corners, the nearest taken
+    sq = [np.array([[0.0, 0.0], [9.0, 0.0], [9.0, 9.0], [0.0, 9.0]]) + [30.0 + 20 * i, 30.0 + 20 * j]
+          for i in range(6) for j in range(6)]
+    img[:170, :170] = _draw(sq, [200] * len(sq), seed=seed)[:170, :170]
+    pred = np.vstack([corners + rng.normal(0, 2.0, corners.shape),
+                      rng.uniform(25, 145, (16, 2)),
+                      rng.uniform([-20, -20], [660, 500], (6, 2)),  # flat ground, borders, outside
+                      corners[:2] + 9.0])  # a corner at the window's edge, or none
+    half = rng.integers(4, 25, len(pred))
+    res = extract_corners(img, pred, half)
+    assert res.found.sum() >= len(corners) // 2 and (res.n_candidates > 1).sum() >= 3
+    for i in range(len(pred)):
+        one = extract_corners(img, pred[i : i + 1], half[i : i + 1])
+        if res.why[i] == Why.SHARED:
+            continue
+        assert (res.why[i], res.n_candidates[i]) == (one.why[0], one.n_candidates[0]), i
+        assert res.uv[i].tobytes() == one.uv[0].tobytes(), i

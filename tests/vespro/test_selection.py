@@ -255,3 +255,31 @@ def test_compiled_quality_selection_equals_the_numpy_loop():
         w = sel._weights_kernel(uv, va, sil, SIZE[0], SIZE[1], sel.DEFAULT_BORDER_PX, sel.DEFAULT_SIL_REF_PX,
                                 sel.DEFAULT_MAX_VIEW_ANGLE, float(np.cos(sel.DEFAULT_MAX_VIEW_ANGLE)), sep)
         assert np.array_equal(w, sel.feature_weights(uv, va, sil, SIZE, min_separation_px=sep))
+
+
+def _clearance_numpy(uv, half):
+    """The NumPy formulation of :func:`vespro.selection.window_clearance`."""
+    diff = uv[:, None, :] - uv[None, :, :]
+    d2 = np.einsum("ijk,ijk->ij", diff, diff)
+    np.fill_diagonal(d2, np.inf)
+    with np.errstate(invalid="ignore"):
+        return np.sqrt(d2.min(axis=1)) - (half + 2.0)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_window_clearance_equals_the_numpy_formulation_bit_for_bit(seed):
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(1, 40))
+    uv = rng.uniform(-50, 700, (n, 2)) * rng.choice([1e-3, 1.0, 1e3])
+    if n > 3:
+        uv[1] = uv[0]  # coincident corners
+        uv[2] = uv[0] + rng.normal(0, 1e-9, 2)
+    if seed % 3 == 2 and n > 4:
+        uv[4, 1] = np.nan  # a corner behind the camera
+    half = rng.integers(4, 25, n)
+    got, ref = sel.window_clearance(uv, half), _clearance_numpy(uv, half)
+    np.testing.assert_array_equal(np.isnan(got), np.isnan(ref))
+    ok = ~np.isnan(ref)
+    assert got[ok].tobytes() == ref[ok].tobytes()
+    if n == 1:
+        assert got[0] == np.inf
