@@ -104,3 +104,29 @@ def test_supersampled_pixel_is_the_mean_over_its_area(n):
     rgb = np.clip(np.round(img), 0, 255).astype(np.uint8)
     got = pipe.apply(np.dstack([rgb] * 3))
     assert np.abs(got[..., 1].astype(float) - ref).max() < 1.1
+
+
+@pytest.mark.parametrize("effects, mono", [
+    (ImageEffects(noise_px=0.5, blur_px=0.6), True),   # the demo's cameras: warp, then blur
+    (ImageEffects(noise_px=0.5), False),                 # the warp makes the image
+    (ImageEffects(blur_px=0.6, intensity_noise=2.0), True),
+    (ImageEffects(), False),                             # an exact image: the colour conversion makes it
+])
+def test_every_image_is_its_own_though_the_pipeline_reuses_its_buffers(effects, mono):
+    """The pipeline keeps its intermediate images from frame to frame; the image it returns is
+    new each time (a frame set is kept downstream while the next one is made), and equal to
+    what a fresh pipeline makes from the same render and random state."""
+    intr = CameraIntrinsics.from_fovy(640, 480, 40)
+    renders = [_checker(), np.ascontiguousarray(_checker()[::-1])]
+    reused = ImagePipeline(intr, intr, effects, mono=mono)
+    rng = np.random.default_rng(3)
+    first = reused.apply(renders[0], rng)
+    kept = first.copy()
+    second = reused.apply(renders[1], rng)
+    assert not np.shares_memory(first, second)
+    assert np.array_equal(first, kept)  # not overwritten by the next frame
+    rng = np.random.default_rng(3)
+    fresh = ImagePipeline(intr, intr, effects, mono=mono)
+    fresh.apply(renders[0], rng)
+    assert np.array_equal(second, ImagePipeline.apply(fresh, renders[1], rng))
+    assert second.shape == ((480, 640) if mono else (480, 640, 3)) and second.dtype == np.uint8

@@ -7,6 +7,9 @@ the code under test.
 """
 
 from dataclasses import replace
+import os
+import subprocess
+import sys
 
 import cv2
 import numpy as np
@@ -493,3 +496,15 @@ def test_image_paths_with_one_end_add_the_corners_an_edge_runs_past():
     assert not np.any(strict[:, 1] == b)
     assert np.any(loose[:, 1] == b)
     assert set(map(tuple, strict.tolist())) <= set(map(tuple, loose.tolist()))
+
+
+@pytest.mark.skipif(not hasattr(os, "sched_setaffinity") or (os.cpu_count() or 1) < 2, reason="needs two cores")
+def test_the_cameras_are_searched_on_the_cores_a_worker_may_use_when_it_searches():
+    """A live server imports the initialiser pinned to its loop's core and lets its start
+    worker onto every core afterwards: the per-camera work follows the cores allowed when it
+    runs, not those at import (which left a worker's three cameras on one thread)."""
+    code = ("import os; os.sched_setaffinity(0, {0}); import vespro.init.initializer as m; "
+            "os.sched_setaffinity(0, range(os.cpu_count())); print(m._cores())")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert int(r.stdout.strip()) == len(os.sched_getaffinity(0))

@@ -685,15 +685,20 @@ def _per_camera(fn, items) -> list:
     real-time loop and a simulated plant, each holding part of a core).
     """
     items = list(items)
-    if len(items) < 2 or _CORES < 2:
+    if len(items) < 2 or _cores() < 2:
         return [fn(x) for x in items]
     global _POOL
     if _POOL is None:
-        _POOL = ThreadPoolExecutor(max_workers=_CORES, thread_name_prefix="vespro-init-camera")
+        _POOL = ThreadPoolExecutor(max_workers=_cores(), thread_name_prefix="vespro-init-camera")
     return list(_POOL.map(fn, items))
 
 
-_CORES = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+def _cores() -> int:
+    """The cores this thread may run on now (not at import: a live server imports this
+    module pinned to its loop's core, and its start worker is then let onto every core)."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
 _POOL: ThreadPoolExecutor | None = None
 
 

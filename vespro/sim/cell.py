@@ -164,6 +164,7 @@ class SimCell:
         self.rng = np.random.default_rng(config.seed)
         self._render_info = info["render"]
         self._renderers: dict[tuple[int, int], mujoco.Renderer] = {}
+        self._rgb: dict[tuple[int, int], np.ndarray] = {}
         self._pipelines = {}
         for cam in config.rig:
             rintr, mj_name = self._render_info[cam.name]
@@ -316,7 +317,10 @@ class SimCell:
             r.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = False
             # The cell's walls hide the sky from every camera: not drawing it saves ~1.6 ms a view.
             r.scene.flags[mujoco.mjtRndFlag.mjRND_SKYBOX] = False
-            rgb = r.render()
+            key = (rintr.height, rintr.width)
+            if key not in self._rgb:  # one render buffer per size, reused (the pipeline reads it at once)
+                self._rgb[key] = np.empty((rintr.height, rintr.width, 3), np.uint8)
+            rgb = r.render(out=self._rgb[key])
             images[cam.name] = self._pipelines[cam.name].apply(rgb, self.rng)
         return FrameSet(index, t_ns, images, poses)
 
