@@ -53,8 +53,9 @@ __all__ = ["PoseServer", "ServerStats", "pose_message"]
 
 _WORKER_INIT = None
 
-#: Catch-up after a late initialisation: share of each capture period spent on the
-#: queued frame sets, and the fewest worked per live frame (so the queue drains).
+#: Catch-up after a late initialisation: share of each capture period spent tracking the
+#: queued frame sets (at least one a live frame), and the fewest that leave the queue per live
+#: frame (so it drains): those beyond the share are skipped.
 CATCH_UP_SHARE = 0.4
 CATCH_UP_MIN = 2
 
@@ -283,6 +284,7 @@ class PoseServer:
         self._rate = float(getattr(source, "rate_hz", 26.0))
         self._backlog: deque = deque(maxlen=max(8, int(10 * self._rate)))
         self.caught_up_frames = 0
+        self.skipped_catch_up = 0  # queued frame sets skipped so that the queue drains
         self._catching: deque | None = None  # frame sets queued for the catch-up, oldest first
         self.stale_inits = 0
 
@@ -416,20 +418,25 @@ class PoseServer:
     def _catch_up(self, fs: FrameSet) -> TrackerOutput:
         """Track queued frames, then ``fs`` once the queue is through; ``fs``'s output.
 
-        Each live frame set joins the queue; the queue is worked for about
-        ``CATCH_UP_SHARE`` of a capture period (at least ``CATCH_UP_MIN`` frame sets, so
-        it drains on any machine) and the live loop keeps its rate. Tracking all of
-        it at once (as before) skipped every capture meanwhile: after 8.6 s of
-        initialisation under load, 1.3 s of catching up left the filter a 0.6 s gap
-        to bridge, and a one-camera pose 15 mm off was confirmed on the far side.
-        While the queue lasts the live frame is published ``initializing``; the
-        filter is confirmed again on the live frames once it is through.
+        Each live frame set joins the queue; the queue is tracked for about
+        ``CATCH_UP_SHARE`` of a capture period (at least one frame set), and at least
+        ``CATCH_UP_MIN`` frame sets leave it per live frame, so it drains on any
+        machine: where the share holds fewer, the next queued one is skipped (the filter
+        predicts across two capture periods) and the live loop keeps its rate; the live
+        frame set itself, once it is all that is left, is tracked. Tracking
+        two whatever they cost made a three-camera loop that renders its cameras miss
+        every fourth capture instant while it caught up; tracking all of it at once
+        skipped every capture meanwhile: after 8.6 s of initialisation under load, 1.3 s
+        of catching up left the filter a 0.6 s gap to bridge, and a one-camera pose
+        15 mm off was confirmed on the far side. While the queue lasts the live frame is
+        published ``initializing``; the filter is confirmed again on the live frames once
+        it is through.
         """
         q = self._catching
         q.append(fs)
         t_end = self.clock.now_ns() + int(CATCH_UP_SHARE * 1e9 / self._rate)
         n = 0
-        while q and self._holding() and (n < CATCH_UP_MIN or self.clock.now_ns() < t_end):
+        while q and self._holding() and (n < 1 or len(q) == 1 or self.clock.now_ns() < t_end):
             f = q.popleft()
             if not q:  # the live frame set: confirmed again on live frames before publishing
                 self._catching = None
@@ -437,6 +444,10 @@ class PoseServer:
                 return self.tracker.process(f)
             self.tracker.process(f)
             self.caught_up_frames += 1
+            n += 1
+        while n < CATCH_UP_MIN and len(q) > 1:  # never the live frame set
+            q.popleft()
+            self.skipped_catch_up += 1
             n += 1
         if not self._holding():  # lost (or not confirmed in time) on the way: the initialiser starts over
             self._catching = None

@@ -312,16 +312,16 @@ print("OK")
     _child_prints_ok(code)
 
 
-def test_catch_up_after_a_late_initialisation_keeps_the_live_rate(rec_path):
-    """The frames queued while the initialiser worked are tracked a few per live frame, in
-    order, with the live frames joining the queue: no capture is skipped for the catch-up."""
+def _catch_up_server(rec_path, cost_ms):
+    """A server whose filter started on frame 0 with frames 1-10 queued (what the initialiser's
+    answer for frame 0 leaves), each tracked frame set costing ``cost_ms`` of its clock."""
     from collections import deque
 
     rec = Recording(rec_path)
     _, _, T = read_groundtruth(rec_path)
     frames = [rec.frameset(i) for i in range(len(rec))]
 
-    class StepClock:  # each tracked frame set costs 10 ms of this clock
+    class StepClock:
         t = 0
 
         def now_ns(self):
@@ -334,14 +334,44 @@ def test_catch_up_after_a_late_initialisation_keeps_the_live_rate(rec_path):
 
     def timed(fs):
         order.append(fs.index)
-        clock.t += 10_000_000
+        clock.t += int(cost_ms * 1e6)
         return process(fs)
 
     tracker.process = timed
     server = PoseServer(ReplaySource(rec, SimClock()), tracker, None, clock, lambda fs: None,
                         background_init="thread", log=None)
     tracker.start(InitResult(T[0]), frames[0].t_ns)
-    server._catching = deque(frames[1:11])  # what the initialiser's answer for frame 0 leaves
+    server._catching = deque(frames[1:11])
+    return server, frames, T, order
+
+
+def test_a_catch_up_that_costs_more_than_its_share_skips_queued_frames_and_keeps_the_rate(rec_path):
+    """Each tracked frame set costing 20 ms (more than the catch-up's share of a 38 ms period):
+    one queued frame set tracked per live frame and the next one skipped, so the queue still
+    drains by two a live frame and the loop's work stays inside the period."""
+    server, frames, T, order = _catch_up_server(rec_path, 20.0)
+    k = 11
+    outs = []
+    while server._catching is not None or k == 11:
+        before = len(order)
+        outs.append(server.step(frames[k]))
+        # one tracked a live frame; at the end the last queued one and the live one
+        assert len(order) - before <= (1 if server._catching is not None else 2)
+        k += 1
+    assert order[:5] == [1, 3, 5, 7, 9] and server.skipped_catch_up >= 5
+    assert sorted(order) == order and order[-1] == k - 1  # oldest first, ending on the live frame
+    outs += [server.step(frames[j]) for j in range(k, min(k + 4, len(frames)))]
+    tracking = [o for o in outs if o.status == "tracking"]
+    assert tracking
+    for o in tracking:
+        assert np.linalg.norm(o.T_world_object[:3, 3] - T[o.index][:3, 3]) < 3e-3
+
+
+def test_catch_up_after_a_late_initialisation_keeps_the_live_rate(rec_path):
+    """The frames queued while the initialiser worked are tracked a few per live frame, in
+    order, with the live frames joining the queue: no capture is skipped for the catch-up."""
+    server, frames, T, order = _catch_up_server(rec_path, 10.0)
+
     outs = []
     k = 11
     while server._catching is not None or k == 11:
