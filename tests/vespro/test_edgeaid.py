@@ -45,18 +45,23 @@ def test_edges_fit_the_pose_a_lone_camera_sees_loosely(obj, seed):
     ray /= np.linalg.norm(ray)
     syms = model_symmetries(model.vertices)
     aid = EdgeAid(rig, model)
-    fits = []
+    fits, starts = [], []
     for tilt_deg, along in [(0.0, 0.0), (0.0, 0.025), (2.0, 0.0), (2.0, 0.025)]:
         T0 = transform_from_rt(exp_so3([0.0, np.deg2rad(tilt_deg), 0.0]) @ T_true[:3, :3],
                                T_true[:3, 3] + along * model.diameter * ray)
         m = aid.measure(cam.name, fs.images[cam.name], T_wc, T0)
         assert m is not None
+        starts.append(T0)
         Ts = min((T_true @ S for S in syms), key=lambda X: add(m.T_world_object, X, model.vertices))
         assert add(m.T_world_object, Ts, model.vertices) < 0.03 * model.diameter
         assert nees(m.T_world_object, Ts, m.cov6) < chi2.ppf(0.999, 6)
         fits.append(m.T_world_object)
     for T in fits[1:]:
         assert add(T, fits[0], model.vertices) < 0.005 * model.diameter
+    # The aid reuses its gradient block from call to call (crops of other sizes): each fit is
+    # the one a fresh aid makes, to the bit.
+    for T0, T in zip(starts[::-1], fits[::-1]):
+        assert np.array_equal(EdgeAid(rig, model).measure(cam.name, fs.images[cam.name], T_wc, T0).T_world_object, T)
     # Nothing to fit in a blank image, nor from a pose behind the camera or not finite.
     assert aid.measure(cam.name, np.zeros_like(fs.images[cam.name]), T_wc, fits[0]) is None
     behind = fits[0].copy()
