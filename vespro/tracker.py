@@ -727,6 +727,7 @@ class Tracker:
         uv, _, _ = project_with_jacobian(intr, T_wc, T_wo, vis.points)
         select_quality(uv, vis.view_angle, vis.silhouette_distance, (intr.width, intr.height),
                        k=self.config.features_per_camera)
+        window_clearance(uv, np.full(len(uv), 4.0))
         img = np.zeros((intr.height, intr.width, 3), np.uint8)
         x0, y0, x1, y1 = intr.width // 4, intr.height // 4, intr.width // 2, intr.height // 2
         img[y0:y1, x0:x1] = 200
@@ -920,7 +921,7 @@ class Tracker:
 
     def _unambiguous(self, k: int, uv: np.ndarray, J: np.ndarray, vis: "_Candidates", P6: np.ndarray) -> tuple:
         """Candidates whose search window holds no other predicted corner, as a pool to select from,
-        and every candidate's window half-size (None when all qualify without them).
+        every candidate's window half-size, and which windows hold one (bool, per candidate).
 
         The extractor takes the corner nearest the prediction: when the pose is
         uncertain (a start, a coast) the windows are large, and a window that
@@ -931,13 +932,13 @@ class Tracker:
         (a few px) every candidate qualifies.
         """
         n = len(uv)
-        if n <= self.config.features_per_camera:
-            return np.arange(n), None
         half = self._window_half_sizes(k, J, vis.indices, P6)
         margin = window_clearance(uv, half)  # the neighbour must be clear of the window
-        n_clear = int((margin > 0).sum())
+        clear = margin > 0
+        if n <= self.config.features_per_camera:
+            return np.arange(n), half, ~clear
         order = np.argsort(-margin, kind="stable")
-        return np.sort(order[:max(n_clear, self.config.features_per_camera)]), half
+        return np.sort(order[:max(int(clear.sum()), self.config.features_per_camera)]), half, ~clear
 
     def _track(self, fs: FrameSet) -> TrackerOutput:
         c = self.config
@@ -955,7 +956,7 @@ class Tracker:
             return TrackerOutput(fs.index, fs.t_ns, self.status)
         T_prior = ekf.pose  # (a copy)
         P_prior = ekf.P[:6, :6].copy()
-        obs, n_found, n_acc, mean_nis, max_half, ok = self._measure_twice(fs, stage)
+        obs, n_found, n_acc, mean_nis, _, ok = self._measure_twice(fs, stage)
         n_sel = sum(int(ob.feature_ids.size) for ob in obs)
         n_cams = sum(1 for ob in obs if ob.feature_ids.size)
         missed = dt > 0 and n_found < c.blind_found_fraction * n_sel
@@ -972,10 +973,10 @@ class Tracker:
             ekf.restore(before)
             ekf.widen_velocity(c.init_sigma_pos / dt, c.init_sigma_rot / dt)
             ekf.predict(dt)
-            again = self._measure_twice(fs, stage)
+            again = self._measure_twice(fs, stage, widened=True)
             self.researches += 1
             if again[2] > n_acc:
-                obs, n_found, n_acc, mean_nis, max_half, ok = again
+                obs, n_found, n_acc, mean_nis, _, ok = again
             else:
                 snap, self.sigma_px, self.feature_factor, self._noise_updates = kept
                 ekf.restore(snap)
@@ -1002,17 +1003,24 @@ class Tracker:
             self.bank.propose(T, fs.t_ns, velocity=v)
         stage["redetect"] = time.perf_counter() - t
 
-    def _measure_twice(self, fs: FrameSet, stage: dict) -> tuple:
+    def _measure_twice(self, fs: FrameSet, stage: dict, widened: bool = False) -> tuple:
         """:meth:`_measure` about the filter's prediction, and again about its result when the
-        windows were large; the filter updated once (see ``refine_window_px``)."""
+        windows were large and there is reason to doubt the first pass: the track is not
+        confirmed, its windows were ``widened`` for a search, or a chosen corner's window held
+        another predicted corner; the filter updated once (see ``refine_window_px``)."""
         ekf = self.ekf
         saved = (ekf.snapshot(), self.sigma_px, self.feature_factor.copy(), self._noise_updates)
         result = self._measure(fs, stage)
-        if result[5] and result[4] >= self.config.refine_window_px:
-            # Large windows (a start, a coast, a jolt): the first pass used the corners with no
-            # neighbour inside their window. Its result only places the windows of a second
-            # pass (small, the full feature set); the filter is then updated once, from its
-            # prediction, with the second pass's corners: each image counts once.
+        max_half, crowded = result[4]
+        if result[5] and max_half >= self.config.refine_window_px and (
+                widened or crowded or not self.confirmed):
+            # Large windows (a start, a search, a neighbour inside a window): the first pass
+            # used the corners with no neighbour inside their window where it could. Its result
+            # only places the windows of a second pass (small, the full feature set); the
+            # filter is then updated once, from its prediction, with the second pass's
+            # corners: each image counts once. A confirmed track whose windows each held one
+            # predicted corner measures once: windows are large in pixels wherever the part is
+            # seen close up, and such a camera measured every frame twice for nothing.
             assoc = (ekf.pose, ekf.pose_covariance)
             snap, self.sigma_px, self.feature_factor, self._noise_updates = saved
             ekf.restore(snap)
@@ -1093,7 +1101,8 @@ class Tracker:
         6x6 covariance), by default the filter's prediction; the update is
         always the filter's, linearised at its own state.
 
-        Returns (observations, corners found, accepted, mean NIS, largest window half-size,
+        Returns (observations, corners found, accepted, mean NIS, (largest window half-size, whether
+        a chosen corner's window held another predicted corner),
         whether the update was applied); adds each stage's time to ``stage``.
         """
         c = self.config
@@ -1122,24 +1131,28 @@ class Tracker:
         # Selection.
         t = time.perf_counter()
         chosen, halves = {}, {}
+        crowded = False  # a chosen corner's window holds another predicted corner
         if cands:
             if c.selection == "information":
                 picks = select_information_joint(
                     [(uv, J, vis.view_angle, (self.rig.cameras[k].intrinsics.width, self.rig.cameras[k].intrinsics.height))
                      for k, uv, J, vis in cands],
                     P6=P6, k_per_camera=c.features_per_camera, sigma_px=c.sigma_px)
-                for (k, *_), sel in zip(cands, picks):
+                for (k, uv, J, vis), sel in zip(cands, picks):
                     chosen[k] = np.asarray(sel, dtype=int)
+                    _, half, held = self._unambiguous(k, uv, J, vis, P6)
+                    halves[k] = half[chosen[k]]
+                    crowded |= bool(held[chosen[k]].any())
             else:
                 for k, uv, J, vis in cands:
                     intr = self.rig.cameras[k].intrinsics
-                    pool, half = self._unambiguous(k, uv, J, vis, P6)
+                    pool, half, held = self._unambiguous(k, uv, J, vis, P6)
                     picks = np.asarray(select_quality(
                         uv[pool], vis.view_angle[pool], vis.silhouette_distance[pool], (intr.width, intr.height),
                         k=c.features_per_camera), dtype=int)
                     chosen[k] = pool[picks]
-                    if half is not None:  # the same windows as _window_half_sizes of the chosen alone
-                        halves[k] = half[chosen[k]]
+                    halves[k] = half[chosen[k]]  # the same windows as _window_half_sizes of the chosen alone
+                    crowded |= bool(held[chosen[k]].any())
         stage["selection"] += time.perf_counter() - t
 
         # Windowed extraction.
@@ -1226,7 +1239,7 @@ class Tracker:
                     obs[oi].accepted[found_idx] = res.accepted[offset:offset + found_idx.size]
                     offset += found_idx.size
         stage["update"] += time.perf_counter() - t
-        return obs, len(z), n_acc, mean_nis, max_half, updated
+        return obs, len(z), n_acc, mean_nis, (max_half, crowded), updated
 
     def _seeing(self, obs: list) -> list:
         """The observations that count in the frame's support and get edge fits: all of them,

@@ -921,3 +921,30 @@ def test_the_first_frame_loads_no_compiled_kernel(recs, decision):
     got = json.loads(r.stdout.strip().splitlines()[-1])
     assert "edges" in got["stages"]  # the edge fit ran on that frame
     assert got["late"] == []
+
+
+@pytest.mark.parametrize("max_half, crowded, confirmed, widened, passes", [
+    (24, False, True, False, 1),   # a confirmed track, large windows each holding one corner: once
+    (24, False, False, False, 2),  # a start not confirmed yet: twice
+    (24, True, True, False, 2),    # a chosen window held another predicted corner: twice
+    (24, False, True, True, 2),    # windows widened for a search: twice
+    (6, True, False, True, 1),     # small windows: once, whatever else
+])
+def test_a_frame_is_measured_again_only_where_the_first_pass_is_in_doubt(recs, max_half, crowded, confirmed,
+                                                                         widened, passes):
+    """Large windows alone do not call for a second pass: a camera that sees the part close up
+    has large windows in pixels (and its corners far apart) on every frame."""
+    rec = Recording(recs["box_conveyor"])
+    _, _, T = read_groundtruth(recs["box_conveyor"])
+    tr = _started(rec, T[0])
+    tr.confirmed = confirmed
+    calls = []
+
+    def measure(fs, stage, assoc=None):
+        calls.append(assoc)
+        return [], 8, 8, 1.0, (max_half, crowded), True
+
+    tr._measure = measure
+    tr._measure_twice(rec.frameset(1), {}, widened=widened)
+    assert len(calls) == passes
+    assert calls[0] is None and all(a is not None for a in calls[1:])  # the second about the first's result
