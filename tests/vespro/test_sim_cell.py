@@ -192,3 +192,24 @@ def test_floor_tiles_draw_the_texture_checker():
     # ...and the checker is there: the floor is not one flat grey.
     floor = images[True][0][300:, :].reshape(-1, 3)
     assert len(np.unique(floor // 8, axis=0)) > 2
+
+
+def test_the_cell_reads_its_renders_as_mujocos_renderer_gives_them():
+    """The cell reads each render into buffers of its own (no fresh image a frame); the image
+    is MuJoCo's ``Renderer.render`` of the same scene to the bit, frame after frame."""
+    import mujoco
+
+    rig = _hybrid_rig()
+    cfg = CellConfig(BOX, rig)
+    with SimCell(cfg, Conveyor(y0=-0.1)) as cell:
+        for _ in range(2):
+            cell.next_frameset()
+            for cam in rig:
+                rintr, mj_name = cell._render_info[cam.name]
+                r = cell._renderers[(rintr.height, rintr.width)]
+                r.update_scene(cell.data, camera=mj_name)
+                r.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = False
+                r.scene.flags[mujoco.mjtRndFlag.mjRND_SKYBOX] = False
+                ours = cell._render_rgb(r, (rintr.height, rintr.width)).copy()
+                assert np.array_equal(ours, r.render())
+                assert ours.std() > 5  # a scene, not a blank buffer

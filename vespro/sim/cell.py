@@ -17,6 +17,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import cv2
 import mujoco  # MUJOCO_GL is defaulted to egl by the vespro package, imported first
 import numpy as np
 
@@ -317,12 +318,31 @@ class SimCell:
             r.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = False
             # The cell's walls hide the sky from every camera: not drawing it saves ~1.6 ms a view.
             r.scene.flags[mujoco.mjtRndFlag.mjRND_SKYBOX] = False
-            key = (rintr.height, rintr.width)
-            if key not in self._rgb:  # one render buffer per size, reused (the pipeline reads it at once)
-                self._rgb[key] = np.empty((rintr.height, rintr.width, 3), np.uint8)
-            rgb = r.render(out=self._rgb[key])
+            rgb = self._render_rgb(r, (rintr.height, rintr.width))
             images[cam.name] = self._pipelines[cam.name].apply(rgb, self.rng)
         return FrameSet(index, t_ns, images, poses)
+
+    def _render_rgb(self, r: "mujoco.Renderer", key: tuple) -> np.ndarray:
+        """The renderer's RGB image, in a buffer of this size reused frame after frame (the
+        pipeline reads it at once).
+
+        MuJoCo's ``Renderer.render`` turns OpenGL's bottom-up rows over in place through a
+        temporary copy of the image: a fresh block each frame, which in a live server is a
+        fresh mapping whose pages fault in (:mod:`vespro.memory`). Here the rows are read
+        into one buffer and turned over into another; where this MuJoCo's renderer does not
+        have the parts read here, its own ``render``.
+        """
+        h, w = key
+        if key not in self._rgb:
+            self._rgb[key] = (np.empty((h, w, 3), np.uint8), np.empty((h, w, 3), np.uint8))
+        raw, rgb = self._rgb[key]
+        ctx, rect, gl = (getattr(r, a, None) for a in ("_mjr_context", "_rect", "_gl_context"))
+        if ctx is None or rect is None or gl is None:
+            return r.render(out=rgb)
+        gl.make_current()
+        mujoco.mjr_render(rect, r.scene, ctx)
+        mujoco.mjr_readPixels(raw, None, rect, ctx)
+        return cv2.flip(raw, 0, dst=rgb)  # bottom-up rows to top-down, as render() gives them
 
     def set_world(self, q: np.ndarray, T_world_object: np.ndarray) -> None:
         """Put the arm and the object in a given state (a world simulated elsewhere)."""
