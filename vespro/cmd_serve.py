@@ -137,7 +137,7 @@ def run(args) -> int:
         raise ServeOptionError(f"--stall-s must be positive, got {args.stall_s}")
     log = None if args.quiet else (lambda line: print(line, flush=True))
     clock = SimClock() if args.lockstep else WallClock()
-    from .realtime import enter_realtime, leave_realtime
+    from .realtime import enter_realtime, freeze_set_up, leave_realtime
 
     for msg in enter_realtime(args.cpu, args.nice, args.fifo):  # before any renderer or worker starts a thread
         print(f"vespro serve: {msg}", file=sys.stderr)
@@ -280,6 +280,8 @@ def run(args) -> int:
     old = {s: signal.signal(s, _stop) for s in (signal.SIGINT, signal.SIGTERM)}
     print(f"vespro serve: {args.source} source, cameras {', '.join(source.rig.names)}, object {model.name}; "
           f"{where}", flush=True)
+    if not args.lockstep:
+        freeze_set_up()
     try:
         stats = server.run(max_frames=args.frames)
     finally:

@@ -42,7 +42,7 @@ from .clock import Clock
 from .frames import FrameSet
 from .frameslot import FrameSlot, SlotFrames
 from .quantiles import LogHistogram
-from .realtime import leave_realtime
+from .realtime import freeze_set_up, leave_realtime
 from .se3 import quat_from_matrix
 from .sources import SourceGap
 from .throttle import LogThrottle
@@ -84,6 +84,7 @@ def _worker_setup(factory, nice: int = 0) -> None:
     warm_up = getattr(_WORKER_INIT, "warm_up", None)
     if warm_up is not None:
         warm_up()  # compiled kernels loaded now, not during the first search
+    freeze_set_up()
 
 
 def _worker_ping() -> None:
