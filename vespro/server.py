@@ -162,6 +162,8 @@ class ServerStats:
     publish_failures: int = 0
     tracker_errors: int = 0
     source_gaps: int = 0
+    catch_up_tracked: int = 0  # old frame sets tracked to bring a late start to the present
+    catch_up_skipped: int = 0  # and skipped, where the period had no room to track them
     tracker_ms: LogHistogram = field(default_factory=LogHistogram)
     latency_ms: LogHistogram = field(default_factory=LogHistogram)
     last_latency_ms: float = float("nan")  # the last frame's capture-to-publish time
@@ -186,6 +188,7 @@ class ServerStats:
         return {"tracker_ms_median": self.tracker_ms.quantile(0.5), "tracker_ms_p99": self.tracker_ms.quantile(0.99),
                 "latency_ms_median": self.latency_ms.quantile(0.5), "latency_ms_p99": self.latency_ms.quantile(0.99),
                 "statuses": dict(self.status_counts), "source_gaps": self.source_gaps,
+                "catch_up": {"tracked": self.catch_up_tracked, "skipped": self.catch_up_skipped},
                 "stage_ms": {k: {"median": h.quantile(0.5), "p99": h.quantile(0.99), "n": len(h)}
                              for k, h in self.stage_ms.items()}}
 
@@ -445,10 +448,12 @@ class PoseServer:
                 return self.tracker.process(f)
             self.tracker.process(f)
             self.caught_up_frames += 1
+            self.stats.catch_up_tracked += 1
             n += 1
         while n < CATCH_UP_MIN and len(q) > 1:  # never the live frame set
             q.popleft()
             self.skipped_catch_up += 1
+            self.stats.catch_up_skipped += 1
             n += 1
         if not self._holding():  # lost (or not confirmed in time) on the way: the initialiser starts over
             self._catching = None

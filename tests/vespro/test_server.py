@@ -359,6 +359,8 @@ def test_a_catch_up_that_costs_more_than_its_share_skips_queued_frames_and_keeps
         assert len(order) - before <= (1 if server._catching is not None else 2)
         k += 1
     assert order[:5] == [1, 3, 5, 7, 9] and server.skipped_catch_up >= 5
+    assert server.stats.summary()["catch_up"] == {"tracked": server.caught_up_frames,
+                                                  "skipped": server.skipped_catch_up}
     assert sorted(order) == order and order[-1] == k - 1  # oldest first, ending on the live frame
     outs += [server.step(frames[j]) for j in range(k, min(k + 4, len(frames)))]
     tracking = [o for o in outs if o.status == "tracking"]
