@@ -275,14 +275,16 @@ def run_demo(cfg: DemoConfig, log=print) -> dict:
                                   # a 0.6 px blur for the pixel integration it provided (0.84 -> 0.96 mm).
                                   "--render-samples", "0", "--blur", "0.6", "--mono",
                                   "--record", str(out / "vision"), "--record-defer-png", *link_args, *view_vision,
-                                  # The vision PC's live loop owns a core (other work on it waits), the
-                                  # software renderer's thread with it (spread over both cores it
-                                  # stalled on the servo's: 30 ms wall for 15 ms of work).
+                                  # The vision PC's live loop owns a core (other work on it waits) and
+                                  # renders in its own thread: the software renderer's own thread, handed
+                                  # each frame and waited for, cost capture instants (six runs each:
+                                  # 1-16 of ~1030 missed with it, 0-4 without; spread over both cores
+                                  # it stalled on the servo's, 30 ms wall for 15 ms of work).
                                   "--cpu", "0", "--fifo", "10", "--symmetry", cfg.symmetry,
                                   # The initialiser's worker ahead of the machine's other normal work
                                   # (behind the real-time loops): the first track waits for it.
                                   "--init-nice", "-10"],
-                                 out / "vision.log", LP_NUM_THREADS="1")
+                                 out / "vision.log", LP_NUM_THREADS="0")
         # The plant (the world's clock) starts once the pose server is ready to capture: it
         # builds its tracker, initialiser and worker first (a second or two), and the cell's
         # first seconds would go by unseen.
