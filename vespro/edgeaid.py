@@ -35,6 +35,7 @@ from .imageedges import image_gradient as _gradient
 from .imageedges import projection_box
 from .init.features import Undistorter
 from .init.modelfeat import model_features
+from .memory import ScratchImages
 from .edgefit import CameraView, EdgeFit, refine_subpixel
 from .model import Model
 from .rig import Rig
@@ -232,7 +233,7 @@ class EdgeAid:
         self.mf = model_features(model)
         self.tree = None if self.mf.convex else tree
         self.undistort = {c.name: Undistorter(c.intrinsics) for c in rig}
-        self._grad_blocks: dict[str, np.ndarray] = {}  # per camera: see _gradient_buffer
+        self._grad = ScratchImages()  # per camera, its float64 gradient (read only within measure)
         self.K = {c.name: np.asarray(c.intrinsics.K, float) for c in rig}
         self.blur_sigma = blur_sigma
         self.search_px = search_px
@@ -300,17 +301,6 @@ class EdgeAid:
         unknown = valid & ~known[sk]
         return (strong | unknown).sum(axis=1) >= 2
 
-    def _gradient_buffer(self, name: str, shape: tuple) -> np.ndarray:
-        """Camera ``name``'s float64 gradient ``(2, H, W)``, in a block reused call after call
-        (the search reads it only within :meth:`measure`). A fresh one each frame is a new
-        mapping in a live server (:mod:`vespro.memory`): for a part seen close up, a
-        thousand pages faulted in a frame, 2 ms."""
-        n = 2 * shape[0] * shape[1]
-        b = self._grad_blocks.get(name)
-        if b is None or b.size < n:
-            b = self._grad_blocks[name] = np.empty(n, np.float64)
-        return b[:n].reshape(2, shape[0], shape[1])
-
     def measure(self, name: str, image: np.ndarray, T_world_camera: np.ndarray,
                 T_world_object: np.ndarray, contrast: EdgeContrast | None = None,
                 edge_offset_px: float | None = None) -> EdgeMeasurement | None:
@@ -337,7 +327,7 @@ class EdgeAid:
         K_roi = K.copy()  # the crop is a camera whose principal point moved by (-x0, -y0)
         K_roi[0, 2] -= x0
         K_roi[1, 2] -= y0
-        grad = self._gradient_buffer(name, dx.shape)
+        grad = self._grad.get(name, (2,) + dx.shape, np.float64)
         grad[0] = dx  # int16 to float64: exact
         grad[1] = dy
         view = CameraView(_GradientImage(K_roi, grad), T_wc, True)

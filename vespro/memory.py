@@ -1,4 +1,5 @@
-"""Memory of a long-running process that churns images: freed image buffers go back to the system.
+"""Memory of a long-running process that churns images: freed image buffers go back to the system,
+and the intermediate images of each frame are kept from frame to frame (:class:`ScratchImages`).
 
 The pose server allocates and frees image-sized arrays every frame (a frame
 set's images, the grey copies kept while a start is searched for, the
@@ -23,7 +24,9 @@ from __future__ import annotations
 import ctypes
 import ctypes.util
 
-__all__ = ["return_freed_images"]
+import numpy as np
+
+__all__ = ["ScratchImages", "return_freed_images"]
 
 _M_TRIM_THRESHOLD = -1
 _M_MMAP_THRESHOLD = -3
@@ -42,3 +45,30 @@ def return_freed_images(threshold_bytes: int = 128 * 1024) -> str | None:
     mallopt.restype = ctypes.c_int
     ok = mallopt(_M_MMAP_THRESHOLD, int(threshold_bytes)) and mallopt(_M_TRIM_THRESHOLD, 2 * int(threshold_bytes))
     return None if ok else "mallopt refused the thresholds: freed image memory may stay with the process"
+
+
+class ScratchImages:
+    """Image-sized intermediate arrays kept from frame to frame, by name.
+
+    With the thresholds fixed (:func:`return_freed_images`) every fresh image-sized block
+    is a mapping of its own whose pages fault in when first written: in a live server a
+    three-camera simulated frame set took 42 ms of CPU instead of 24, and a part seen close
+    up by one camera faulted a thousand pages a frame into its edge fit's gradient. What a
+    step overwrites every frame and reads only within it lives here instead.
+    :meth:`get` returns a C-contiguous view of the given shape on a block that only grows
+    (a window's crop may change size from frame to frame); the view is valid until the next
+    :meth:`get` of the same name.
+    """
+
+    def __init__(self):
+        self._blocks: dict = {}
+
+    def get(self, name, shape, dtype) -> np.ndarray:
+        shape = tuple(int(n) for n in shape)
+        dtype = np.dtype(dtype)
+        size = int(np.prod(shape))
+        b = self._blocks.get((name, dtype))
+        if b is None or b.size < size:
+            b = self._blocks[(name, dtype)] = np.empty(size, dtype)
+        return b[:size].reshape(shape)
+

@@ -287,8 +287,6 @@ class PoseServer:
         # an older frame, the filter is started there and caught up through these.
         self._rate = float(getattr(source, "rate_hz", 26.0))
         self._backlog: deque = deque(maxlen=max(8, int(10 * self._rate)))
-        self.caught_up_frames = 0
-        self.skipped_catch_up = 0  # queued frame sets skipped so that the queue drains
         self._catching: deque | None = None  # frame sets queued for the catch-up, oldest first
         self.stale_inits = 0
 
@@ -322,6 +320,16 @@ class PoseServer:
         if self._bank is not None:  # (not while catching up: the answer would join hypotheses mid-way)
             return not tr.confirmed and self._catching is None
         return tr.ekf is None or tr.provisional
+
+    @property
+    def caught_up_frames(self) -> int:
+        """Old frame sets tracked to bring a late start to the present (``ServerStats.catch_up_tracked``)."""
+        return self.stats.catch_up_tracked
+
+    @property
+    def skipped_catch_up(self) -> int:
+        """Queued frame sets skipped so that the catch-up's queue drains (``ServerStats.catch_up_skipped``)."""
+        return self.stats.catch_up_skipped
 
     @property
     def kept_frames(self) -> int:
@@ -447,12 +455,10 @@ class PoseServer:
                 self.tracker.require_confirmation(f.t_ns)
                 return self.tracker.process(f)
             self.tracker.process(f)
-            self.caught_up_frames += 1
             self.stats.catch_up_tracked += 1
             n += 1
         while n < CATCH_UP_MIN and len(q) > 1:  # never the live frame set
             q.popleft()
-            self.skipped_catch_up += 1
             self.stats.catch_up_skipped += 1
             n += 1
         if not self._holding():  # lost (or not confirmed in time) on the way: the initialiser starts over

@@ -1172,7 +1172,7 @@ class Tracker:
                 continue
             Jk = J[sel]
             fid = vis.indices[sel]
-            half = halves[k] if k in halves else self._window_half_sizes(k, Jk, fid, P6)
+            half = halves[k]  # (every camera with a selection has them)
             max_half = max(max_half, int(half.max()))
             ext = extract_corners(img, uv[sel], half)
             found = ext.found

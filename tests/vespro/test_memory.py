@@ -45,3 +45,20 @@ def test_freed_images_leave_the_process_and_only_live_ones_stay():
     assert fixed["growth_mb"] < fixed["live_mb"] + 2.0, fixed
     default = _growth("default")
     assert default["growth_mb"] > 20.0, default
+
+
+def test_scratch_images_are_kept_by_name_and_grow_to_the_largest_asked():
+    import numpy as np
+
+    from vespro.memory import ScratchImages
+
+    s = ScratchImages()
+    a = s.get("crop", (2, 40, 50), np.float64)
+    assert a.shape == (2, 40, 50) and a.dtype == np.float64 and a.flags.c_contiguous
+    b = s.get("crop", (2, 30, 20), np.float64)  # a smaller crop: the same block
+    assert np.shares_memory(a, b) and b.flags.c_contiguous
+    c = s.get("crop", (2, 60, 60), np.float64)  # a larger one: a larger block
+    assert c.shape == (2, 60, 60) and not np.shares_memory(a, c)
+    assert np.shares_memory(s.get("crop", (2, 60, 60), np.float64), c)
+    assert not np.shares_memory(s.get("other", (60, 60), np.float64), c)  # names apart
+    assert s.get("crop", (60, 60), np.uint8).dtype == np.uint8  # and dtypes

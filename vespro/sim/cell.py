@@ -23,6 +23,7 @@ import numpy as np
 
 from ..clock import NS_PER_S, SimClock, ns_from_s
 from ..frames import FrameSet
+from ..memory import ScratchImages
 from ..rig import Rig
 from ..se3 import log_so3, matrix_from_quat, quat_from_matrix, transform_from_rt
 from .imaging import ImageEffects, ImagePipeline
@@ -165,7 +166,7 @@ class SimCell:
         self.rng = np.random.default_rng(config.seed)
         self._render_info = info["render"]
         self._renderers: dict[tuple[int, int], mujoco.Renderer] = {}
-        self._rgb: dict[tuple[int, int], np.ndarray] = {}
+        self._rgb = ScratchImages()  # the renders as read and turned over (see _render_rgb)
         self._pipelines = {}
         for cam in config.rig:
             rintr, mj_name = self._render_info[cam.name]
@@ -323,8 +324,8 @@ class SimCell:
         return FrameSet(index, t_ns, images, poses)
 
     def _render_rgb(self, r: "mujoco.Renderer", key: tuple) -> np.ndarray:
-        """The renderer's RGB image, in a buffer of this size reused frame after frame (the
-        pipeline reads it at once).
+        """The renderer's RGB image of size ``key`` (height, width), in a buffer reused frame after
+        frame (the pipeline reads it at once).
 
         MuJoCo's ``Renderer.render`` turns OpenGL's bottom-up rows over in place through a
         temporary copy of the image: a fresh block each frame, which in a live server is a
@@ -332,10 +333,7 @@ class SimCell:
         into one buffer and turned over into another; where this MuJoCo's renderer does not
         have the parts read here, its own ``render``.
         """
-        h, w = key
-        if key not in self._rgb:
-            self._rgb[key] = (np.empty((h, w, 3), np.uint8), np.empty((h, w, 3), np.uint8))
-        raw, rgb = self._rgb[key]
+        raw, rgb = (self._rgb.get(name, key + (3,), np.uint8) for name in ("read", "rgb"))
         ctx, rect, gl = (getattr(r, a, None) for a in ("_mjr_context", "_rect", "_gl_context"))
         if ctx is None or rect is None or gl is None:
             return r.render(out=rgb)

@@ -28,6 +28,7 @@ import cv2
 import numpy as np
 
 from ..camera import CameraIntrinsics, undistort_pixels
+from ..memory import ScratchImages
 
 __all__ = ["ImageEffects", "ImagePipeline"]
 
@@ -92,10 +93,7 @@ class ImagePipeline:
             raise ValueError(f"supersample must be an integer >= 1, got {supersample}")
         self._bank = None
         self._fields = None
-        # Intermediate images reused frame after frame (only the returned image is new): a
-        # fresh image-sized block is a fresh mapping whose pages fault in, and a live server
-        # keeps every such block in a mapping of its own (vespro.memory).
-        self._scratch: dict[str, np.ndarray] = {}
+        self._scratch = ScratchImages()  # intermediate images; only the returned image is new
         self.identity = n == 1 and (intr is render or (
             intr.width == render.width and intr.height == render.height
             and np.allclose(intr.K, render.K) and not intr.has_distortion
@@ -135,13 +133,6 @@ class ImagePipeline:
         fx, fy = self._fields[int(rng.integers(0, FIELD_BANK))]
         dy, dx = rng.integers(0, pad, size=2)
         return fx[dy:dy + h, dx:dx + w], fy[dy:dy + h, dx:dx + w]
-
-    def _buffer(self, name: str, shape, dtype) -> np.ndarray:
-        """A reused intermediate image (allocated on first use)."""
-        b = self._scratch.get(name)
-        if b is None or b.shape != tuple(shape) or b.dtype != dtype:
-            b = self._scratch[name] = np.empty(shape, dtype)
-        return b
 
     def _draw_field(self, rng: np.random.Generator, h: int, w: int) -> np.ndarray:
         # The field is smooth over noise_corr_px, so it is drawn on a coarse grid
@@ -186,23 +177,22 @@ class ImagePipeline:
         if noisy and rng is None:
             raise ValueError("image noise needs a random generator")
         n = self.supersample
-        warped = e.noise_px > 0 or not self.identity
         # An image that a later step replaces goes into a reused buffer; the last one made is new.
-        later = warped or n > 1 or e.blur_px > 0 or e.intensity_noise > 0
+        after_warp = n > 1 or e.blur_px > 0 or e.intensity_noise > 0
+        later = after_warp or e.noise_px > 0 or not self.identity
         code = cv2.COLOR_RGB2GRAY if self.mono else cv2.COLOR_RGB2BGR
         shape = render_rgb.shape[:2] if self.mono else render_rgb.shape
-        bgr = cv2.cvtColor(render_rgb, code, dst=self._buffer("colour", shape, np.uint8) if later else None)
+        bgr = cv2.cvtColor(render_rgb, code, dst=self._scratch.get("colour", shape, np.uint8) if later else None)
         out_shape = self.map_x.shape + bgr.shape[2:]
-        remap_dst = self._buffer("warped", out_shape, np.uint8) if (n > 1 or e.blur_px > 0
-                                                                     or e.intensity_noise > 0) else None
+        remap_dst = self._scratch.get("warped", out_shape, np.uint8) if after_warp else None
         if e.noise_px > 0:
             d = self._displacement(rng)
             if n > 1:
                 # The field is in rig pixels; render pixels are n times finer.
                 size = (self.map_x.shape[1], self.map_x.shape[0])
                 d = tuple(n * cv2.resize(c, size, interpolation=cv2.INTER_LINEAR) for c in d)
-            mx = np.add(self.map_x, d[0], out=self._buffer("map_x", self.map_x.shape, np.float32))
-            my = np.add(self.map_y, d[1], out=self._buffer("map_y", self.map_y.shape, np.float32))
+            mx = np.add(self.map_x, d[0], out=self._scratch.get("map_x", self.map_x.shape, np.float32))
+            my = np.add(self.map_y, d[1], out=self._scratch.get("map_y", self.map_y.shape, np.float32))
             out = cv2.remap(bgr, mx, my, cv2.INTER_LINEAR, dst=remap_dst, borderMode=cv2.BORDER_REPLICATE)
         elif not self.identity:
             out = cv2.remap(bgr, self.map_x, self.map_y, cv2.INTER_LINEAR, dst=remap_dst,
