@@ -54,6 +54,12 @@ def run(args) -> int:
               f"missed), capture-to-publish latency median {_f(rt['latency_ms_median'])} ms, p99 "
               f"{_f(rt['latency_ms_p99'])} ms; part tracked {_f(rt['first_track_after_view_s'])} s after it came "
               f"into view; load shed: {steps}")
+    steal = s.get("machine", {}).get("steal_ms")
+    if steal:
+        # A virtual machine's host may stop a CPU whatever runs on it (cellsim.steal).
+        print("machine: CPU time taken by the host (steal) during the run: "
+              + ", ".join(f"{cpu} {ms:.0f} ms" for cpu, ms in steal.items())
+              + (" (late servo ticks and missed capture instants can be the host's)" if sum(steal.values()) else ""))
     for ev in s.get("events", []):
         print(f"event: {ev}")
     if "recording_error" in s:

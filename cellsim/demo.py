@@ -33,6 +33,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .steal import read_steal_ms, steal_since
+
 __all__ = ["DemoConfig", "run_demo", "CAMERA_SETS"]
 
 CAMERA_SETS = {"fixed": "fixed3", "eye-in-hand": "hand", "hybrid": "hybrid"}
@@ -313,6 +315,7 @@ def run_demo(cfg: DemoConfig, log=print) -> dict:
         log(f"demo: plant, pose server and servo started ({cfg.link} link); {cfg.duration:.0f} s of cell time")
         killed = False
         last = -1
+        steal_at_start = read_steal_ms()  # the host's share of the CPUs over the cell's run (cellsim.steal)
         while procs["plant"].poll() is None:
             el = time.monotonic() - t_start
             if cfg.kill_server_at is not None and not killed and world.running and \
@@ -333,6 +336,7 @@ def run_demo(cfg: DemoConfig, log=print) -> dict:
                 events.append({"event": "timeout"})
                 break
             time.sleep(0.2)
+        steal_at_end = read_steal_ms()
         # The plant has stopped: the servo sees its arm's controller gone and stops; the
         # vision source ends by itself and saves its run. Signal only what lingers.
         for name, grace in (("servo", 10.0), ("vision", 60.0)):
@@ -363,6 +367,7 @@ def run_demo(cfg: DemoConfig, log=print) -> dict:
         _merge_view(cfg, log)
     log("demo: scoring against the plant's ground truth")
     summary = summarize(out, cfg, events)
+    summary["machine"] = {"steal_ms": steal_since(steal_at_start, steal_at_end)}
     (out / "summary.json").write_text(json.dumps(summary, indent=2, default=str))
     return summary
 
