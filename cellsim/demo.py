@@ -295,14 +295,6 @@ def run_demo(cfg: DemoConfig, log=print) -> dict:
         _wait_ready(procs["vision"], out / "vision.log", "vespro serve: world source", timeout_s=120.0,
                     note=lambda: log("demo: waiting for the pose server (a first run without set-up's "
                                      "python3 -m vespro.warmup compiles its kernels: up to a minute)"))
-        procs["plant"] = _spawn([py, "-m", "cellsim.plant", "--robot-shm", robot.name, "--world-shm", world.name,
-                                 "--object", cfg.object, "--duration", str(cfg.duration), "--speed", str(cfg.speed),
-                                 "--y0", str(cfg.y0), "--stop-time", str(cfg.stop_time),
-                                 "--log", str(out / "plant.npz"),
-                                 *(["--q0", ",".join(f"{v:.9f}" for v in q0)] if q0 is not None else []),
-                                 # The world keeps real time whatever else the machine runs: on the
-                                 # servo's core (the servo sleeps most of each tick; it has priority 80).
-                                 "--cpu", "1", "--fifo", "20"], out / "plant.log")
         url = bridge.path_b if bridge else f"socket://127.0.0.1:{port}"
         procs["servo"] = _spawn([py, "-m", "servo", "run", "--connect", url, "--baud", str(cfg.baud),
                                  "--robot", f"shm:{robot.name}", "--standoff", str(STANDOFF),
@@ -312,6 +304,18 @@ def run_demo(cfg: DemoConfig, log=print) -> dict:
                                  "--cpu", "1",
                                  "--stats-json", str(out / "servo" / "stats.json"), *view_servo],
                                 out / "servo.log")
+        # The servo sets itself up (imports, the arm's model, memory locked) and waits for the
+        # arm's controller before the plant starts the world's clock: set up beside the start's
+        # search, on the core the search shares, it delayed the first track.
+        _wait_ready(procs["servo"], out / "servo.log", "servo run: connecting to", timeout_s=60.0)
+        procs["plant"] = _spawn([py, "-m", "cellsim.plant", "--robot-shm", robot.name, "--world-shm", world.name,
+                                 "--object", cfg.object, "--duration", str(cfg.duration), "--speed", str(cfg.speed),
+                                 "--y0", str(cfg.y0), "--stop-time", str(cfg.stop_time),
+                                 "--log", str(out / "plant.npz"),
+                                 *(["--q0", ",".join(f"{v:.9f}" for v in q0)] if q0 is not None else []),
+                                 # The world keeps real time whatever else the machine runs: on the
+                                 # servo's core (the servo sleeps most of each tick; it has priority 80).
+                                 "--cpu", "1", "--fifo", "20"], out / "plant.log")
         log(f"demo: plant, pose server and servo started ({cfg.link} link); {cfg.duration:.0f} s of cell time")
         killed = False
         last = -1

@@ -132,12 +132,7 @@ def _robot(args, cfg):
     if args.robot.startswith("shm:"):
         from .shm_robot import ShmArm
 
-        robot = ShmArm(args.robot[4:])
-        t_end = time.monotonic() + 30
-        while not robot.plant_alive and time.monotonic() < t_end:
-            time.sleep(0.01)
-        if not robot.plant_alive:
-            raise ValueError("the plant did not start")
+        robot = ShmArm(args.robot[4:])  # its plant is waited for once the loop is set up (Scheduler.run)
         return robot
     if args.robot == "mujoco":
         return MujocoArm(cfg.model_path)
@@ -201,7 +196,7 @@ def _run(args, cfg, receiver, source, robot, view) -> int:
             last_line[0] = now
             print(status_line(state, receiver, t_ns), flush=True)
 
-    sched = Scheduler(clock, robot, state, source, recorder=recorder, realtime=True, cpu=args.cpu,
+    sched = Scheduler(clock, robot, state, source, recorder=recorder, realtime=True, cpu=args.cpu, robot_wait_s=30.0,
                       rt_setup=args.cpu is not None, on_tick=on_tick)
 
     def _sigint(signum, frame):
@@ -219,6 +214,9 @@ def _run(args, cfg, receiver, source, robot, view) -> int:
         receiver.close()
         if view is not None and (line := view.close()):
             print(line, flush=True)
+    if getattr(robot, "came_up", True) is False:
+        print(f"servo run: the plant did not start within {sched.robot_wait_s:.0f} s", file=sys.stderr, flush=True)
+        return 2
     if recorder is not None:
         args.record.mkdir(parents=True, exist_ok=True)
         npz, csv = recorder.save(args.record / "servo")

@@ -652,6 +652,9 @@ class Scheduler:
         Replaces ``step`` (same signature); used for the empty-tick baseline.
     on_tick : callable (t_ns, out) or None
         Called after each tick (tests, truth recording); outside the timed part.
+    robot_wait_s : float
+        In real time, how long to wait, set up and locked in memory, for a robot that says
+        when it runs (``wait_alive``: an arm's controller coming up) before the first tick, s.
     """
 
     def __init__(
@@ -668,7 +671,9 @@ class Scheduler:
         on_tick=None,
         rt_setup: bool | None = None,
         lock_memory: bool = True,
+        robot_wait_s: float = 60.0,
     ):
+        self.robot_wait_s = float(robot_wait_s)
         self.rt_setup = realtime if rt_setup is None else bool(rt_setup)
         self.lock_memory = lock_memory
         self._locked = False
@@ -776,6 +781,9 @@ class Scheduler:
         source = self.source
         q_meas = self.q_meas
         try:
+            wait_alive = getattr(robot, "wait_alive", None)
+            if self.realtime and wait_alive is not None:
+                wait_alive(self.robot_wait_s)  # (not alive in time: the first tick sees it and stops)
             robot.read(q_meas)
             t_next = clock.now_ns()
             state.start(q_meas, t_next)

@@ -25,6 +25,8 @@ Layout (float64 words; ``n`` joints)::
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 
 from rtkit.shm import SharedBlock  # one lifecycle for shared-memory blocks
@@ -106,6 +108,7 @@ class ShmArm:
         self._qd = np.zeros(n)
         self._drives = True
         self._t = 0
+        self.came_up = None  # whether the plant was running when the loop started (wait_alive)
 
     def read(self, q_out: np.ndarray) -> None:
         if self.shm.read_state(self._state):
@@ -131,6 +134,17 @@ class ShmArm:
     @property
     def plant_alive(self) -> bool:
         return self.shm.plant_alive
+
+    def wait_alive(self, timeout_s: float, poll_s: float = 0.001) -> bool:
+        """Wait until the plant runs (its alive flag), at most ``timeout_s``; whether it does.
+
+        A drive's controller comes up on its own time: the loop set up and locked in memory
+        first, then waiting for it, starts ticking with nothing left to do but tick."""
+        t_end = time.monotonic() + timeout_s
+        while not self.shm.plant_alive and time.monotonic() < t_end:
+            time.sleep(poll_s)
+        self.came_up = self.shm.plant_alive
+        return self.came_up
 
     def close(self) -> None:
         self.shm.close()

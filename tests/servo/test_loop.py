@@ -236,6 +236,49 @@ def test_scheduler_realtime_mode_runs():
     assert stats.overruns >= 0
 
 
+def test_the_realtime_loop_waits_for_its_arm_s_controller_before_its_first_tick():
+    """A shared-memory arm whose plant is not up yet: the real-time loop, set up, waits for the
+    plant's alive flag and ticks from then on (its first tick after the flag was raised); a plant
+    that never comes up is waited for at most ``robot_wait_s`` (``servo run`` then stops on its
+    first tick: the plant is not alive). In lockstep nothing is waited for."""
+    import threading
+    import time
+
+    from servo.shm_robot import RobotShm, ShmArm
+
+    shm = RobotShm(None)
+    try:
+        shm.write_state(1, q_above(), np.zeros(6))
+        arm = ShmArm(shm.name)
+        raised, ticks = [], []
+
+        def plant_comes_up():
+            time.sleep(0.05)
+            raised.append(time.monotonic_ns())
+            shm.set_alive(True)
+
+        th = threading.Thread(target=plant_comes_up)
+        th.start()
+        sch = Scheduler.from_config(LoopConfig(), WallClock(), arm, None, realtime=True, rt_setup=False,
+                                    on_tick=lambda t, out: ticks.append(t))
+        assert sch.run(5).n_ticks == 5
+        th.join()
+        assert ticks[0] > raised[0]
+        shm.set_alive(False)
+        ticks.clear()
+        t0 = time.monotonic_ns()
+        sch = Scheduler.from_config(LoopConfig(), WallClock(), arm, None, realtime=True, rt_setup=False,
+                                    robot_wait_s=0.02, on_tick=lambda t, out: ticks.append(t))
+        assert sch.run(3).n_ticks == 3 and ticks[0] > t0 + 20_000_000 and not arm.plant_alive
+        waited = []
+        arm.wait_alive = lambda s: waited.append(s)
+        Scheduler.from_config(LoopConfig(), SimClock(), arm, None).run(2)
+        assert waited == []
+        arm.close()
+    finally:
+        shm.close()
+
+
 def _run_motion(motion, state, out, t, robot=None):
     state.start_motion(motion, t)
     while True:
