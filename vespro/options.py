@@ -38,6 +38,9 @@ def add_tracker_options(p: argparse.ArgumentParser) -> None:
                    help="what decides the published status: the confirmation rules, or the hypothesis bank "
                         "weighing the initialiser's poses by the image likelihood (texture counts as clutter "
                         "there: the initialiser then takes every part as textured)")
+    p.add_argument("--workspace", metavar="x0,y0,z0,x1,y1,z1",
+                   help="the cell's working volume, world frame, m (the part's centre lies in it: on the conveyor, "
+                        "in the bin): the start's search considers no pose outside it")
     add_symmetry_option(p)
 
 
@@ -58,15 +61,20 @@ def say_symmetry(prog: str, tracker, given: bool, reacquires: bool) -> None:
 
 def tracker_config(args):
     from .tracker import TrackerConfig
+    from .workspace import parse_workspace
 
+    parse_workspace(getattr(args, "workspace", None))  # a bad one is refused whether or not a search runs
     return TrackerConfig(features_per_camera=args.features, selection=args.selection, sigma_px=args.sigma_px,
                          decision=getattr(args, "decision", "rules"), symmetry=args.symmetry)
 
 
 def init_options(args) -> dict:
-    """``InitOptions`` fields the command line sets (``--textured``; ``--decision bank``: the bank's
+    """``InitOptions`` fields the command line sets (``--workspace``; ``--textured``; ``--decision bank``: the bank's
     likelihood takes texture inside the faces as clutter, so the plain-face checks stay off)."""
-    return {"plain_faces": not (getattr(args, "textured", False) or getattr(args, "decision", "rules") == "bank")}
+    from .workspace import parse_workspace
+
+    return {"plain_faces": not (getattr(args, "textured", False) or getattr(args, "decision", "rules") == "bank"),
+            "workspace": parse_workspace(getattr(args, "workspace", None))}
 
 
 def initializer_for(args, rec, model):

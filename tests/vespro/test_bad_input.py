@@ -332,3 +332,13 @@ def test_help_states_the_policy(capsys):
             main([cmd, "--help"])
         text = " ".join(capsys.readouterr().out.split())
         assert "no usable image in the whole run" in text and "exit status stays 0" in text, cmd
+
+
+@pytest.mark.parametrize("extra, text", [
+    (["--workspace", "0,0,0,1,1"], "six numbers"),
+    (["--workspace", "0,0,1,1,1,0.5"], "z1 > z0"),
+], ids=["five numbers", "empty"])
+def test_a_bad_working_volume_is_one_line_and_exit_2(base, tmp_path, capfd, extra, text):
+    rc, _, err = _run(base, tmp_path, lambda r: None, lambda r: COMMANDS["track"](r) + extra, capfd)
+    line = _one_line(err, "track")
+    assert rc == 2 and "--workspace" in line and text in line, line
