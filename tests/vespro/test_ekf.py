@@ -503,3 +503,31 @@ def test_pose_measurement_update_is_the_kalman_blend_in_the_error_state():
     np.testing.assert_allclose(ekf.boxminus(x3, x)[:6], e, atol=1e-6)
     with pytest.raises(ValueError):
         ekf.update_pose(x, P, T_meas[:3], R6)
+
+
+def test_kalman_step_and_propagation_equal_filterpy_bit_for_bit():
+    from filterpy.kalman import predict as kf_predict
+    from filterpy.kalman import update as kf_update
+
+    rng = np.random.default_rng(12)
+    for m in (6, 16, 30):
+        A = rng.normal(size=(12, 12))
+        P = A @ A.T + np.eye(12)
+        H = rng.normal(size=(m, 12))
+        y = rng.normal(size=m)
+        R = np.diag(rng.uniform(0.1, 1.0, m))
+        dx, P_post = ekf._kalman_step(P, y, R, H)
+        dx_ref, P_ref = kf_update(np.zeros(12), P, y, R, H)
+        assert np.array_equal(dx, dx_ref) and np.array_equal(P_post, P_ref)
+        F = ekf.transition_jacobian(_random_state(rng), DT)
+        Q = ekf.process_noise(DT, Q_ACC, Q_ALPHA)
+        _, P_pred = kf_predict(np.zeros(12), P, F, Q)
+        assert np.array_equal(ekf._propagate(P, F, Q), 0.5 * (P_pred + P_pred.T))
+
+
+def test_unit_rotation_equals_matrix_from_quat_bit_for_bit():
+    rng = np.random.default_rng(13)
+    for _ in range(2000):
+        q = rng.normal(size=4)
+        q = q / np.sqrt(q @ q) * (1.0 + rng.normal() * 1e-15)  # a filter's state: unit to rounding
+        assert np.array_equal(ekf._unit_rotation(q), se3.matrix_from_quat(q))
