@@ -35,6 +35,7 @@ from .imageedges import image_gradient as _gradient
 from .imageedges import projection_box
 from .init.features import Undistorter
 from .init.modelfeat import model_features
+from .jit import njit
 from .memory import ScratchImages
 from .edgefit import CameraView, EdgeFit, refine_subpixel
 from .model import Model
@@ -289,17 +290,9 @@ class EdgeAid:
         not yet learnt as seen. True where not dim (all True while nothing is learnt).
         """
         ids = np.asarray(corner_ids, np.int64)
-        side = self.edge_side(T_camera_object)
-        known = (contrast.frames >= 1) & (contrast.side == side[contrast.edge]) & np.isfinite(contrast.contrast)
-        if not known.any() or ids.size == 0:
-            return np.ones(ids.size, bool)
-        level = min_frac * float(np.median(np.abs(contrast.contrast[known])))
-        s = self.corner_ends[ids]
-        valid = s >= 0
-        sk = np.where(valid, s, 0)
-        strong = valid & known[sk] & (np.abs(np.nan_to_num(contrast.contrast[sk])) >= level)
-        unknown = valid & ~known[sk]
-        return (strong | unknown).sum(axis=1) >= 2
+        return _corners_shown_kernel(contrast.frames, contrast.side, contrast.contrast, contrast.edge,
+                                     self.edge_side(T_camera_object), self.corner_ends, ids, float(min_frac))
+
 
     def measure(self, name: str, image: np.ndarray, T_world_camera: np.ndarray,
                 T_world_object: np.ndarray, contrast: EdgeContrast | None = None,
@@ -346,3 +339,37 @@ class EdgeAid:
         if cov is None:
             return None
         return EdgeMeasurement(T, cov / max(fit.found_frac, 0.05) ** self.found_power, fit, self.edge_side(T_cw @ T))
+
+
+@njit
+def _corners_shown_kernel(frames, side_seen, contrast, edge, side, corner_ends, ids, min_frac):
+    """:meth:`EdgeAid.corners_shown` past the faces seen (``side``, (E,)), compiled: the samples
+    known, the median of their contrasts' magnitudes (NumPy's: the middle one, or the mean of
+    the middle two) and each corner's count of strong or unknown end samples. Comparisons of
+    the same values as the NumPy formulation's, so the same answer."""
+    S = edge.shape[0]
+    known = np.empty(S, np.bool_)
+    mags = np.empty(S)
+    m = 0
+    for i in range(S):
+        known[i] = frames[i] >= 1 and side_seen[i] == side[edge[i]] and np.isfinite(contrast[i])
+        if known[i]:
+            mags[m] = abs(contrast[i])
+            m += 1
+    n = ids.shape[0]
+    out = np.ones(n, np.bool_)
+    if m == 0 or n == 0:
+        return out
+    a = np.sort(mags[:m])
+    med = a[m // 2] if m % 2 == 1 else (a[m // 2 - 1] + a[m // 2]) / 2.0
+    level = min_frac * med
+    for j in range(n):
+        count = 0
+        for k in range(corner_ends.shape[1]):
+            e = corner_ends[ids[j], k]
+            if e < 0:
+                continue
+            if not known[e] or abs(contrast[e]) >= level:
+                count += 1
+        out[j] = count >= 2
+    return out
