@@ -308,7 +308,7 @@ class EdgeAid:
         :attr:`edge_offset_px`.
         """
         T_wc = np.asarray(T_world_camera, float)
-        if not (np.all(np.isfinite(T_wc)) and np.all(np.isfinite(T_world_object))):
+        if not (np.isfinite(T_wc).all() and np.isfinite(T_world_object).all()):
             return None
         K = self.K[name]
         roi = self._roi(K, T_wc, T_world_object, image.shape[1], image.shape[0])
