@@ -43,6 +43,7 @@ import numpy as np
 from filterpy.common import Q_continuous_white_noise
 from scipy.stats import chi2
 
+from .jit import njit
 from .se3 import log_so3, matrix_from_quat, rotation_rows, skew
 
 __all__ = [
@@ -62,6 +63,8 @@ __all__ = [
     "update",
     "nees",
     "stack_jacobian",
+    "mahalanobis_2d",
+    "mahalanobis_2d_numpy",
 ]
 
 # Nominal-state slices (13,)
@@ -299,6 +302,8 @@ def transition_jacobian(x: np.ndarray, dt: float) -> np.ndarray:
     return F
 
 
+_EYE2 = np.eye(2)
+_EYE2.setflags(write=False)
 _EYE3 = np.eye(3)
 _EYE3.setflags(write=False)
 _EYE12 = np.eye(12)
@@ -390,16 +395,39 @@ def stack_jacobian(J_pose: np.ndarray) -> np.ndarray:
     return H.reshape(-1, 12)
 
 
-def _inv2x2(A: np.ndarray) -> np.ndarray:
-    """Batched inverse of (M, 2, 2) symmetric matrices."""
-    a, b, c, d = A[:, 0, 0], A[:, 0, 1], A[:, 1, 0], A[:, 1, 1]
+def mahalanobis_2d_numpy(r: np.ndarray, C: np.ndarray) -> np.ndarray:
+    """``r_m^T C_m^-1 r_m`` for residuals ``r`` (M, 2) and covariances ``C`` (M, 2, 2): the
+    NumPy formulation :func:`mahalanobis_2d` computes (the closed-form inverse, then
+    ``einsum``)."""
+    a, b, c, d = C[:, 0, 0], C[:, 0, 1], C[:, 1, 0], C[:, 1, 1]
     det = a * d - b * c
-    inv = np.empty_like(A)
+    inv = np.empty_like(C)
     inv[:, 0, 0] = d
     inv[:, 0, 1] = -b
     inv[:, 1, 0] = -c
     inv[:, 1, 1] = a
-    return inv / det[:, None, None]
+    return np.einsum("mi,mij,mj->m", r, inv / det[:, None, None], r)
+
+
+@njit
+def mahalanobis_2d(r, C, floor):
+    """:func:`mahalanobis_2d_numpy`, compiled, with ``C``'s diagonal first raised to at least
+    ``floor`` (M,) (``np.maximum``: NaN stays NaN; ``floor`` None: as it is). The same
+    operations in the same order (``einsum`` sums ``r_i C^-1_ij r_j`` over ``i`` then ``j``,
+    each term ``(r_i c_ij) r_j``), so the same bits; ``C`` is not changed."""
+    M = r.shape[0]
+    out = np.empty(M)
+    for m in range(M):
+        a, b, c, d = C[m, 0, 0], C[m, 0, 1], C[m, 1, 0], C[m, 1, 1]
+        if floor is not None:
+            f = floor[m]
+            a = a if a >= f or np.isnan(a) else f  # np.maximum(a, f)
+            d = d if d >= f or np.isnan(d) else f
+        det = a * d - b * c
+        i00, i01, i10, i11 = d / det, -b / det, -c / det, a / det
+        r0, r1 = r[m, 0], r[m, 1]
+        out[m] = ((r0 * i00 * r0 + r0 * i01 * r1) + r1 * i10 * r0) + r1 * i11 * r1
+    return out
 
 
 @functools.lru_cache(maxsize=64)
@@ -513,10 +541,12 @@ def update(
     accepted = finite.copy()
     nis = np.full(M, np.nan)
     H_all = np.zeros((M, 2, 12))
-    H_all[:, :, :6] = np.where(finite[:, None, None], J_pose, 0.0)
-    y_all = np.where(finite[:, None], y_all, 0.0)
+    if finite.all():
+        H_all[:, :, :6] = J_pose
+    else:
+        H_all[:, :, :6] = np.where(finite[:, None, None], J_pose, 0.0)
+        y_all = np.where(finite[:, None], y_all, 0.0)
     gate = _gate_2dof(float(gate_prob))
-    I2 = np.eye(2)
 
     dx = None
     P_post = None
@@ -527,12 +557,10 @@ def update(
         dx, P_post = _kalman_step(P, y_all[idx].reshape(-1), np.diag(np.repeat(s2, 2)), H)
         Hi = H_all[idx]
         r = y_all[idx] - Hi @ dx
-        C = s2[:, None, None] * I2 - Hi @ P_post @ Hi.transpose(0, 2, 1)
-        # C is the residual covariance; keep it positive if a single point carries
-        # (almost) all the information of a direction (leverage -> 1).
-        C[:, 0, 0] = np.maximum(C[:, 0, 0], 1e-6 * s2)
-        C[:, 1, 1] = np.maximum(C[:, 1, 1], 1e-6 * s2)
-        d2 = np.einsum("mi,mij,mj->m", r, _inv2x2(C), r)
+        C = s2[:, None, None] * _EYE2 - Hi @ P_post @ Hi.transpose(0, 2, 1)
+        # C is the residual covariance; its diagonal is kept positive if a single point
+        # carries (almost) all the information of a direction (leverage -> 1).
+        d2 = mahalanobis_2d(r, C, 1e-6 * s2)
         nis[idx] = d2
         worst = int(np.argmax(d2))
         if d2[worst] <= gate:
@@ -551,15 +579,15 @@ def update(
         r2 = sig2[idx] * (np.maximum(nis[idx] / robust_nis, 1.0) if robust_nis > 0 else 1.0)
         H = H_all[idx].reshape(-1, 12)
         K = (P_post @ H.T) / np.repeat(sig2[idx], 2)  # the model's gain, P+ H^T R^-1
-        A = np.eye(12) - K @ H
+        A = _EYE12 - K @ H
         Pp_post = A @ np.asarray(P_pub, dtype=float) @ A.T + (K * np.repeat(r2, 2)) @ K.T
 
     gated = finite & ~accepted
     if gated.any():
         Hg = H_all[gated]
         rg = y_all[gated] - Hg @ dx
-        Sg = sig2[gated][:, None, None] * I2 + Hg @ P_post @ Hg.transpose(0, 2, 1)
-        nis[gated] = np.einsum("mi,mij,mj->m", rg, _inv2x2(Sg), rg)
+        Sg = sig2[gated][:, None, None] * _EYE2 + Hg @ P_post @ Hg.transpose(0, 2, 1)
+        nis[gated] = mahalanobis_2d(rg, Sg, None)
 
     x_new = inject(x, dx)
     G = reset_jacobian(dx)

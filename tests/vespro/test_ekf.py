@@ -531,3 +531,29 @@ def test_unit_rotation_equals_matrix_from_quat_bit_for_bit():
         q = rng.normal(size=4)
         q = q / np.sqrt(q @ q) * (1.0 + rng.normal() * 1e-15)  # a filter's state: unit to rounding
         assert np.array_equal(ekf._unit_rotation(q), se3.matrix_from_quat(q))
+
+
+def test_mahalanobis_2d_equals_the_numpy_formulation_bit_for_bit():
+    """The compiled gate statistic against the closed-form inverse and einsum it replaced, with
+    the diagonal floor (np.maximum) and without; NaN, inf, zero and negative determinants."""
+    rng = np.random.default_rng(14)
+    M = 4000
+    r = rng.normal(size=(M, 2)) * rng.uniform(0.01, 30.0, (M, 1))
+    C = rng.normal(size=(M, 2, 2))
+    C[::7, 0, 0] = -1e-9  # under the floor
+    C[1::11, 1, 1] = 0.0
+    C[2::13] = [[1.0, 2.0], [2.0, 4.0]]  # singular
+    C[3::17, 0, 1] = np.nan
+    C[4::19, 1, 1] = np.inf
+    r[5::23, 0] = np.nan
+    floor = 1e-6 * rng.uniform(0.1, 2.0, M)
+    floor[6::29] = np.nan
+    C0 = C.copy()
+    with np.errstate(all="ignore"):
+        Cf = C.copy()
+        Cf[:, 0, 0] = np.maximum(Cf[:, 0, 0], floor)
+        Cf[:, 1, 1] = np.maximum(Cf[:, 1, 1], floor)
+        a, b = ekf.mahalanobis_2d(r, C, floor), ekf.mahalanobis_2d_numpy(r, Cf)
+        assert np.array_equal(a, b, equal_nan=True) and np.isfinite(a).sum() > M // 2
+        assert np.array_equal(ekf.mahalanobis_2d(r, C, None), ekf.mahalanobis_2d_numpy(r, C), equal_nan=True)
+    assert np.array_equal(C, C0, equal_nan=True)  # C itself untouched
