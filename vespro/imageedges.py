@@ -119,6 +119,8 @@ def projection_box(K: np.ndarray, T_camera_object: np.ndarray, P: np.ndarray, ma
     Compiled (:func:`_projection_extent`, the tracker's edge fit asks every frame); where a
     point's pixel is NaN or beyond 1e15, as :func:`projection_box_numpy`.
     """
+    if len(P) == 1:  # (NumPy multiplies one point otherwise: gemv)
+        return projection_box_numpy(K, T_camera_object, P, margin_px, width, height)
     T = np.ascontiguousarray(T_camera_object, dtype=float)
     behind, u0, v0, u1, v1 = _projection_extent(K[0, 0], K[1, 1], K[0, 2], K[1, 2], T, P)
     if behind:
