@@ -44,6 +44,7 @@ from filterpy.common import Q_continuous_white_noise
 from scipy.stats import chi2
 
 from .jit import njit
+from .numerics import dot3, dot4
 from .se3 import log_so3, matrix_from_quat, rotation_rows, skew
 
 __all__ = [
@@ -63,6 +64,7 @@ __all__ = [
     "update",
     "nees",
     "stack_jacobian",
+    "inject_and_reset",
     "mahalanobis_2d",
     "mahalanobis_2d_numpy",
 ]
@@ -260,6 +262,57 @@ def reset_jacobian(dx: np.ndarray) -> np.ndarray:
     G = _EYE12.copy()
     G[DTH, DTH] = left_jacobian_so3(dx[DTH])
     return G
+
+
+def inject_and_reset(x: np.ndarray, dx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(inject(x, dx), reset_jacobian(dx))``, the same bits, compiled
+    (:func:`_inject_reset_kernel`; the two scalars of the Jacobian's series taken here, as
+    :func:`left_jacobian_so3` does: libm's ``pow``)."""
+    phi = dx[DTH]
+    a = math.sqrt(phi @ phi)
+    if a < 1e-6:
+        return _inject_reset_kernel(x, dx, True, 0.5, 0.0)
+    return _inject_reset_kernel(x, dx, False, (1.0 - math.cos(a)) / a**2, (a - math.sin(a)) / a**3)
+
+
+@njit
+def _inject_reset_kernel(x, dx, series, c1, c2):
+    """:func:`inject` and :func:`reset_jacobian` in one pass: their operations in their order
+    (the quaternions' dot products and ``S @ S`` as OpenBLAS forms them, FMA chains,
+    :func:`vespro.numerics.dot3`), so the same bits. ``series``: the Jacobian's small-angle
+    form (``c1`` 0.5, ``S @ S / 6``), else ``I + c1 S + c2 S @ S``."""
+    out = np.empty(13)
+    for i in range(3):
+        out[i] = x[i] + dx[i]
+        out[7 + i] = x[7 + i] + dx[6 + i]
+        out[10 + i] = x[10 + i] + dx[9 + i]
+    v0, v1, v2 = dx[3], dx[4], dx[5]
+    a = math.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
+    if a < 1e-8:  # _quat_exp
+        pw, px, py, pz = 1.0, 0.5 * v0, 0.5 * v1, 0.5 * v2
+        n = math.sqrt(dot4(pw, px, py, pz, pw, px, py, pz))
+        pw, px, py, pz = pw / n, px / n, py / n, pz / n
+    else:
+        sa = math.sin(0.5 * a) / a
+        pw, px, py, pz = math.cos(0.5 * a), sa * v0, sa * v1, sa * v2
+    qw, qx, qy, qz = x[3], x[4], x[5], x[6]  # _quat_mul
+    rw = pw * qw - px * qx - py * qy - pz * qz
+    rx = pw * qx + px * qw + py * qz - pz * qy
+    ry = pw * qy - px * qz + py * qw + pz * qx
+    rz = pw * qz + px * qy - py * qx + pz * qw
+    n = math.sqrt(dot4(rw, rx, ry, rz, rw, rx, ry, rz))
+    out[3], out[4], out[5], out[6] = rw / n, rx / n, ry / n, rz / n
+    S = np.array([[0.0, -v2, v1], [v2, 0.0, -v0], [-v1, v0, 0.0]])  # skew
+    G = np.eye(12)
+    for i in range(3):
+        for j in range(3):
+            SS = dot3(S[i, 0], S[i, 1], S[i, 2], S[0, j], S[1, j], S[2, j])
+            eye = 1.0 if i == j else 0.0
+            if series:
+                G[3 + i, 3 + j] = (eye + 0.5 * S[i, j]) + SS / 6.0
+            else:
+                G[3 + i, 3 + j] = (eye + c1 * S[i, j]) + c2 * SS
+    return out, G
 
 
 # --------------------------------------------------------------------------- motion model
@@ -589,8 +642,7 @@ def update(
         Sg = sig2[gated][:, None, None] * _EYE2 + Hg @ P_post @ Hg.transpose(0, 2, 1)
         nis[gated] = mahalanobis_2d(rg, Sg, None)
 
-    x_new = inject(x, dx)
-    G = reset_jacobian(dx)
+    x_new, G = inject_and_reset(x, dx)
     P_new = G @ P_post @ G.T
     P_new = 0.5 * (P_new + P_new.T)
     if Pp_post is not None:
@@ -635,12 +687,12 @@ def update_pose(x: np.ndarray, P: np.ndarray, T_meas: np.ndarray, R6: np.ndarray
         K = P[:, :6] @ S_inv
         A = np.eye(12) - K @ H
         Pp = A @ np.asarray(P_pub, dtype=float) @ A.T + K @ R6 @ K.T
-    G = reset_jacobian(dx)
+    x_new, G = inject_and_reset(x, dx)
     P_new = G @ P_post @ G.T
     if Pp is not None:
         Pp = G @ Pp @ G.T
         Pp = 0.5 * (Pp + Pp.T)
-    return inject(x, dx), 0.5 * (P_new + P_new.T), Pp, nis
+    return x_new, 0.5 * (P_new + P_new.T), Pp, nis
 
 
 # --------------------------------------------------------------------------- consistency

@@ -17,7 +17,7 @@ from numba.extending import intrinsic
 
 from .jit import njit
 
-__all__ = ["dot3"]
+__all__ = ["dot3", "dot4"]
 
 
 def _fma_codegen(context, builder, sig, args):
@@ -45,3 +45,10 @@ def dot3(a0, a1, a2, b0, b1, b2):
     """A 3-term dot product as OpenBLAS's gemm forms one entry of a matrix product (from a
     zero accumulator: a zero sum is +0, never -0)."""
     return _fma(a2, b2, _fma(a1, b1, _fma0(a0, b0)))
+
+
+@njit
+def dot4(a0, a1, a2, a3, b0, b1, b2, b3):
+    """A 4-term dot product as OpenBLAS forms it (``a @ b`` of two 4-vectors, a matrix
+    product's entry over four terms): an FMA chain in order, from a zero accumulator."""
+    return _fma(a3, b3, _fma(a2, b2, _fma(a1, b1, _fma0(a0, b0))))

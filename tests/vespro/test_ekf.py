@@ -557,3 +557,16 @@ def test_mahalanobis_2d_equals_the_numpy_formulation_bit_for_bit():
         assert np.array_equal(a, b, equal_nan=True) and np.isfinite(a).sum() > M // 2
         assert np.array_equal(ekf.mahalanobis_2d(r, C, None), ekf.mahalanobis_2d_numpy(r, C), equal_nan=True)
     assert np.array_equal(C, C0, equal_nan=True)  # C itself untouched
+
+
+def test_inject_and_reset_equal_inject_and_reset_jacobian_bit_for_bit():
+    """The compiled injection and covariance reset against the NumPy functions, over error
+    states from tiny (the series forms) to large rotations."""
+    rng = np.random.default_rng(15)
+    for k in range(3000):
+        x = _random_state(rng)
+        dx = rng.normal(size=12) * 10.0 ** rng.uniform(-12, 0)
+        if k % 10 == 0:
+            dx[3:6] *= 1e-4  # below 1e-6 and 1e-8 rad
+        a, G = ekf.inject_and_reset(x, dx)
+        assert np.array_equal(a, ekf.inject(x, dx)) and np.array_equal(G, ekf.reset_jacobian(dx))
