@@ -30,13 +30,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .imageedges import front_faces as _front
 from .imageedges import image_gradient as _gradient
 from .imageedges import projection_box
 from .init.features import Undistorter
 from .init.modelfeat import model_features
 from .jit import njit
 from .memory import ScratchImages
+from .numerics import front_face_mask
 from .edgefit import CameraView, EdgeFit, refine_subpixel
 from .model import Model
 from .rig import Rig
@@ -271,9 +271,9 @@ class EdgeAid:
 
     def edge_side(self, T_camera_object: np.ndarray) -> np.ndarray:
         """Which of each model edge's two faces the camera sees (bit 0: the first, bit 1: the second), (E,)."""
-        front = _front(T_camera_object[None, :3, :3], T_camera_object[None, :3, 3], self.mf)[0]
-        ef = self.mf.edge_faces
-        return front[ef[:, 0]].astype(np.int64) + 2 * front[ef[:, 1]].astype(np.int64)
+        mf = self.mf
+        return _edge_side_kernel(np.ascontiguousarray(T_camera_object, dtype=float), mf.face_normals,
+                                 mf.face_offsets, mf.edge_faces)
 
     def corners_shown(self, contrast: EdgeContrast, T_camera_object: np.ndarray, corner_ids: np.ndarray,
                       min_frac: float) -> np.ndarray:
@@ -373,3 +373,17 @@ def _corners_shown_kernel(frames, side_seen, contrast, edge, side, corner_ends, 
                 count += 1
         out[j] = count >= 2
     return out
+
+
+@njit
+def _edge_side_kernel(T, face_normals, face_offsets, edge_faces):
+    """:meth:`EdgeAid.edge_side`, compiled (the faces seen by :func:`vespro.numerics.front_face_mask`,
+    the bits of :func:`vespro.imageedges.front_faces`)."""
+    front = front_face_mask(T, face_normals, face_offsets)
+    E = edge_faces.shape[0]
+    side = np.empty(E, np.int64)
+    F = front.shape[0]
+    for e in range(E):
+        f0, f1 = edge_faces[e, 0], edge_faces[e, 1]
+        side[e] = int(front[f0 + F if f0 < 0 else f0]) + 2 * int(front[f1 + F if f1 < 0 else f1])  # (NumPy's negative index)
+    return side

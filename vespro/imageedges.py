@@ -25,7 +25,7 @@ import cv2
 import numpy as np
 
 from .jit import njit
-from .numerics import dot3
+from .numerics import dot3, front_face_mask
 from .se3 import invert_transform
 
 __all__ = ["EdgeImage", "image_gradient", "image_noise", "sobel_noise_gain", "project_points", "projection_box",
@@ -229,17 +229,10 @@ def _visible_kernel(T, face_normals, face_offsets, edge_faces, edge_convex, samp
     """The samples of the edges :func:`edge_visible` keeps at pose ``T`` (4, 4), and with
     ``segments`` their lines of sight for the tree: starts ``A`` (the samples), ends ``B``
     (``cam_o``, the camera centre in the object frame) and ``t_lo`` (``2e-4 m`` of each
-    segment's length, at most 0.1), (K, 3), (K, 3), (K,). The face test's products as
-    NumPy's (``np.matmul``'s OpenBLAS order: ``dot3``, and for the offset its matrix-vector
-    kernel's order), the same bits."""
+    segment's length, at most 0.1), (K, 3), (K, 3), (K,). The face test:
+    :func:`vespro.numerics.front_face_mask`, the same bits."""
     F = face_normals.shape[0]
-    front = np.empty(F, np.bool_)
-    for f in range(F):
-        n0, n1, n2 = face_normals[f, 0], face_normals[f, 1], face_normals[f, 2]
-        a0 = dot3(n0, n1, n2, T[0, 0], T[0, 1], T[0, 2])
-        a1 = dot3(n0, n1, n2, T[1, 0], T[1, 1], T[1, 2])
-        a2 = dot3(n0, n1, n2, T[2, 0], T[2, 1], T[2, 2])
-        front[f] = face_offsets[f] + dot3(a1, a0, a2, T[1, 3], T[0, 3], T[2, 3]) < 0
+    front = front_face_mask(T, face_normals, face_offsets)
     E = edge_faces.shape[0]
     vis_e = np.empty(E, np.bool_)
     for e in range(E):

@@ -13,11 +13,12 @@ from __future__ import annotations
 
 from llvmlite import ir
 from numba import types
+import numpy as np
 from numba.extending import intrinsic
 
 from .jit import njit
 
-__all__ = ["dot3", "dot4"]
+__all__ = ["dot3", "dot4", "front_face_mask"]
 
 
 def _fma_codegen(context, builder, sig, args):
@@ -52,3 +53,19 @@ def dot4(a0, a1, a2, a3, b0, b1, b2, b3):
     """A 4-term dot product as OpenBLAS forms it (``a @ b`` of two 4-vectors, a matrix
     product's entry over four terms): an FMA chain in order, from a zero accumulator."""
     return _fma(a3, b3, _fma(a2, b2, _fma(a1, b1, _fma0(a0, b0))))
+
+
+@njit
+def front_face_mask(T, face_normals, face_offsets):
+    """:func:`vespro.imageedges.front_faces` of one pose ``T`` (4, 4), compiled, (F,) bool: the face test's
+    products as NumPy's (``np.matmul``'s OpenBLAS order: ``dot3``, and for the offset its
+    matrix-vector kernel's order), the same bits."""
+    F = face_normals.shape[0]
+    front = np.empty(F, np.bool_)
+    for f in range(F):
+        n0, n1, n2 = face_normals[f, 0], face_normals[f, 1], face_normals[f, 2]
+        a0 = dot3(n0, n1, n2, T[0, 0], T[0, 1], T[0, 2])
+        a1 = dot3(n0, n1, n2, T[1, 0], T[1, 1], T[1, 2])
+        a2 = dot3(n0, n1, n2, T[2, 0], T[2, 1], T[2, 2])
+        front[f] = face_offsets[f] + dot3(a1, a0, a2, T[1, 3], T[0, 3], T[2, 3]) < 0
+    return front

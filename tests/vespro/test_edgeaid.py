@@ -534,6 +534,33 @@ def test_a_corner_whose_edges_showed_no_contrast_is_dim():
     assert aid.corners_shown(mem, T_co, ids, 0.1)[0]
 
 
+def test_edge_side_equals_the_numpy_formulation():
+    """The compiled faces-seen code of each edge against front_faces (NumPy), at random poses
+    about the camera's, and with the camera centre in a face's plane (its test on rounding)."""
+    from vespro.imageedges import front_faces
+    from vespro.se3 import exp_so3, transform_from_rt
+
+    for name in ("box", "lblock"):
+        rig, model, frames = _trial_frames(name, 6, 1)
+        aid = EdgeAid(rig, model)
+        ef = aid.mf.edge_faces
+        T0 = np.linalg.solve(rig.cameras[0].T_world_camera, frames[0][1])
+        rng = np.random.default_rng(8)
+        sides = set()
+        for k in range(300):
+            T_co = T0 @ transform_from_rt(exp_so3(rng.normal(size=3) * 1.5), rng.normal(size=3) * 0.05)
+            if k % 2 == 0:  # the camera centre on a face's plane (to rounding)
+                n, d = aid.mf.face_normals[k % len(aid.mf.face_normals)], aid.mf.face_offsets[k % len(aid.mf.face_normals)]
+                c = np.linalg.solve(T_co[:3, :3], -T_co[:3, 3])
+                T_co[:3, 3] = -T_co[:3, :3] @ (c - (n @ c + d) * n)
+            front = front_faces(T_co[None, :3, :3], T_co[None, :3, 3], aid.mf)[0]
+            ref = front[ef[:, 0]].astype(np.int64) + 2 * front[ef[:, 1]].astype(np.int64)
+            side = aid.edge_side(T_co)
+            assert side.dtype == ref.dtype and np.array_equal(side, ref)
+            sides.add(side.tobytes())
+        assert len(sides) > 10
+
+
 def _corners_shown_numpy(aid, contrast, T_co, ids, min_frac):
     """``EdgeAid.corners_shown`` in NumPy, as it was before it was compiled."""
     side = aid.edge_side(T_co)
