@@ -40,7 +40,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from filterpy.common import Q_continuous_white_noise
 from scipy.stats import chi2
 
 from .jit import njit
@@ -395,12 +394,14 @@ def _process_noise_cached(dt: float, q_acc: float, q_alpha: float) -> np.ndarray
         Angular acceleration spectral density, rad^2/s^3.
     """
     Q = np.zeros((12, 12))
-    lin = Q_continuous_white_noise(dim=2, dt=dt, spectral_density=q_acc, block_size=3, order_by_dim=False)
-    ang = Q_continuous_white_noise(dim=2, dt=dt, spectral_density=q_alpha, block_size=3, order_by_dim=False)
-    il = np.r_[0:3, 6:9]
-    ia = np.r_[3:6, 9:12]
-    Q[np.ix_(il, il)] = lin
-    Q[np.ix_(ia, ia)] = ang
+    # filterpy's Q_continuous_white_noise(dim=2, dt, q, block_size=3, order_by_dim=False) of each
+    # part, entry by entry (its arithmetic: the 2x2 block's entries, times the density), in
+    # place: the adaptive motion model changes the densities from frame to frame.
+    d3, d2 = np.float64((dt**3) / 3.0), np.float64((dt**2) / 2.0)
+    for q, base in ((q_acc, 0), (q_alpha, 3)):
+        a, b, c = d3 * q, d2 * q, np.float64(dt) * q
+        for k in range(base, base + 3):
+            Q[k, k], Q[k, k + 6], Q[k + 6, k], Q[k + 6, k + 6] = a, b, b, c
     Q.setflags(write=False)
     return Q
 

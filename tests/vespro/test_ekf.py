@@ -570,3 +570,16 @@ def test_inject_and_reset_equal_inject_and_reset_jacobian_bit_for_bit():
             dx[3:6] *= 1e-4  # below 1e-6 and 1e-8 rad
         a, G = ekf.inject_and_reset(x, dx)
         assert np.array_equal(a, ekf.inject(x, dx)) and np.array_equal(G, ekf.reset_jacobian(dx))
+
+
+def test_process_noise_equals_filterpys_construction_bit_for_bit():
+    """The process noise written entry by entry against filterpy's Q_continuous_white_noise
+    blocks placed as they were (position/velocity and orientation/angular velocity)."""
+    rng = np.random.default_rng(16)
+    for dt, qa, qw in [(DT, Q_ACC, Q_ALPHA), (0.0, 1.0, 1.0), (1e-3, 0.0, 3.0)] + \
+            [tuple(rng.uniform(0.0, 0.2, 3)) for _ in range(50)]:
+        Q = np.zeros((12, 12))
+        il, ia = np.r_[0:3, 6:9], np.r_[3:6, 9:12]
+        Q[np.ix_(il, il)] = Q_continuous_white_noise(dim=2, dt=dt, spectral_density=qa, block_size=3, order_by_dim=False)
+        Q[np.ix_(ia, ia)] = Q_continuous_white_noise(dim=2, dt=dt, spectral_density=qw, block_size=3, order_by_dim=False)
+        assert np.array_equal(ekf.process_noise(dt, qa, qw), Q)
