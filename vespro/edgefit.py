@@ -592,15 +592,19 @@ class EdgeFit:
         if edge_offset_px > 0:
             C = C + edge_offset_px ** 2 * (C_x @ self.offset_gram @ C_x)
         # x = [w, dp] with R = R0 Exp(w): dtheta (left, world) = R0 w.
-        M = np.zeros((6, 6))
-        M[:3, 3:] = np.eye(3)
+        M = _SWAP6.copy()
         M[3:, :3] = R_world_object
         cov = M @ C @ M.T
-        if not np.all(np.isfinite(cov)):
+        if not np.isfinite(cov).all():
             return None
         return 0.5 * (cov + cov.T)
 
 
+
+
+_SWAP6 = np.zeros((6, 6))  # EdgeFit.covariance's M less its rotation block: x = [w, dp] -> [dp, .]
+_SWAP6[:3, 3:] = np.eye(3)
+_SWAP6.setflags(write=False)
 
 
 @njit
@@ -912,12 +916,13 @@ def refine_subpixel(T_world_object: np.ndarray, views: list[CameraView], mf: Mod
             rows_e.append(se[ok] + len(mf.edge_a) * len(rows_e))
         if not rows_J:
             break
-        J = np.concatenate(rows_J)
-        r = np.concatenate(rows_r)
+        one = len(rows_J) == 1  # (one view: its rows as they are, no copy)
+        J = rows_J[0] if one else np.concatenate(rows_J)
+        r = rows_r[0] if one else np.concatenate(rows_r)
         if len(r) < 12:
             break
-        dens = np.concatenate(rows_d)
-        eid = np.concatenate(rows_e)
+        dens = rows_d[0] if one else np.concatenate(rows_d)
+        eid = rows_e[0] if one else np.concatenate(rows_e)
         step, A, n_keep, rms, n_edges, weight, GtG = _solve_edges(J, r, dens, eid, float(f_scale),
                                                                  float(edge_outlier_px))
         if n_keep < 12:

@@ -951,7 +951,7 @@ class Tracker:
             ekf.q_acc, ekf.q_alpha = c.q_acc * self.motion_scale[0], c.q_alpha * self.motion_scale[1]
             ekf.predict(dt)
             self._t_ns = fs.t_ns
-        if not (np.all(np.isfinite(ekf.pose)) and np.all(np.isfinite(ekf.pose_covariance))):
+        if not (np.isfinite(ekf.pose).all() and np.isfinite(ekf.pose_covariance).all()):
             self._lose()
             return TrackerOutput(fs.index, fs.t_ns, self.status)
         T_prior = ekf.pose  # (a copy)
