@@ -36,7 +36,7 @@ import numpy as np
 from .bank import BankOptions, HypothesisBank
 from .bsp import load_or_build_bsp
 from .edgeaid import EdgeAid, EdgeContrast
-from .ekf import PoseEKF
+from .ekf import PoseEKF, mahalanobis_2d
 from .ekf import Status as EKFStatus
 from .extraction import extract_corners, window_half_sizes
 from .features import salient_corners
@@ -740,6 +740,13 @@ class Tracker:
             grey = np.zeros((intr.height, intr.width), np.uint8)
             cv2.fillConvexPoly(grey, cv2.convexHull(np.round(uv).astype(np.int32)), 200)
             self.edge_aid.measure(cam.name, grey, T_wc, T_wo)
+            self.edge_aid.corners_shown(EdgeContrast(self.edge_aid.mf.sample_edge), T_co, vis.indices, 0.5)
+        # The filter's: an edge-fitted pose's update, and the gate's statistic with and without
+        # its floor (the latter for gated corners).
+        self._filter_at(T_wo).update_pose(T_wo, np.eye(6) * 1e-6)
+        r, C = np.zeros((1, 2)), np.eye(2)[None].copy()
+        mahalanobis_2d(r, C, np.ones(1))
+        mahalanobis_2d(r, C, None)
         if self.bank is not None:  # the likelihood's lines, on the same made-up view
             lk = self.bank.likelihood
             lk(T_wo, [(T_wc, lk.edge_image(img, intr.K))])
