@@ -305,6 +305,8 @@ def test_projection_box_matches_numpy(scene):
     """The compiled box around a model's projection against the NumPy code: random poses
     about both cameras', with margins that put the box's sides on exact integers, part of
     the model behind the camera, off the image, a NaN pose and a far one."""
+    if not bitwise():
+        pytest.skip("this platform's BLAS accumulates otherwise: the box may differ on a rounding edge")
     model, mf, _, views = scene
     rng = np.random.default_rng(9)
     n_none = 0
