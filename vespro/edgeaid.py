@@ -120,20 +120,11 @@ class EdgeContrast:
 
     def expect(self, edge_side: np.ndarray) -> np.ndarray:
         """Each sample's expected signed contrast with its edge's faces seen as ``edge_side`` (E,) (NaN: unknown)."""
-        known = (self.frames >= self.min_frames) & (self.side == edge_side[self.edge])
-        return np.where(known, self.contrast, np.nan)
+        return _expect_kernel(self.frames, self.side, self.contrast, self.edge, edge_side, self.min_frames)
 
     def learn(self, contrast: np.ndarray, edge_side: np.ndarray) -> None:
         """A frame's sample contrasts (S,) (NaN: not seen), the edges' faces seen as ``edge_side`` (E,)."""
-        side = edge_side[self.edge]
-        seen = np.isfinite(contrast)
-        fresh = seen & ((self.side != side) | (self.frames == 0))
-        same = seen & ~fresh
-        self.contrast[fresh] = contrast[fresh]
-        self.frames[fresh] = 1
-        self.side[fresh] = side[fresh]
-        self.contrast[same] += self.rate * (contrast[same] - self.contrast[same])
-        self.frames[same] += 1
+        _learn_kernel(self.frames, self.side, self.contrast, self.edge, edge_side, contrast, float(self.rate))
 
 
 class EdgeAid:
@@ -387,3 +378,31 @@ def _edge_side_kernel(T, face_normals, face_offsets, edge_faces):
         f0, f1 = edge_faces[e, 0], edge_faces[e, 1]
         side[e] = int(front[f0 + F if f0 < 0 else f0]) + 2 * int(front[f1 + F if f1 < 0 else f1])  # (NumPy's negative index)
     return side
+
+
+@njit
+def _expect_kernel(frames, side_seen, contrast, edge, side, min_frames):
+    """:meth:`EdgeContrast.expect`, compiled: the learnt contrast where known, else NaN."""
+    out = np.empty(contrast.shape[0])
+    for i in range(contrast.shape[0]):
+        out[i] = contrast[i] if frames[i] >= min_frames and side_seen[i] == side[edge[i]] else np.nan
+    return out
+
+
+@njit
+def _learn_kernel(frames, side_seen, learnt, edge, side, contrast, rate):
+    """:meth:`EdgeContrast.learn`, compiled (in place): a sample seen with other faces, or for
+    the first time, starts again from its contrast; one seen as before moves ``rate`` of the
+    way to it (NumPy's ``a += rate * (c - a)``, the same arithmetic)."""
+    for i in range(contrast.shape[0]):
+        c = contrast[i]
+        if not np.isfinite(c):
+            continue
+        s = side[edge[i]]
+        if side_seen[i] != s or frames[i] == 0:
+            learnt[i] = c
+            frames[i] = 1
+            side_seen[i] = s
+        else:
+            learnt[i] = learnt[i] + rate * (c - learnt[i])
+            frames[i] += 1

@@ -739,8 +739,11 @@ class Tracker:
             uv = V[:, :2] / V[:, 2:] @ np.diag([intr.K[0, 0], intr.K[1, 1]]) + intr.K[:2, 2]
             grey = np.zeros((intr.height, intr.width), np.uint8)
             cv2.fillConvexPoly(grey, cv2.convexHull(np.round(uv).astype(np.int32)), 200)
-            self.edge_aid.measure(cam.name, grey, T_wc, T_wo)
-            self.edge_aid.corners_shown(EdgeContrast(self.edge_aid.mf.sample_edge), T_co, vis.indices, 0.5)
+            memory = EdgeContrast(self.edge_aid.mf.sample_edge)
+            m = self.edge_aid.measure(cam.name, grey, T_wc, T_wo, memory)
+            side = self.edge_aid.edge_side(T_co)
+            memory.learn(m.fit.sample_contrast[0] if m is not None else np.full(len(memory.edge), np.nan), side)
+            self.edge_aid.corners_shown(memory, T_co, vis.indices, 0.5)
         # The filter's: an edge-fitted pose's update, and the gate's statistic with and without
         # its floor (the latter for gated corners).
         self._filter_at(T_wo).update_pose(T_wo, np.eye(6) * 1e-6)

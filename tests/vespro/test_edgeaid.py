@@ -566,6 +566,36 @@ def test_edge_side_equals_the_numpy_formulation():
         assert len(sides) > 10
 
 
+def test_edge_contrast_learns_and_expects_as_the_numpy_formulation():
+    """The compiled memory against its NumPy code, frame after frame: NaN contrasts (not seen),
+    faces seen changing, samples seen for the first time."""
+    from vespro.edgeaid import EdgeContrast
+
+    rng = np.random.default_rng(21)
+    edge = rng.integers(0, 12, 300)
+    mem = EdgeContrast(edge, rate=0.3, min_frames=2)
+    ref = {"contrast": np.full(300, np.nan), "frames": np.zeros(300, np.int64), "side": np.full(300, -1, np.int64)}
+    for frame in range(40):
+        c = rng.normal(0.0, 100.0, 300)
+        c[rng.random(300) < 0.3] = np.nan
+        side = rng.integers(0, 4, 12) if frame % 7 == 0 else (side if frame else rng.integers(0, 4, 12))
+        mem.learn(c, side)
+        s = side[edge]  # the NumPy formulation
+        seen = np.isfinite(c)
+        fresh = seen & ((ref["side"] != s) | (ref["frames"] == 0))
+        same = seen & ~fresh
+        ref["contrast"][fresh] = c[fresh]
+        ref["frames"][fresh] = 1
+        ref["side"][fresh] = s[fresh]
+        ref["contrast"][same] += 0.3 * (c[same] - ref["contrast"][same])
+        ref["frames"][same] += 1
+        assert np.array_equal(mem.contrast, ref["contrast"], equal_nan=True)
+        assert np.array_equal(mem.frames, ref["frames"]) and np.array_equal(mem.side, ref["side"])
+        known = (ref["frames"] >= 2) & (ref["side"] == side[edge])
+        assert np.array_equal(mem.expect(side), np.where(known, ref["contrast"], np.nan), equal_nan=True)
+    assert np.isfinite(mem.expect(side)).sum() > 100
+
+
 def _corners_shown_numpy(aid, contrast, T_co, ids, min_frac):
     """``EdgeAid.corners_shown`` in NumPy, as it was before it was compiled."""
     side = aid.edge_side(T_co)
