@@ -754,6 +754,7 @@ class Tracker:
             lk = self.bank.likelihood
             lk(T_wo, [(T_wc, lk.edge_image(img, intr.K))])
         log_so3(T_wo[:3, :3])
+        add(T_wo, T_wo, self.model.vertices)
 
     # -- starting and stopping ----------------------------------------------
     def canonical_pose(self, T_world_object: np.ndarray) -> np.ndarray:

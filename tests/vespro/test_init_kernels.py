@@ -31,7 +31,7 @@ from vespro.init.features import extract_features, normal_bins
 from vespro.init.modelfeat import model_features
 from vespro.library import object_mesh_path
 from vespro.model import load_model
-from vespro.numerics import dot3
+from vespro.numerics import dot3, pairwise_sum
 from vespro.se3 import exp_so3, invert_transform, transform_from_rt
 
 NAMES = ("box", "lblock", "bracket")
@@ -604,9 +604,12 @@ def test_pairwise_sum_is_numpys():
     rng = np.random.default_rng(2)
     for n in [*range(140), 255, 256, 257, 1057, 5000]:
         a = (rng.random(n) * (rng.random(n) < 0.7)).astype(np.float32)
-        assert_same_bits(np.float32(a.sum()), np.float32(search._pairwise_sum_f32(a, n)))
+        assert_same_bits(np.float32(a.sum()), np.float32(pairwise_sum(a, n)))
         A = np.tile(a, (3, 1))
-        assert_same_bits(A.sum(1)[1], np.float32(search._pairwise_sum_f32(a, n)))
+        assert_same_bits(A.sum(1)[1], np.float32(pairwise_sum(a, n)))
+        b = rng.normal(size=n) * 10.0 ** rng.uniform(-3, 3, n)
+        assert_same_bits(b.sum(), np.float64(pairwise_sum(b, n)))
+        assert_same_bits(np.mean(b) if n else np.float64(0.0), np.float64(pairwise_sum(b, n) / max(n, 1)))
 
 
 def test_normal_bin_is_normal_bins():
