@@ -13,6 +13,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .jit import njit
+from .numerics import dot3
+
 __all__ = ["CameraIntrinsics", "project_points", "distort_normalized", "undistort_pixels"]
 
 
@@ -149,7 +152,41 @@ def project_points(intr: CameraIntrinsics, T_camera_object: np.ndarray, P_object
         Pixel coordinates (distortion applied). Points behind the camera get NaN.
     z : ndarray, shape (N,)
         Depth along the optical axis, m.
+
+    Without distortion compiled (:func:`_project_pinhole`, the visibility query projects
+    every frame), else as :func:`project_points_numpy`.
     """
+    P_object = np.asarray(P_object, dtype=float).reshape(-1, 3)
+    if not intr.has_distortion and len(P_object) != 1:  # (NumPy multiplies one point otherwise: gemv)
+        K = intr.K
+        return _project_pinhole(np.ascontiguousarray(T_camera_object, dtype=float), np.ascontiguousarray(P_object),
+                                float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]))
+    return project_points_numpy(intr, T_camera_object, P_object)
+
+
+@njit
+def _project_pinhole(T, P, fx, fy, cx, cy):
+    """:func:`project_points_numpy` without distortion, compiled: its operations in its order
+    (the rotation as OpenBLAS's gemm, :func:`vespro.numerics.dot3`), so the same bits."""
+    N = P.shape[0]
+    uv = np.empty((N, 2))
+    z = np.empty(N)
+    for i in range(N):
+        X0 = dot3(P[i, 0], P[i, 1], P[i, 2], T[0, 0], T[0, 1], T[0, 2]) + T[0, 3]
+        X1 = dot3(P[i, 0], P[i, 1], P[i, 2], T[1, 0], T[1, 1], T[1, 2]) + T[1, 3]
+        zi = dot3(P[i, 0], P[i, 1], P[i, 2], T[2, 0], T[2, 1], T[2, 2]) + T[2, 3]
+        z[i] = zi
+        x, y = X0 / zi, X1 / zi
+        if zi <= 1e-9:
+            x = y = np.nan
+        uv[i, 0] = fx * x + cx
+        uv[i, 1] = fy * y + cy
+    return uv, z
+
+
+def project_points_numpy(intr: CameraIntrinsics, T_camera_object: np.ndarray,
+                         P_object: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`project_points` in NumPy (distortion included)."""
     P_object = np.asarray(P_object, dtype=float).reshape(-1, 3)
     P_c = P_object @ T_camera_object[:3, :3].T + T_camera_object[:3, 3]
     z = P_c[:, 2]

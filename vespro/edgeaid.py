@@ -30,12 +30,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .imageedges import front_faces as _front
 from .imageedges import image_gradient as _gradient
 from .imageedges import projection_box
 from .init.features import Undistorter
 from .init.modelfeat import model_features
+from .jit import njit
 from .memory import ScratchImages
+from .numerics import front_face_mask
 from .edgefit import CameraView, EdgeFit, refine_subpixel
 from .model import Model
 from .rig import Rig
@@ -119,20 +120,11 @@ class EdgeContrast:
 
     def expect(self, edge_side: np.ndarray) -> np.ndarray:
         """Each sample's expected signed contrast with its edge's faces seen as ``edge_side`` (E,) (NaN: unknown)."""
-        known = (self.frames >= self.min_frames) & (self.side == edge_side[self.edge])
-        return np.where(known, self.contrast, np.nan)
+        return _expect_kernel(self.frames, self.side, self.contrast, self.edge, edge_side, self.min_frames)
 
     def learn(self, contrast: np.ndarray, edge_side: np.ndarray) -> None:
         """A frame's sample contrasts (S,) (NaN: not seen), the edges' faces seen as ``edge_side`` (E,)."""
-        side = edge_side[self.edge]
-        seen = np.isfinite(contrast)
-        fresh = seen & ((self.side != side) | (self.frames == 0))
-        same = seen & ~fresh
-        self.contrast[fresh] = contrast[fresh]
-        self.frames[fresh] = 1
-        self.side[fresh] = side[fresh]
-        self.contrast[same] += self.rate * (contrast[same] - self.contrast[same])
-        self.frames[same] += 1
+        _learn_kernel(self.frames, self.side, self.contrast, self.edge, edge_side, contrast, float(self.rate))
 
 
 class EdgeAid:
@@ -270,9 +262,9 @@ class EdgeAid:
 
     def edge_side(self, T_camera_object: np.ndarray) -> np.ndarray:
         """Which of each model edge's two faces the camera sees (bit 0: the first, bit 1: the second), (E,)."""
-        front = _front(T_camera_object[None, :3, :3], T_camera_object[None, :3, 3], self.mf)[0]
-        ef = self.mf.edge_faces
-        return front[ef[:, 0]].astype(np.int64) + 2 * front[ef[:, 1]].astype(np.int64)
+        mf = self.mf
+        return _edge_side_kernel(np.ascontiguousarray(T_camera_object, dtype=float), mf.face_normals,
+                                 mf.face_offsets, mf.edge_faces)
 
     def corners_shown(self, contrast: EdgeContrast, T_camera_object: np.ndarray, corner_ids: np.ndarray,
                       min_frac: float) -> np.ndarray:
@@ -289,17 +281,9 @@ class EdgeAid:
         not yet learnt as seen. True where not dim (all True while nothing is learnt).
         """
         ids = np.asarray(corner_ids, np.int64)
-        side = self.edge_side(T_camera_object)
-        known = (contrast.frames >= 1) & (contrast.side == side[contrast.edge]) & np.isfinite(contrast.contrast)
-        if not known.any() or ids.size == 0:
-            return np.ones(ids.size, bool)
-        level = min_frac * float(np.median(np.abs(contrast.contrast[known])))
-        s = self.corner_ends[ids]
-        valid = s >= 0
-        sk = np.where(valid, s, 0)
-        strong = valid & known[sk] & (np.abs(np.nan_to_num(contrast.contrast[sk])) >= level)
-        unknown = valid & ~known[sk]
-        return (strong | unknown).sum(axis=1) >= 2
+        return _corners_shown_kernel(contrast.frames, contrast.side, contrast.contrast, contrast.edge,
+                                     self.edge_side(T_camera_object), self.corner_ends, ids, float(min_frac))
+
 
     def measure(self, name: str, image: np.ndarray, T_world_camera: np.ndarray,
                 T_world_object: np.ndarray, contrast: EdgeContrast | None = None,
@@ -315,7 +299,7 @@ class EdgeAid:
         :attr:`edge_offset_px`.
         """
         T_wc = np.asarray(T_world_camera, float)
-        if not (np.all(np.isfinite(T_wc)) and np.all(np.isfinite(T_world_object))):
+        if not (np.isfinite(T_wc).all() and np.isfinite(T_world_object).all()):
             return None
         K = self.K[name]
         roi = self._roi(K, T_wc, T_world_object, image.shape[1], image.shape[0])
@@ -346,3 +330,79 @@ class EdgeAid:
         if cov is None:
             return None
         return EdgeMeasurement(T, cov / max(fit.found_frac, 0.05) ** self.found_power, fit, self.edge_side(T_cw @ T))
+
+
+@njit
+def _corners_shown_kernel(frames, side_seen, contrast, edge, side, corner_ends, ids, min_frac):
+    """:meth:`EdgeAid.corners_shown` past the faces seen (``side``, (E,)), compiled: the samples
+    known, the median of their contrasts' magnitudes (NumPy's: the middle one, or the mean of
+    the middle two) and each corner's count of strong or unknown end samples. Comparisons of
+    the same values as the NumPy formulation's, so the same answer."""
+    S = edge.shape[0]
+    known = np.empty(S, np.bool_)
+    mags = np.empty(S)
+    m = 0
+    for i in range(S):
+        known[i] = frames[i] >= 1 and side_seen[i] == side[edge[i]] and np.isfinite(contrast[i])
+        if known[i]:
+            mags[m] = abs(contrast[i])
+            m += 1
+    n = ids.shape[0]
+    out = np.ones(n, np.bool_)
+    if m == 0 or n == 0:
+        return out
+    a = np.sort(mags[:m])
+    med = a[m // 2] if m % 2 == 1 else (a[m // 2 - 1] + a[m // 2]) / 2.0
+    level = min_frac * med
+    for j in range(n):
+        count = 0
+        for k in range(corner_ends.shape[1]):
+            e = corner_ends[ids[j], k]
+            if e < 0:
+                continue
+            if not known[e] or abs(contrast[e]) >= level:
+                count += 1
+        out[j] = count >= 2
+    return out
+
+
+@njit
+def _edge_side_kernel(T, face_normals, face_offsets, edge_faces):
+    """:meth:`EdgeAid.edge_side`, compiled (the faces seen by :func:`vespro.numerics.front_face_mask`,
+    the bits of :func:`vespro.imageedges.front_faces`)."""
+    front = front_face_mask(T, face_normals, face_offsets)
+    E = edge_faces.shape[0]
+    side = np.empty(E, np.int64)
+    F = front.shape[0]
+    for e in range(E):
+        f0, f1 = edge_faces[e, 0], edge_faces[e, 1]
+        side[e] = int(front[f0 + F if f0 < 0 else f0]) + 2 * int(front[f1 + F if f1 < 0 else f1])  # (NumPy's negative index)
+    return side
+
+
+@njit
+def _expect_kernel(frames, side_seen, contrast, edge, side, min_frames):
+    """:meth:`EdgeContrast.expect`, compiled: the learnt contrast where known, else NaN."""
+    out = np.empty(contrast.shape[0])
+    for i in range(contrast.shape[0]):
+        out[i] = contrast[i] if frames[i] >= min_frames and side_seen[i] == side[edge[i]] else np.nan
+    return out
+
+
+@njit
+def _learn_kernel(frames, side_seen, learnt, edge, side, contrast, rate):
+    """:meth:`EdgeContrast.learn`, compiled (in place): a sample seen with other faces, or for
+    the first time, starts again from its contrast; one seen as before moves ``rate`` of the
+    way to it (NumPy's ``a += rate * (c - a)``, the same arithmetic)."""
+    for i in range(contrast.shape[0]):
+        c = contrast[i]
+        if not np.isfinite(c):
+            continue
+        s = side[edge[i]]
+        if side_seen[i] != s or frames[i] == 0:
+            learnt[i] = c
+            frames[i] = 1
+            side_seen[i] = s
+        else:
+            learnt[i] = learnt[i] + rate * (c - learnt[i])
+            frames[i] += 1

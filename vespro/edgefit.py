@@ -20,6 +20,7 @@ bit for bit (``tests/vespro/test_init_kernels.py`` keeps that code as the refere
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -591,15 +592,19 @@ class EdgeFit:
         if edge_offset_px > 0:
             C = C + edge_offset_px ** 2 * (C_x @ self.offset_gram @ C_x)
         # x = [w, dp] with R = R0 Exp(w): dtheta (left, world) = R0 w.
-        M = np.zeros((6, 6))
-        M[:3, 3:] = np.eye(3)
+        M = _SWAP6.copy()
         M[3:, :3] = R_world_object
         cov = M @ C @ M.T
-        if not np.all(np.isfinite(cov)):
+        if not np.isfinite(cov).all():
             return None
         return 0.5 * (cov + cov.T)
 
 
+
+
+_SWAP6 = np.zeros((6, 6))  # EdgeFit.covariance's M less its rotation block: x = [w, dp] -> [dp, .]
+_SWAP6[:3, 3:] = np.eye(3)
+_SWAP6.setflags(write=False)
 
 
 @njit
@@ -869,6 +874,10 @@ def refine_subpixel(T_world_object: np.ndarray, views: list[CameraView], mf: Mod
     T = np.array(T_world_object, float)
     offs = np.arange(-search_px, search_px + 1e-9, 0.5)
     fit = None
+    cams = []  # per view: T_camera_world and its rotation, the same every round
+    for v in views:
+        T_cw = invert_transform(v.T_world_camera)
+        cams.append((T_cw, np.ascontiguousarray(T_cw[:3, :3])))
     for _ in range(rounds):
         rows_J, rows_r, rows_e, rows_d = [], [], [], []
         n_searched = 0
@@ -876,7 +885,7 @@ def refine_subpixel(T_world_object: np.ndarray, views: list[CameraView], mf: Mod
         contrast = []
         R = np.ascontiguousarray(T[:3, :3])
         for iv, v in enumerate(views):
-            T_cw = invert_transform(v.T_world_camera)
+            T_cw, R_cw = cams[iv]
             T_co = T_cw @ T
             idx = visible_samples(T_co, mf, tree)
             contrast.append(np.full(len(mf.sample_p), np.nan) if info else None)
@@ -887,7 +896,7 @@ def refine_subpixel(T_world_object: np.ndarray, views: list[CameraView], mf: Mod
             exp = np.full(idx.size, np.nan) if expect is None or expect[iv] is None else \
                 np.asarray(expect[iv], float)[idx]
             ok, sstar, c_peak, c0, dens, lost, w_strip, Jv = _subpixel_view_kernel(
-                v.feat.grad, K[0, 0], K[1, 1], K[0, 2], K[1, 2], T_co, R, np.ascontiguousarray(T_cw[:3, :3]), idx,
+                v.feat.grad, K[0, 0], K[1, 1], K[0, 2], K[1, 2], T_co, R, R_cw, idx,
                 mf.sample_p, mf.sample_edge, mf.edge_a, mf.edge_b, offs, float(min_grad), float(near_peak_frac), exp,
                 float(contrast_ratio[0]), float(contrast_ratio[1]), float(spacing_px), float(shared_edge_px),
                 COS_PARALLEL, mf.tri_p, mf.tri_face, mf.edge_faces, len(mf.face_normals))
@@ -907,12 +916,13 @@ def refine_subpixel(T_world_object: np.ndarray, views: list[CameraView], mf: Mod
             rows_e.append(se[ok] + len(mf.edge_a) * len(rows_e))
         if not rows_J:
             break
-        J = np.concatenate(rows_J)
-        r = np.concatenate(rows_r)
+        one = len(rows_J) == 1  # (one view: its rows as they are, no copy)
+        J = rows_J[0] if one else np.concatenate(rows_J)
+        r = rows_r[0] if one else np.concatenate(rows_r)
         if len(r) < 12:
             break
-        dens = np.concatenate(rows_d)
-        eid = np.concatenate(rows_e)
+        dens = rows_d[0] if one else np.concatenate(rows_d)
+        eid = rows_e[0] if one else np.concatenate(rows_e)
         step, A, n_keep, rms, n_edges, weight, GtG = _solve_edges(J, r, dens, eid, float(f_scale),
                                                                  float(edge_outlier_px))
         if n_keep < 12:
@@ -921,6 +931,7 @@ def refine_subpixel(T_world_object: np.ndarray, views: list[CameraView], mf: Mod
             fit = EdgeFit(A, rms, n_keep, n_edges, n_searched, weight, weight + w_shared, w_searched, GtG,
                           tuple(contrast))
         T = _perturbed(T, step)
-        if np.linalg.norm(step[:3]) < 1e-5 and np.linalg.norm(step[3:]) < 1e-6:
+        dw, dp = step[:3], step[3:]
+        if math.sqrt(dw @ dw) < 1e-5 and math.sqrt(dp @ dp) < 1e-6:  # (np.linalg.norm of a vector)
             break
     return (T, fit) if info else T

@@ -40,11 +40,10 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from filterpy.common import Q_continuous_white_noise
-from filterpy.kalman import predict as kf_predict
-from filterpy.kalman import update as kf_update
 from scipy.stats import chi2
 
+from .jit import njit
+from .numerics import dot3, dot4
 from .se3 import log_so3, matrix_from_quat, rotation_rows, skew
 
 __all__ = [
@@ -64,6 +63,9 @@ __all__ = [
     "update",
     "nees",
     "stack_jacobian",
+    "inject_and_reset",
+    "mahalanobis_2d",
+    "mahalanobis_2d_numpy",
 ]
 
 # Nominal-state slices (13,)
@@ -130,19 +132,22 @@ class UpdateResult:
 
 
 def _quat_exp(v: np.ndarray) -> np.ndarray:
-    """Unit quaternion (w, x, y, z) of the rotation vector ``v`` (3,)."""
-    a = math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
+    """Unit quaternion (w, x, y, z) of the rotation vector ``v`` (3,).
+
+    (In plain floats: the same IEEE arithmetic as on NumPy's scalars, at a tenth of the cost.)"""
+    v0, v1, v2 = v.tolist()
+    a = math.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
     if a < 1e-8:
-        q = np.array([1.0, 0.5 * v[0], 0.5 * v[1], 0.5 * v[2]])
+        q = np.array([1.0, 0.5 * v0, 0.5 * v1, 0.5 * v2])
         return q / math.sqrt(q @ q)
     s = math.sin(0.5 * a) / a
-    return np.array([math.cos(0.5 * a), s * v[0], s * v[1], s * v[2]])
+    return np.array([math.cos(0.5 * a), s * v0, s * v1, s * v2])
 
 
 def _quat_mul(p: np.ndarray, q: np.ndarray) -> np.ndarray:
     """Hamilton product of two single quaternions (4,)."""
-    pw, px, py, pz = p
-    qw, qx, qy, qz = q
+    pw, px, py, pz = p.tolist()
+    qw, qx, qy, qz = q.tolist()
     return np.array([
         pw * qw - px * qx - py * qy - pz * qz,
         pw * qx + px * qw + py * qz - pz * qy,
@@ -192,14 +197,26 @@ def pose_from_state(x: np.ndarray) -> np.ndarray:
     return np.array([[*r0, px], [*r1, py], [*r2, pz], [0.0, 0.0, 0.0, 1.0]])
 
 
+def _unit_rotation(q: np.ndarray) -> np.ndarray:
+    """:func:`vespro.se3.matrix_from_quat` of one finite quaternion (4,): its normalisation
+    (``np.linalg.norm`` of four sums them in order) in plain floats, without its checks."""
+    w, x, y, z = q.tolist()
+    n = math.sqrt(((w * w + x * x) + y * y) + z * z)
+    return np.array(rotation_rows(w / n, x / n, y / n, z / n))
+
+
 def left_jacobian_so3(phi: np.ndarray) -> np.ndarray:
-    """Left Jacobian of SO(3): ``Exp(phi + d) ~= Exp(Jl(phi) d) Exp(phi)``, (3,) -> (3, 3)."""
+    """Left Jacobian of SO(3): ``Exp(phi + d) ~= Exp(Jl(phi) d) Exp(phi)``, (3,) -> (3, 3).
+
+    (``np.linalg.norm`` of a vector is ``sqrt(phi @ phi)``, and NumPy's scalar ``cos``
+    and ``sin`` of a float are libm's: written so, without their per-call overhead.)
+    """
     phi = np.asarray(phi, dtype=float)
-    a = float(np.linalg.norm(phi))
+    a = math.sqrt(phi @ phi)
     S = skew(phi)
     if a < 1e-6:
-        return np.eye(3) + 0.5 * S + S @ S / 6.0
-    return np.eye(3) + (1.0 - np.cos(a)) / a**2 * S + (a - np.sin(a)) / a**3 * (S @ S)
+        return _EYE3 + 0.5 * S + S @ S / 6.0
+    return _EYE3 + (1.0 - math.cos(a)) / a**2 * S + (a - math.sin(a)) / a**3 * (S @ S)
 
 
 def inject(x: np.ndarray, dx: np.ndarray) -> np.ndarray:
@@ -241,9 +258,60 @@ def reset_jacobian(dx: np.ndarray) -> np.ndarray:
     ``e_new = Jl(dtheta_hat) e`` (``~ I + [dtheta_hat]x / 2``). The other
     blocks are identities (additive errors).
     """
-    G = np.eye(12)
+    G = _EYE12.copy()
     G[DTH, DTH] = left_jacobian_so3(dx[DTH])
     return G
+
+
+def inject_and_reset(x: np.ndarray, dx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(inject(x, dx), reset_jacobian(dx))``, the same bits, compiled
+    (:func:`_inject_reset_kernel`; the two scalars of the Jacobian's series taken here, as
+    :func:`left_jacobian_so3` does: libm's ``pow``)."""
+    phi = dx[DTH]
+    a = math.sqrt(phi @ phi)
+    if a < 1e-6:
+        return _inject_reset_kernel(x, dx, True, 0.5, 0.0)
+    return _inject_reset_kernel(x, dx, False, (1.0 - math.cos(a)) / a**2, (a - math.sin(a)) / a**3)
+
+
+@njit
+def _inject_reset_kernel(x, dx, series, c1, c2):
+    """:func:`inject` and :func:`reset_jacobian` in one pass: their operations in their order
+    (the quaternions' dot products and ``S @ S`` as OpenBLAS forms them, FMA chains,
+    :func:`vespro.numerics.dot3`), so the same bits. ``series``: the Jacobian's small-angle
+    form (``c1`` 0.5, ``S @ S / 6``), else ``I + c1 S + c2 S @ S``."""
+    out = np.empty(13)
+    for i in range(3):
+        out[i] = x[i] + dx[i]
+        out[7 + i] = x[7 + i] + dx[6 + i]
+        out[10 + i] = x[10 + i] + dx[9 + i]
+    v0, v1, v2 = dx[3], dx[4], dx[5]
+    a = math.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
+    if a < 1e-8:  # _quat_exp
+        pw, px, py, pz = 1.0, 0.5 * v0, 0.5 * v1, 0.5 * v2
+        n = math.sqrt(dot4(pw, px, py, pz, pw, px, py, pz))
+        pw, px, py, pz = pw / n, px / n, py / n, pz / n
+    else:
+        sa = math.sin(0.5 * a) / a
+        pw, px, py, pz = math.cos(0.5 * a), sa * v0, sa * v1, sa * v2
+    qw, qx, qy, qz = x[3], x[4], x[5], x[6]  # _quat_mul
+    rw = pw * qw - px * qx - py * qy - pz * qz
+    rx = pw * qx + px * qw + py * qz - pz * qy
+    ry = pw * qy - px * qz + py * qw + pz * qx
+    rz = pw * qz + px * qy - py * qx + pz * qw
+    n = math.sqrt(dot4(rw, rx, ry, rz, rw, rx, ry, rz))
+    out[3], out[4], out[5], out[6] = rw / n, rx / n, ry / n, rz / n
+    S = np.array([[0.0, -v2, v1], [v2, 0.0, -v0], [-v1, v0, 0.0]])  # skew
+    G = np.eye(12)
+    for i in range(3):
+        for j in range(3):
+            SS = dot3(S[i, 0], S[i, 1], S[i, 2], S[0, j], S[1, j], S[2, j])
+            eye = 1.0 if i == j else 0.0
+            if series:
+                G[3 + i, 3 + j] = (eye + 0.5 * S[i, j]) + SS / 6.0
+            else:
+                G[3 + i, 3 + j] = (eye + c1 * S[i, j]) + c2 * SS
+    return out, G
 
 
 # --------------------------------------------------------------------------- motion model
@@ -286,6 +354,8 @@ def transition_jacobian(x: np.ndarray, dt: float) -> np.ndarray:
     return F
 
 
+_EYE2 = np.eye(2)
+_EYE2.setflags(write=False)
 _EYE3 = np.eye(3)
 _EYE3.setflags(write=False)
 _EYE12 = np.eye(12)
@@ -324,12 +394,14 @@ def _process_noise_cached(dt: float, q_acc: float, q_alpha: float) -> np.ndarray
         Angular acceleration spectral density, rad^2/s^3.
     """
     Q = np.zeros((12, 12))
-    lin = Q_continuous_white_noise(dim=2, dt=dt, spectral_density=q_acc, block_size=3, order_by_dim=False)
-    ang = Q_continuous_white_noise(dim=2, dt=dt, spectral_density=q_alpha, block_size=3, order_by_dim=False)
-    il = np.r_[0:3, 6:9]
-    ia = np.r_[3:6, 9:12]
-    Q[np.ix_(il, il)] = lin
-    Q[np.ix_(ia, ia)] = ang
+    # filterpy's Q_continuous_white_noise(dim=2, dt, q, block_size=3, order_by_dim=False) of each
+    # part, entry by entry (its arithmetic: the 2x2 block's entries, times the density), in
+    # place: the adaptive motion model changes the densities from frame to frame.
+    d3, d2 = np.float64((dt**3) / 3.0), np.float64((dt**2) / 2.0)
+    for q, base in ((q_acc, 0), (q_alpha, 3)):
+        a, b, c = d3 * q, d2 * q, np.float64(dt) * q
+        for k in range(base, base + 3):
+            Q[k, k], Q[k, k + 6], Q[k + 6, k], Q[k + 6, k + 6] = a, b, b, c
     Q.setflags(write=False)
     return Q
 
@@ -345,9 +417,25 @@ def predict(x: np.ndarray, P: np.ndarray, dt: float, q_acc: float, q_alpha: floa
 
 
 def _propagate(P: np.ndarray, F: np.ndarray, Q: np.ndarray) -> np.ndarray:
-    """``F P F^T + Q`` (filterpy's ``predict``), symmetrised."""
-    _, P_new = kf_predict(np.zeros(12), P, F, Q)
+    """``F P F^T + Q`` (filterpy's ``predict``, its products in its order), symmetrised."""
+    P_new = np.dot(np.dot(F, P), F.T) + Q
     return 0.5 * (P_new + P_new.T)
+
+
+def _kalman_step(P: np.ndarray, y: np.ndarray, R: np.ndarray, H: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """filterpy's ``update`` (Joseph form) of the error state, prior mean zero, measurement
+    ``y``: its products in its order, so the same ``(dx, P+)`` to the bit, without its
+    argument handling (a filter step makes up to three)."""
+    PHT = np.dot(P, H.T)
+    S = np.dot(np.dot(H, P), H.T) + R
+    K = np.dot(PHT, np.linalg.inv(S))
+    dx = _ZERO12 + np.dot(K, y)
+    I_KH = _EYE12 - np.dot(K, H)
+    return dx, np.dot(np.dot(I_KH, P), I_KH.T) + np.dot(np.dot(K, R), K.T)
+
+
+_ZERO12 = np.zeros(12)
+_ZERO12.setflags(write=False)
 
 
 # --------------------------------------------------------------------------- measurement update
@@ -361,16 +449,39 @@ def stack_jacobian(J_pose: np.ndarray) -> np.ndarray:
     return H.reshape(-1, 12)
 
 
-def _inv2x2(A: np.ndarray) -> np.ndarray:
-    """Batched inverse of (M, 2, 2) symmetric matrices."""
-    a, b, c, d = A[:, 0, 0], A[:, 0, 1], A[:, 1, 0], A[:, 1, 1]
+def mahalanobis_2d_numpy(r: np.ndarray, C: np.ndarray) -> np.ndarray:
+    """``r_m^T C_m^-1 r_m`` for residuals ``r`` (M, 2) and covariances ``C`` (M, 2, 2): the
+    NumPy formulation :func:`mahalanobis_2d` computes (the closed-form inverse, then
+    ``einsum``)."""
+    a, b, c, d = C[:, 0, 0], C[:, 0, 1], C[:, 1, 0], C[:, 1, 1]
     det = a * d - b * c
-    inv = np.empty_like(A)
+    inv = np.empty_like(C)
     inv[:, 0, 0] = d
     inv[:, 0, 1] = -b
     inv[:, 1, 0] = -c
     inv[:, 1, 1] = a
-    return inv / det[:, None, None]
+    return np.einsum("mi,mij,mj->m", r, inv / det[:, None, None], r)
+
+
+@njit
+def mahalanobis_2d(r, C, floor):
+    """:func:`mahalanobis_2d_numpy`, compiled, with ``C``'s diagonal first raised to at least
+    ``floor`` (M,) (``np.maximum``: NaN stays NaN; ``floor`` None: as it is). The same
+    operations in the same order (``einsum`` sums ``r_i C^-1_ij r_j`` over ``i`` then ``j``,
+    each term ``(r_i c_ij) r_j``), so the same bits; ``C`` is not changed."""
+    M = r.shape[0]
+    out = np.empty(M)
+    for m in range(M):
+        a, b, c, d = C[m, 0, 0], C[m, 0, 1], C[m, 1, 0], C[m, 1, 1]
+        if floor is not None:
+            f = floor[m]
+            a = a if a >= f or np.isnan(a) else f  # np.maximum(a, f)
+            d = d if d >= f or np.isnan(d) else f
+        det = a * d - b * c
+        i00, i01, i10, i11 = d / det, -b / det, -c / det, a / det
+        r0, r1 = r[m, 0], r[m, 1]
+        out[m] = ((r0 * i00 * r0 + r0 * i01 * r1) + r1 * i10 * r0) + r1 * i11 * r1
+    return out
 
 
 @functools.lru_cache(maxsize=64)
@@ -484,10 +595,12 @@ def update(
     accepted = finite.copy()
     nis = np.full(M, np.nan)
     H_all = np.zeros((M, 2, 12))
-    H_all[:, :, :6] = np.where(finite[:, None, None], J_pose, 0.0)
-    y_all = np.where(finite[:, None], y_all, 0.0)
+    if finite.all():
+        H_all[:, :, :6] = J_pose
+    else:
+        H_all[:, :, :6] = np.where(finite[:, None, None], J_pose, 0.0)
+        y_all = np.where(finite[:, None], y_all, 0.0)
     gate = _gate_2dof(float(gate_prob))
-    I2 = np.eye(2)
 
     dx = None
     P_post = None
@@ -495,15 +608,13 @@ def update(
         idx = np.flatnonzero(accepted)
         H = H_all[idx].reshape(-1, 12)
         s2 = sig2[idx]
-        dx, P_post = kf_update(np.zeros(12), P, y_all[idx].reshape(-1), np.diag(np.repeat(s2, 2)), H)
+        dx, P_post = _kalman_step(P, y_all[idx].reshape(-1), np.diag(np.repeat(s2, 2)), H)
         Hi = H_all[idx]
         r = y_all[idx] - Hi @ dx
-        C = s2[:, None, None] * I2 - Hi @ P_post @ Hi.transpose(0, 2, 1)
-        # C is the residual covariance; keep it positive if a single point carries
-        # (almost) all the information of a direction (leverage -> 1).
-        C[:, 0, 0] = np.maximum(C[:, 0, 0], 1e-6 * s2)
-        C[:, 1, 1] = np.maximum(C[:, 1, 1], 1e-6 * s2)
-        d2 = np.einsum("mi,mij,mj->m", r, _inv2x2(C), r)
+        C = s2[:, None, None] * _EYE2 - Hi @ P_post @ Hi.transpose(0, 2, 1)
+        # C is the residual covariance; its diagonal is kept positive if a single point
+        # carries (almost) all the information of a direction (leverage -> 1).
+        d2 = mahalanobis_2d(r, C, 1e-6 * s2)
         nis[idx] = d2
         worst = int(np.argmax(d2))
         if d2[worst] <= gate:
@@ -522,18 +633,17 @@ def update(
         r2 = sig2[idx] * (np.maximum(nis[idx] / robust_nis, 1.0) if robust_nis > 0 else 1.0)
         H = H_all[idx].reshape(-1, 12)
         K = (P_post @ H.T) / np.repeat(sig2[idx], 2)  # the model's gain, P+ H^T R^-1
-        A = np.eye(12) - K @ H
+        A = _EYE12 - K @ H
         Pp_post = A @ np.asarray(P_pub, dtype=float) @ A.T + (K * np.repeat(r2, 2)) @ K.T
 
     gated = finite & ~accepted
     if gated.any():
         Hg = H_all[gated]
         rg = y_all[gated] - Hg @ dx
-        Sg = sig2[gated][:, None, None] * I2 + Hg @ P_post @ Hg.transpose(0, 2, 1)
-        nis[gated] = np.einsum("mi,mij,mj->m", rg, _inv2x2(Sg), rg)
+        Sg = sig2[gated][:, None, None] * _EYE2 + Hg @ P_post @ Hg.transpose(0, 2, 1)
+        nis[gated] = mahalanobis_2d(rg, Sg, None)
 
-    x_new = inject(x, dx)
-    G = reset_jacobian(dx)
+    x_new, G = inject_and_reset(x, dx)
     P_new = G @ P_post @ G.T
     P_new = 0.5 * (P_new + P_new.T)
     if Pp_post is not None:
@@ -566,24 +676,24 @@ def update_pose(x: np.ndarray, P: np.ndarray, T_meas: np.ndarray, R6: np.ndarray
     R6 = np.asarray(R6, dtype=float)
     if T_meas.shape != (4, 4) or R6.shape != (6, 6):
         raise ValueError(f"update_pose: expected T_meas (4, 4) and R6 (6, 6), got {T_meas.shape}, {R6.shape}")
-    R_est = matrix_from_quat(x[Q_])
+    R_est = _unit_rotation(x[Q_])
     y = np.concatenate([T_meas[:3, 3] - x[P_], log_so3(T_meas[:3, :3] @ R_est.T)])
     H = np.zeros((6, 12))
     H[:, :6] = np.eye(6)
     S_inv = np.linalg.inv(P[:6, :6] + R6)
     nis = float(y @ S_inv @ y)
-    dx, P_post = kf_update(np.zeros(12), P, y, R6, H)
+    dx, P_post = _kalman_step(P, y, R6, H)
     Pp = None
     if P_pub is not None:
         K = P[:, :6] @ S_inv
         A = np.eye(12) - K @ H
         Pp = A @ np.asarray(P_pub, dtype=float) @ A.T + K @ R6 @ K.T
-    G = reset_jacobian(dx)
+    x_new, G = inject_and_reset(x, dx)
     P_new = G @ P_post @ G.T
     if Pp is not None:
         Pp = G @ Pp @ G.T
         Pp = 0.5 * (Pp + Pp.T)
-    return inject(x, dx), 0.5 * (P_new + P_new.T), Pp, nis
+    return x_new, 0.5 * (P_new + P_new.T), Pp, nis
 
 
 # --------------------------------------------------------------------------- consistency

@@ -557,6 +557,45 @@ def _window_geometry(uv, r_all, W, H, pad):
 
 
 @njit
+def _window_plan(geo, why):
+    """The windows to search (code FOUND in :func:`_window_geometry`'s ``geo``): their
+    indices, their rows of ``geo`` and the offsets of their tensor patches in one buffer
+    (6 floats a pixel), (n,), (n, 9), (n + 1,); ``why`` set to OUTSIDE where ``geo`` says so
+    (in place)."""
+    K = geo.shape[0]
+    n = 0
+    for i in range(K):
+        if geo[i, 0] == _OUTSIDE:
+            why[i] = _OUTSIDE
+        elif geo[i, 0] == _FOUND:
+            n += 1
+    go = np.empty(n, np.int64)
+    geo_go = np.empty((n, 9), np.int64)
+    offs = np.zeros(n + 1, np.int64)
+    m = 0
+    for i in range(K):
+        if geo[i, 0] == _FOUND:
+            go[m] = i
+            geo_go[m] = geo[i]
+            offs[m + 1] = offs[m] + (geo[i, 2] - geo[i, 1] + 1) * (geo[i, 4] - geo[i, 3] + 1) * 6
+            m += 1
+    return go, geo_go, offs
+
+
+@njit
+def _take_candidates(go, done, code, n_cand, ncand, why):
+    """The windows' candidate searches (:func:`_window_candidates`, windows ``go``) into the
+    features' ``ncand`` and ``why`` (in place) where done; which windows found one (bool)."""
+    hit = np.zeros(go.shape[0], np.bool_)
+    for n in range(go.shape[0]):
+        if done[n]:
+            ncand[go[n]] = n_cand[n]
+            why[go[n]] = code[n]
+            hit[n] = code[n] == _FOUND
+    return hit
+
+
+@njit
 def _subpix_ok(ref, c0, uv, r, max_shift):
     """Sub-pixel results to keep: finite, moved at most ``max_shift`` px from the
     candidate ``c0`` (float32) and inside the window ``|ref - uv| <= r``; (n,) bool."""
@@ -746,32 +785,25 @@ def extract_corners(
     # one compiled candidate search per window (a patch of its own: the response at the
     # window's edge depends on the patch border, so patches are not merged).
     geo, r_int = _window_geometry(uv_pred, r_all, W, H, pad)
-    why[geo[:, 0] == _OUTSIDE] = _OUTSIDE
-    go = np.flatnonzero(geo[:, 0] == _FOUND)
-    uv32 = uv_pred.astype(np.float32)  # NumPy 2 computes with the float32 response in float32
-    params = (float(min_eig), np.float32(rel_quality), np.float32(min_isotropy), np.float32(ambiguity_ratio),
-              int(nms_radius))
     # The windows' tensors side by side in one buffer (OpenCV writes each into its place),
     # then the candidate search of all windows in one compiled call.
-    geo_go = np.ascontiguousarray(geo[go])
+    go, geo_go, offs = _window_plan(geo, why)
+    uv32 = uv_pred[go].astype(np.float32)  # NumPy 2 computes with the float32 response in float32
+    params = (float(min_eig), np.float32(rel_quality), np.float32(min_isotropy), np.float32(ambiguity_ratio),
+              int(nms_radius))
     patches = geo_go[:, 1:5].tolist()
-    offs = [0]
-    for py0, py1, px0, px1 in patches:
-        offs.append(offs[-1] + (py1 - py0 + 1) * (px1 - px0 + 1) * 6)
-    buf = np.empty(offs[-1], np.float32)
+    at = offs.tolist()
+    buf = np.empty(at[-1], np.float32)
     done = np.ones(go.size, np.bool_)
     for n, (py0, py1, px0, px1) in enumerate(patches):
         try:
             cv2.cornerEigenValsAndVecs(img[py0 : py1 + 1, px0 : px1 + 1], block_size, ksize=3,
-                                       dst=buf[offs[n] : offs[n + 1]].reshape(py1 - py0 + 1, px1 - px0 + 1, 6))
+                                       dst=buf[at[n] : at[n + 1]].reshape(py1 - py0 + 1, px1 - px0 + 1, 6))
         except cv2.error:
             why[go[n]] = Why.INVALID
             done[n] = False
-    offs = np.array(offs, np.int64)
-    code, n_cand, c0 = _window_candidates(buf, offs, geo_go, done, np.ascontiguousarray(uv32[go]), *params)
-    ncand[go[done]] = n_cand[done]
-    why[go[done]] = code[done]
-    hit = done & (code == _FOUND)
+    code, n_cand, c0 = _window_candidates(buf, offs, geo_go, done, uv32, *params)
+    hit = _take_candidates(go, done, code, n_cand, ncand, why)
     if not hit.any():
         return ExtractionResult(uv_out, why == Why.FOUND, why, ncand)
 

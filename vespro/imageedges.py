@@ -17,6 +17,7 @@ attributes will do.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -24,7 +25,7 @@ import cv2
 import numpy as np
 
 from .jit import njit
-from .numerics import dot3
+from .numerics import dot3, front_face_mask
 from .se3 import invert_transform
 
 __all__ = ["EdgeImage", "image_gradient", "image_noise", "sobel_noise_gain", "project_points", "projection_box",
@@ -113,16 +114,69 @@ def projection_box(K: np.ndarray, T_camera_object: np.ndarray, P: np.ndarray, ma
                    height: int) -> tuple[int, int, int, int] | None:
     """Pixel box ``(x0, y0, x1, y1)`` around the projection of points ``P`` (N, 3) with ``margin_px``
     on every side, clipped to the image; None when a point is behind the camera or the box is
-    under 8 px either way."""
+    under 8 px either way.
+
+    Compiled (:func:`_projection_extent`, the tracker's edge fit asks every frame); where a
+    point's pixel is NaN or beyond 1e15, as :func:`projection_box_numpy`.
+    """
+    if len(P) == 1:  # (NumPy multiplies one point otherwise: gemv)
+        return projection_box_numpy(K, T_camera_object, P, margin_px, width, height)
+    T = np.ascontiguousarray(T_camera_object, dtype=float)
+    behind, u0, v0, u1, v1 = _projection_extent(K[0, 0], K[1, 1], K[0, 2], K[1, 2], T, P)
+    if behind:
+        return None
+    if not max(abs(u0), abs(v0), abs(u1), abs(v1)) < 1e15:  # NaN, or beyond NumPy's integer cast
+        return projection_box_numpy(K, T_camera_object, P, margin_px, width, height)
+    return _clip_box(math.floor(u0 - margin_px), math.floor(v0 - margin_px), math.ceil(u1 + margin_px),
+                     math.ceil(v1 + margin_px), width, height)
+
+
+@njit
+def _projection_extent(fx, fy, cx, cy, T, P):
+    """(a point at depth <= 1e-6, least u, least v, largest u, largest v) of the pinhole
+    projection of ``P`` (N, 3) at ``T`` (4, 4): :func:`project_points`'s arithmetic (the
+    rotation as OpenBLAS's gemm, :func:`vespro.numerics.dot3`), so the same pixels. NaN
+    extents where a pixel is NaN (NumPy's min and max propagate it)."""
+    u0 = v0 = np.inf
+    u1 = v1 = -np.inf
+    behind = False
+    for i in range(P.shape[0]):
+        X0 = dot3(P[i, 0], P[i, 1], P[i, 2], T[0, 0], T[0, 1], T[0, 2]) + T[0, 3]
+        X1 = dot3(P[i, 0], P[i, 1], P[i, 2], T[1, 0], T[1, 1], T[1, 2]) + T[1, 3]
+        z = dot3(P[i, 0], P[i, 1], P[i, 2], T[2, 0], T[2, 1], T[2, 2]) + T[2, 3]
+        if z <= 1e-6:
+            behind = True
+        u = X0 / z * fx + cx
+        v = X1 / z * fy + cy
+        if np.isnan(u) or np.isnan(u0):
+            u0 = u1 = np.nan
+        else:
+            u0 = min(u0, u)
+            u1 = max(u1, u)
+        if np.isnan(v) or np.isnan(v0):
+            v0 = v1 = np.nan
+        else:
+            v0 = min(v0, v)
+            v1 = max(v1, v)
+    return behind, u0, v0, u1, v1
+
+
+def _clip_box(x0, y0, x1, y1, width, height):
+    x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, width), min(y1, height)
+    if x1 - x0 < 8 or y1 - y0 < 8:
+        return None
+    return int(x0), int(y0), int(x1), int(y1)
+
+
+def projection_box_numpy(K: np.ndarray, T_camera_object: np.ndarray, P: np.ndarray, margin_px: float, width: int,
+                         height: int) -> tuple[int, int, int, int] | None:
+    """:func:`projection_box` in NumPy (for any input: a pixel that is not finite included)."""
     uv, z = project_points(K, T_camera_object, P)
     if np.any(z <= 1e-6):
         return None
     x0, y0 = np.floor(uv.min(0) - margin_px).astype(int)
     x1, y1 = np.ceil(uv.max(0) + margin_px).astype(int)
-    x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, width), min(y1, height)
-    if x1 - x0 < 8 or y1 - y0 < 8:
-        return None
-    return int(x0), int(y0), int(x1), int(y1)
+    return _clip_box(x0, y0, x1, y1, width, height)
 
 
 def front_faces(R: np.ndarray, t: np.ndarray, mf) -> np.ndarray:
@@ -175,17 +229,10 @@ def _visible_kernel(T, face_normals, face_offsets, edge_faces, edge_convex, samp
     """The samples of the edges :func:`edge_visible` keeps at pose ``T`` (4, 4), and with
     ``segments`` their lines of sight for the tree: starts ``A`` (the samples), ends ``B``
     (``cam_o``, the camera centre in the object frame) and ``t_lo`` (``2e-4 m`` of each
-    segment's length, at most 0.1), (K, 3), (K, 3), (K,). The face test's products as
-    NumPy's (``np.matmul``'s OpenBLAS order: ``dot3``, and for the offset its matrix-vector
-    kernel's order), the same bits."""
+    segment's length, at most 0.1), (K, 3), (K, 3), (K,). The face test:
+    :func:`vespro.numerics.front_face_mask`, the same bits."""
     F = face_normals.shape[0]
-    front = np.empty(F, np.bool_)
-    for f in range(F):
-        n0, n1, n2 = face_normals[f, 0], face_normals[f, 1], face_normals[f, 2]
-        a0 = dot3(n0, n1, n2, T[0, 0], T[0, 1], T[0, 2])
-        a1 = dot3(n0, n1, n2, T[1, 0], T[1, 1], T[1, 2])
-        a2 = dot3(n0, n1, n2, T[2, 0], T[2, 1], T[2, 2])
-        front[f] = face_offsets[f] + dot3(a1, a0, a2, T[1, 3], T[0, 3], T[2, 3]) < 0
+    front = front_face_mask(T, face_normals, face_offsets)
     E = edge_faces.shape[0]
     vis_e = np.empty(E, np.bool_)
     for e in range(E):

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import ctypes
 import ctypes.util
+import math
 
 import numpy as np
 
@@ -66,7 +67,7 @@ class ScratchImages:
     def get(self, name, shape, dtype) -> np.ndarray:
         shape = tuple(int(n) for n in shape)
         dtype = np.dtype(dtype)
-        size = int(np.prod(shape))
+        size = math.prod(shape)
         b = self._blocks.get((name, dtype))
         if b is None or b.size < size:
             b = self._blocks[(name, dtype)] = np.empty(size, dtype)

@@ -36,7 +36,7 @@ import numpy as np
 from .bank import BankOptions, HypothesisBank
 from .bsp import load_or_build_bsp
 from .edgeaid import EdgeAid, EdgeContrast
-from .ekf import PoseEKF
+from .ekf import PoseEKF, mahalanobis_2d
 from .ekf import Status as EKFStatus
 from .extraction import extract_corners, window_half_sizes
 from .features import salient_corners
@@ -739,11 +739,22 @@ class Tracker:
             uv = V[:, :2] / V[:, 2:] @ np.diag([intr.K[0, 0], intr.K[1, 1]]) + intr.K[:2, 2]
             grey = np.zeros((intr.height, intr.width), np.uint8)
             cv2.fillConvexPoly(grey, cv2.convexHull(np.round(uv).astype(np.int32)), 200)
-            self.edge_aid.measure(cam.name, grey, T_wc, T_wo)
+            memory = EdgeContrast(self.edge_aid.mf.sample_edge)
+            m = self.edge_aid.measure(cam.name, grey, T_wc, T_wo, memory)
+            side = self.edge_aid.edge_side(T_co)
+            memory.learn(m.fit.sample_contrast[0] if m is not None else np.full(len(memory.edge), np.nan), side)
+            self.edge_aid.corners_shown(memory, T_co, vis.indices, 0.5)
+        # The filter's: an edge-fitted pose's update, and the gate's statistic with and without
+        # its floor (the latter for gated corners).
+        self._filter_at(T_wo).update_pose(T_wo, np.eye(6) * 1e-6)
+        r, C = np.zeros((1, 2)), np.eye(2)[None].copy()
+        mahalanobis_2d(r, C, np.ones(1))
+        mahalanobis_2d(r, C, None)
         if self.bank is not None:  # the likelihood's lines, on the same made-up view
             lk = self.bank.likelihood
             lk(T_wo, [(T_wc, lk.edge_image(img, intr.K))])
         log_so3(T_wo[:3, :3])
+        add(T_wo, T_wo, self.model.vertices)
 
     # -- starting and stopping ----------------------------------------------
     def canonical_pose(self, T_world_object: np.ndarray) -> np.ndarray:
@@ -951,7 +962,7 @@ class Tracker:
             ekf.q_acc, ekf.q_alpha = c.q_acc * self.motion_scale[0], c.q_alpha * self.motion_scale[1]
             ekf.predict(dt)
             self._t_ns = fs.t_ns
-        if not (np.all(np.isfinite(ekf.pose)) and np.all(np.isfinite(ekf.pose_covariance))):
+        if not (np.isfinite(ekf.pose).all() and np.isfinite(ekf.pose_covariance).all()):
             self._lose()
             return TrackerOutput(fs.index, fs.t_ns, self.status)
         T_prior = ekf.pose  # (a copy)

@@ -381,7 +381,7 @@ class VisibilityScene:
             mask=_freeze(mask),
             indices=_freeze(vis.astype(np.int64, copy=False)),
             points=_freeze(P.reshape(-1, 3)),
-            view_angle=_freeze(np.arccos(np.clip(cos_best[vis], -1.0, 1.0))),
+            view_angle=_freeze(np.arccos(np.minimum(np.maximum(cos_best[vis], -1.0), 1.0))),  # np.clip, less its overhead
             distance=_freeze(dist[vis]),
             uv=_freeze(uv.reshape(-1, 2)),
             depth=_freeze(depth),

@@ -1,5 +1,6 @@
 import cv2
 import numpy as np
+import pytest
 
 from vespro import se3
 from vespro.camera import CameraIntrinsics, project_points, undistort_pixels
@@ -44,3 +45,31 @@ def test_skew_is_rejected():
     import pytest
     with pytest.raises(ValueError, match="skew"):
         CameraIntrinsics(640, 480, [[600, 0.5, 320], [0, 600, 240], [0, 0, 1]])
+
+
+def test_pinhole_projection_equals_the_numpy_formulation_bit_for_bit():
+    """Without distortion the projection is compiled: the same pixels and depths as the NumPy
+    code, points behind the camera, on its plane and NaN ones included; one point and a
+    distorting camera go through the NumPy code."""
+    from test_init_kernels import bitwise
+
+    from vespro.camera import project_points_numpy
+
+    if not bitwise():
+        pytest.skip("this platform's BLAS accumulates otherwise than numerics.dot3")
+    rng = np.random.default_rng(4)
+    intr = CameraIntrinsics(640, 480, [[600.5, 0, 321.25], [0, 590.75, 238.5], [0, 0, 1]])
+    for n in (0, 1, 2, 8, 300):
+        T = se3.transform_from_rt(se3.exp_so3(rng.normal(size=3)), rng.normal(size=3) * 0.2 + [0, 0, 0.5])
+        P = rng.normal(size=(n, 3)) * 0.3
+        if n > 8:
+            P[:3] = np.linalg.solve(T[:3, :3], -T[:3, 3])  # the camera centre: depth 0 (to rounding)
+            P[3, 0] = np.nan
+            P[4] = 0.0
+        with np.errstate(all="ignore"):
+            uv, z = project_points(intr, T, P)
+            uv_ref, z_ref = project_points_numpy(intr, T, P)
+        assert np.array_equal(uv, uv_ref, equal_nan=True) and np.array_equal(z, z_ref, equal_nan=True)
+        assert uv.shape == (n, 2) and z.shape == (n,)
+        if n > 8:
+            assert np.isnan(uv[:4]).all() and (z[5:] < 0).any() and np.isnan(uv[5:][z[5:] < 0]).all()

@@ -534,6 +534,123 @@ def test_a_corner_whose_edges_showed_no_contrast_is_dim():
     assert aid.corners_shown(mem, T_co, ids, 0.1)[0]
 
 
+def test_edge_side_equals_the_numpy_formulation():
+    """The compiled faces-seen code of each edge against front_faces (NumPy), at random poses
+    about the camera's, and with the camera centre in a face's plane (its test on rounding)."""
+    from test_init_kernels import bitwise
+
+    from vespro.imageedges import front_faces
+    from vespro.se3 import exp_so3, transform_from_rt
+
+    if not bitwise():
+        pytest.skip("this platform's BLAS accumulates otherwise than numerics.dot3")
+
+    for name in ("box", "lblock"):
+        rig, model, frames = _trial_frames(name, 6, 1)
+        aid = EdgeAid(rig, model)
+        ef = aid.mf.edge_faces
+        T0 = np.linalg.solve(rig.cameras[0].T_world_camera, frames[0][1])
+        rng = np.random.default_rng(8)
+        sides = set()
+        for k in range(300):
+            T_co = T0 @ transform_from_rt(exp_so3(rng.normal(size=3) * 1.5), rng.normal(size=3) * 0.05)
+            if k % 2 == 0:  # the camera centre on a face's plane (to rounding)
+                n, d = aid.mf.face_normals[k % len(aid.mf.face_normals)], aid.mf.face_offsets[k % len(aid.mf.face_normals)]
+                c = np.linalg.solve(T_co[:3, :3], -T_co[:3, 3])
+                T_co[:3, 3] = -T_co[:3, :3] @ (c - (n @ c + d) * n)
+            front = front_faces(T_co[None, :3, :3], T_co[None, :3, 3], aid.mf)[0]
+            ref = front[ef[:, 0]].astype(np.int64) + 2 * front[ef[:, 1]].astype(np.int64)
+            side = aid.edge_side(T_co)
+            assert side.dtype == ref.dtype and np.array_equal(side, ref)
+            sides.add(side.tobytes())
+        assert len(sides) > 10
+
+
+def test_edge_contrast_learns_and_expects_as_the_numpy_formulation():
+    """The compiled memory against its NumPy code, frame after frame: NaN contrasts (not seen),
+    faces seen changing, samples seen for the first time."""
+    from vespro.edgeaid import EdgeContrast
+
+    rng = np.random.default_rng(21)
+    edge = rng.integers(0, 12, 300)
+    mem = EdgeContrast(edge, rate=0.3, min_frames=2)
+    ref = {"contrast": np.full(300, np.nan), "frames": np.zeros(300, np.int64), "side": np.full(300, -1, np.int64)}
+    for frame in range(40):
+        c = rng.normal(0.0, 100.0, 300)
+        c[rng.random(300) < 0.3] = np.nan
+        side = rng.integers(0, 4, 12) if frame % 7 == 0 else (side if frame else rng.integers(0, 4, 12))
+        mem.learn(c, side)
+        s = side[edge]  # the NumPy formulation
+        seen = np.isfinite(c)
+        fresh = seen & ((ref["side"] != s) | (ref["frames"] == 0))
+        same = seen & ~fresh
+        ref["contrast"][fresh] = c[fresh]
+        ref["frames"][fresh] = 1
+        ref["side"][fresh] = s[fresh]
+        ref["contrast"][same] += 0.3 * (c[same] - ref["contrast"][same])
+        ref["frames"][same] += 1
+        assert np.array_equal(mem.contrast, ref["contrast"], equal_nan=True)
+        assert np.array_equal(mem.frames, ref["frames"]) and np.array_equal(mem.side, ref["side"])
+        known = (ref["frames"] >= 2) & (ref["side"] == side[edge])
+        assert np.array_equal(mem.expect(side), np.where(known, ref["contrast"], np.nan), equal_nan=True)
+    assert np.isfinite(mem.expect(side)).sum() > 100
+
+
+def _corners_shown_numpy(aid, contrast, T_co, ids, min_frac):
+    """``EdgeAid.corners_shown`` in NumPy, as it was before it was compiled."""
+    side = aid.edge_side(T_co)
+    known = (contrast.frames >= 1) & (contrast.side == side[contrast.edge]) & np.isfinite(contrast.contrast)
+    if not known.any() or ids.size == 0:
+        return np.ones(ids.size, bool)
+    level = min_frac * float(np.median(np.abs(contrast.contrast[known])))
+    s = aid.corner_ends[ids]
+    valid = s >= 0
+    sk = np.where(valid, s, 0)
+    strong = valid & known[sk] & (np.abs(np.nan_to_num(contrast.contrast[sk])) >= level)
+    unknown = valid & ~known[sk]
+    return (strong | unknown).sum(axis=1) >= 2
+
+
+def test_corners_shown_equals_the_numpy_formulation():
+    """The compiled rule against the NumPy code on random memories (odd and even counts of known
+    samples, NaN contrasts, samples learnt with other faces seen, levels at a sample's magnitude)."""
+    from vespro.edgeaid import EdgeContrast
+
+    rig, model, frames = _trial_frames("box", 6, 1)
+    aid = EdgeAid(rig, model)
+    T_co = np.linalg.solve(rig.cameras[0].T_world_camera, frames[0][1])
+    side = aid.edge_side(T_co)
+    rng = np.random.default_rng(3)
+    ids = np.arange(model.n_corners)
+    n = len(aid.mf.sample_p)
+    dims = 0
+    for trial in range(60):
+        mem = EdgeContrast(aid.mf.sample_edge)
+        c = rng.choice([-1.0, 1.0], n) * rng.uniform(0.0, 250.0, n)
+        c[rng.random(n) < 0.1] = np.nan
+        c[aid.corner_ends[rng.integers(0, 8, 3)]] *= 0.05
+        mem.learn(c, side)
+        mem.frames[rng.random(n) < 0.2] = 0
+        mem.side[rng.random(n) < 0.1] = -1
+        k = np.flatnonzero((mem.frames >= 1) & (mem.side == side[mem.edge]) & np.isfinite(mem.contrast))
+        if (len(k) + trial) % 2:  # odd and even counts of known samples in turn
+            mem.frames[k[-1]] = 0
+        # Corner 0: two ends exactly at the level (strong: >=), one dim; below the median, so
+        # that setting them leaves it as it is.
+        e0 = aid.corner_ends[0]
+        mem.frames[e0], mem.side[e0], mem.contrast[e0] = 1, side[mem.edge[e0]], 1e-3
+        known = (mem.frames >= 1) & (mem.side == side[mem.edge]) & np.isfinite(mem.contrast)
+        mem.contrast[e0[:2]] = 0.3 * np.median(np.abs(mem.contrast[known]))
+        assert _corners_shown_numpy(aid, mem, T_co, ids[:1], 0.3)[0]
+        for frac in (0.0, 0.3, 0.45, 0.9):
+            sub = ids[rng.random(8) < 0.8]
+            a = aid.corners_shown(mem, T_co, sub, frac)
+            assert np.array_equal(a, _corners_shown_numpy(aid, mem, T_co, sub, frac))
+            dims += int((~a).sum())
+    assert dims > 20  # the rule did say no, often
+    assert aid.corners_shown(EdgeContrast(aid.mf.sample_edge), T_co, ids, 0.45).all()
+
+
 @pytest.mark.parametrize("seed", [2800, 3219])
 def test_a_one_camera_bracket_does_not_slide_on_the_corners_of_its_dark_face(seed):
     """Bracket, one camera (fresh rig seeds 2800 and 3219), the initialiser on every 5th frame:

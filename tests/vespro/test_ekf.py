@@ -503,3 +503,87 @@ def test_pose_measurement_update_is_the_kalman_blend_in_the_error_state():
     np.testing.assert_allclose(ekf.boxminus(x3, x)[:6], e, atol=1e-6)
     with pytest.raises(ValueError):
         ekf.update_pose(x, P, T_meas[:3], R6)
+
+
+def test_kalman_step_and_propagation_equal_filterpy_bit_for_bit():
+    from filterpy.kalman import predict as kf_predict
+    from filterpy.kalman import update as kf_update
+
+    rng = np.random.default_rng(12)
+    for m in (6, 16, 30):
+        A = rng.normal(size=(12, 12))
+        P = A @ A.T + np.eye(12)
+        H = rng.normal(size=(m, 12))
+        y = rng.normal(size=m)
+        R = np.diag(rng.uniform(0.1, 1.0, m))
+        dx, P_post = ekf._kalman_step(P, y, R, H)
+        dx_ref, P_ref = kf_update(np.zeros(12), P, y, R, H)
+        assert np.array_equal(dx, dx_ref) and np.array_equal(P_post, P_ref)
+        F = ekf.transition_jacobian(_random_state(rng), DT)
+        Q = ekf.process_noise(DT, Q_ACC, Q_ALPHA)
+        _, P_pred = kf_predict(np.zeros(12), P, F, Q)
+        assert np.array_equal(ekf._propagate(P, F, Q), 0.5 * (P_pred + P_pred.T))
+
+
+def test_unit_rotation_equals_matrix_from_quat_bit_for_bit():
+    rng = np.random.default_rng(13)
+    for _ in range(2000):
+        q = rng.normal(size=4)
+        q = q / np.sqrt(q @ q) * (1.0 + rng.normal() * 1e-15)  # a filter's state: unit to rounding
+        assert np.array_equal(ekf._unit_rotation(q), se3.matrix_from_quat(q))
+
+
+def test_mahalanobis_2d_equals_the_numpy_formulation_bit_for_bit():
+    """The compiled gate statistic against the closed-form inverse and einsum it replaced, with
+    the diagonal floor (np.maximum) and without; NaN, inf, zero and negative determinants."""
+    rng = np.random.default_rng(14)
+    M = 4000
+    r = rng.normal(size=(M, 2)) * rng.uniform(0.01, 30.0, (M, 1))
+    C = rng.normal(size=(M, 2, 2))
+    C[::7, 0, 0] = -1e-9  # under the floor
+    C[1::11, 1, 1] = 0.0
+    C[2::13] = [[1.0, 2.0], [2.0, 4.0]]  # singular
+    C[3::17, 0, 1] = np.nan
+    C[4::19, 1, 1] = np.inf
+    r[5::23, 0] = np.nan
+    floor = 1e-6 * rng.uniform(0.1, 2.0, M)
+    floor[6::29] = np.nan
+    C0 = C.copy()
+    with np.errstate(all="ignore"):
+        Cf = C.copy()
+        Cf[:, 0, 0] = np.maximum(Cf[:, 0, 0], floor)
+        Cf[:, 1, 1] = np.maximum(Cf[:, 1, 1], floor)
+        a, b = ekf.mahalanobis_2d(r, C, floor), ekf.mahalanobis_2d_numpy(r, Cf)
+        assert np.array_equal(a, b, equal_nan=True) and np.isfinite(a).sum() > M // 2
+        assert np.array_equal(ekf.mahalanobis_2d(r, C, None), ekf.mahalanobis_2d_numpy(r, C), equal_nan=True)
+    assert np.array_equal(C, C0, equal_nan=True)  # C itself untouched
+
+
+def test_inject_and_reset_equal_inject_and_reset_jacobian_bit_for_bit():
+    """The compiled injection and covariance reset against the NumPy functions, over error
+    states from tiny (the series forms) to large rotations."""
+    from test_init_kernels import bitwise
+
+    if not bitwise():
+        pytest.skip("this platform's BLAS accumulates otherwise than numerics.dot3 and dot4")
+    rng = np.random.default_rng(15)
+    for k in range(3000):
+        x = _random_state(rng)
+        dx = rng.normal(size=12) * 10.0 ** rng.uniform(-12, 0)
+        if k % 10 == 0:
+            dx[3:6] *= 1e-4  # below 1e-6 and 1e-8 rad
+        a, G = ekf.inject_and_reset(x, dx)
+        assert np.array_equal(a, ekf.inject(x, dx)) and np.array_equal(G, ekf.reset_jacobian(dx))
+
+
+def test_process_noise_equals_filterpys_construction_bit_for_bit():
+    """The process noise written entry by entry against filterpy's Q_continuous_white_noise
+    blocks placed as they were (position/velocity and orientation/angular velocity)."""
+    rng = np.random.default_rng(16)
+    for dt, qa, qw in [(DT, Q_ACC, Q_ALPHA), (0.0, 1.0, 1.0), (1e-3, 0.0, 3.0)] + \
+            [tuple(rng.uniform(0.0, 0.2, 3)) for _ in range(50)]:
+        Q = np.zeros((12, 12))
+        il, ia = np.r_[0:3, 6:9], np.r_[3:6, 9:12]
+        Q[np.ix_(il, il)] = Q_continuous_white_noise(dim=2, dt=dt, spectral_density=qa, block_size=3, order_by_dim=False)
+        Q[np.ix_(ia, ia)] = Q_continuous_white_noise(dim=2, dt=dt, spectral_density=qw, block_size=3, order_by_dim=False)
+        assert np.array_equal(ekf.process_noise(dt, qa, qw), Q)

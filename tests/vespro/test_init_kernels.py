@@ -25,13 +25,13 @@ from test_init_search import CAMS, T_WO, K, _pose, render
 
 from vespro import edgefit
 from vespro.bsp import IN, _plane_dist, load_or_build_bsp
-from vespro.imageedges import edge_visible, front_faces, visible_samples
+from vespro.imageedges import edge_visible, front_faces, projection_box, projection_box_numpy, visible_samples
 from vespro.init import search
 from vespro.init.features import extract_features, normal_bins
 from vespro.init.modelfeat import model_features
 from vespro.library import object_mesh_path
 from vespro.model import load_model
-from vespro.numerics import dot3
+from vespro.numerics import dot3, pairwise_sum
 from vespro.se3 import exp_so3, invert_transform, transform_from_rt
 
 NAMES = ("box", "lblock", "bracket")
@@ -301,6 +301,42 @@ def test_visible_samples_match_numpy(scene):
     assert np.array_equal(visible_samples(T_co, mf, tree), visible_samples_ref(T_co, mf, tree))
 
 
+def test_projection_box_matches_numpy(scene):
+    """The compiled box around a model's projection against the NumPy code: random poses
+    about both cameras', with margins that put the box's sides on exact integers, part of
+    the model behind the camera, off the image, a NaN pose and a far one."""
+    if not bitwise():
+        pytest.skip("this platform's BLAS accumulates otherwise: the box may differ on a rounding edge")
+    model, mf, _, views = scene
+    rng = np.random.default_rng(9)
+    n_none = 0
+    for k in range(200):
+        T_co = invert_transform(views[k % 2].T_world_camera) @ T_WO @ _pose(rng.normal(size=3) * 0.3,
+                                                                            rng.normal(size=3) * 0.05)
+        if k % 10 == 7:
+            T_co[2, 3] = rng.uniform(-0.2, 0.1)  # straddling the camera plane
+        if k % 10 == 8:
+            T_co[0, 3] += rng.choice([-1.0, 1.0]) * rng.uniform(0.2, 2.0)  # off the image, or partly
+        margin = float(rng.choice([0.0, 11.0, rng.uniform(0.0, 20.0)]))
+        a = projection_box(K, T_co, mf.vertices, margin, 640, 480)
+        assert a == projection_box_numpy(K, T_co, mf.vertices, margin, 640, 480)
+        n_none += a is None
+        if a is not None:
+            uv = (mf.vertices @ T_co[:3, :3].T + T_co[:3, 3])
+            u = uv[:, 0] / uv[:, 2] * K[0, 0] + K[0, 2]
+            edge = float(np.floor(u.min() - margin))  # a margin putting the box's left side on an integer
+            if 0 < edge < 600:
+                m2 = margin + (u.min() - margin - edge)
+                assert projection_box(K, T_co, mf.vertices, m2, 640, 480) == \
+                    projection_box_numpy(K, T_co, mf.vertices, m2, 640, 480)
+    assert 0 < n_none < 200
+    far = np.eye(4)
+    far[:3, 3] = [1e18, 0.0, 1.0]
+    nan = np.full((4, 4), np.nan)
+    for T in (far, nan):
+        assert projection_box(K, T, mf.vertices, 3.0, 640, 480) == projection_box_numpy(K, T, mf.vertices, 3.0, 640, 480)
+
+
 def face_widths_px_ref(T_camera_object, K, mf, edge_len_px):
     """``edgefit.face_widths_px`` in NumPy, as it was."""
     R, t = T_camera_object[:3, :3], T_camera_object[:3, 3]
@@ -568,9 +604,12 @@ def test_pairwise_sum_is_numpys():
     rng = np.random.default_rng(2)
     for n in [*range(140), 255, 256, 257, 1057, 5000]:
         a = (rng.random(n) * (rng.random(n) < 0.7)).astype(np.float32)
-        assert_same_bits(np.float32(a.sum()), np.float32(search._pairwise_sum_f32(a, n)))
+        assert_same_bits(np.float32(a.sum()), np.float32(pairwise_sum(a, n)))
         A = np.tile(a, (3, 1))
-        assert_same_bits(A.sum(1)[1], np.float32(search._pairwise_sum_f32(a, n)))
+        assert_same_bits(A.sum(1)[1], np.float32(pairwise_sum(a, n)))
+        b = rng.normal(size=n) * 10.0 ** rng.uniform(-3, 3, n)
+        assert_same_bits(b.sum(), np.float64(pairwise_sum(b, n)))
+        assert_same_bits(np.mean(b) if n else np.float64(0.0), np.float64(pairwise_sum(b, n) / max(n, 1)))
 
 
 def test_normal_bin_is_normal_bins():

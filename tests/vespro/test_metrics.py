@@ -81,3 +81,26 @@ def test_poses_csv_minimal_columns_and_errors(tmp_path):
     p.write_text("index,t,status\n")
     with pytest.raises(ValueError, match="missing column"):
         read_poses(p)
+
+
+def test_add_equals_the_numpy_formulation_bit_for_bit():
+    """The compiled ADD against NumPy's, from 2 to 1000 points (pairwise sums past 8 and 128),
+    and one point, float32 points and a NaN pose through the NumPy code."""
+    from test_init_kernels import bitwise
+
+    from vespro.metrics import add, add_numpy
+    from vespro.se3 import exp_so3, transform_from_rt
+
+    if not bitwise():
+        pytest.skip("this platform's BLAS accumulates otherwise than numerics.dot3")
+    rng = np.random.default_rng(17)
+    for n in (1, 2, 7, 8, 9, 12, 100, 129, 1000):
+        for _ in range(40):
+            P = rng.normal(size=(n, 3)) * 0.1
+            Ta = transform_from_rt(exp_so3(rng.normal(size=3)), rng.normal(size=3))
+            Tb = Ta @ transform_from_rt(exp_so3(rng.normal(size=3) * 1e-3), rng.normal(size=3) * 1e-3)
+            assert add(Ta, Tb, P) == add_numpy(Ta, Tb, P)
+    assert add(Ta, Tb, P.astype(np.float32)) == add_numpy(Ta, Tb, P.astype(np.float32))
+    Tn = Ta.copy()
+    Tn[0, 3] = np.nan
+    assert np.isnan(add(Tn, Tb, P)) and np.isnan(add_numpy(Tn, Tb, P))

@@ -25,7 +25,7 @@ from ..edgefit import CameraView, camera_setup
 from ..imageedges import front_faces as _front
 from ..imageedges import project_points as _project
 from ..jit import njit
-from ..numerics import dot3
+from ..numerics import dot3, pairwise_sum
 from ..se3 import invert_transform
 from .features import CameraFeatures, lookup_dt
 from .modelfeat import ModelFeatures
@@ -115,68 +115,6 @@ def p3p_hypotheses(feat: CameraFeatures, mf: ModelFeatures, vertices: np.ndarray
 #
 # The kernels keep the NumPy code's arithmetic operation for operation; their
 # products with a rotation are :func:`vespro.numerics.dot3`, OpenBLAS's order.
-
-
-@njit
-def _pairwise_block_f32(a, lo, n):
-    """One leaf of NumPy's pairwise summation: ``n <= 128`` terms, eight accumulators."""
-    if n < 8:
-        res = np.float32(0.0)
-        for k in range(n):
-            res += a[lo + k]
-        return res
-    r0, r1, r2, r3 = a[lo], a[lo + 1], a[lo + 2], a[lo + 3]
-    r4, r5, r6, r7 = a[lo + 4], a[lo + 5], a[lo + 6], a[lo + 7]
-    k = 8
-    m = n - n % 8
-    while k < m:
-        r0 += a[lo + k]
-        r1 += a[lo + k + 1]
-        r2 += a[lo + k + 2]
-        r3 += a[lo + k + 3]
-        r4 += a[lo + k + 4]
-        r5 += a[lo + k + 5]
-        r6 += a[lo + k + 6]
-        r7 += a[lo + k + 7]
-        k += 8
-    res = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
-    while k < n:
-        res += a[lo + k]
-        k += 1
-    return res
-
-
-@njit
-def _pairwise_sum_f32(a, n):
-    """``a[:n].sum()`` of a float32 array with NumPy's pairwise summation (halves split
-    at multiples of 8 down to blocks of at most 128, float32): the same rounding as
-    ``ndarray.sum`` along a row. The recursion is unrolled into a stack (numba's cache
-    does not keep recursive functions)."""
-    if n <= 128:
-        return _pairwise_block_f32(a, 0, n)
-    st_lo = np.empty(192, np.int64)
-    st_n = np.empty(192, np.int64)
-    st_up = np.empty(192, np.bool_)  # both halves done: add them
-    vals = np.empty(64, np.float32)
-    st_lo[0], st_n[0], st_up[0] = 0, n, False
-    top, nv = 1, 0
-    while top > 0:
-        top -= 1
-        lo, m, up = st_lo[top], st_n[top], st_up[top]
-        if up:
-            vals[nv - 2] = vals[nv - 2] + vals[nv - 1]
-            nv -= 1
-        elif m <= 128:
-            vals[nv] = _pairwise_block_f32(a, lo, m)
-            nv += 1
-        else:
-            m2 = m // 2
-            m2 -= m2 % 8
-            st_lo[top], st_n[top], st_up[top] = lo, m, True
-            st_lo[top + 1], st_n[top + 1], st_up[top + 1] = lo + m2, m - m2, False
-            st_lo[top + 2], st_n[top + 2], st_up[top + 2] = lo, m2, False
-            top += 3
-    return vals[0]
 
 
 @njit
@@ -312,7 +250,7 @@ def _rank_score(Rc, tc, Pt, se_l, front, ef_l, convex, angle, n_bins, f, c, dt_f
             fr = nins / nvis
             inside_frac[i] = fr
             ok = not behind and fr >= min_inside
-            score[i] = np.float64(_pairwise_sum_f32(agree, S)) / nvis if ok else np.nan
+            score[i] = np.float64(pairwise_sum(agree, S)) / nvis if ok else np.nan
         else:
             inside_frac[i] = 0.0
             score[i] = np.nan
