@@ -192,9 +192,11 @@ def test_textured_parts_are_told_on_the_command_line(recs):
     model = load_model(rec.model_path, name=rec.object_name)
     for argv, plain in (([], True), (["--textured"], False), (["--decision", "bank"], False)):
         args = p.parse_args(argv)
-        assert init_options(args) == {"plain_faces": plain}
+        assert init_options(args) == {"plain_faces": plain, "workspace": None}
         ini = initializer_for(args, rec, model)
         assert ini is not None and ini.setup.options.plain_faces is plain
+    ini = initializer_for(p.parse_args(["--workspace", "0,-1,0,2,1,1.5"]), rec, model)
+    assert ini.setup.options.workspace == (0.0, -1.0, 0.0, 2.0, 1.0, 1.5)
     assert tracker_config(p.parse_args(["--decision", "bank"])).decision == "bank"
 
 
