@@ -1,15 +1,18 @@
 """What the machine took from the cell: CPU time a hypervisor ran something else ("steal").
 
-On a virtual machine the host may deschedule a virtual CPU whatever runs on it:
-a SCHED_FIFO loop at the highest priority, pinned to its own core, then stops
-for as long as the host keeps it. On the 2-core virtual machines the project is
-measured on, a pinned SCHED_FIFO thread spinning 1.5 ms of every 2 ms lost its
-core 2.9-9.8 ms at a time, five times in 40 s, while the kernel counted 60 ms
-of steal on that core (``bench/stalls.py``); the servo's late ticks in a
-``vespro demo`` run are such stalls (``perf sched`` shows the servo itself
-"running" for 2-4.6 ms around each, its computation 0.2 ms). No placement or
-priority inside the guest avoids them, so the demo reports the steal of its run
-beside the servo's overruns.
+On a virtual machine the host may deschedule a virtual CPU whatever runs on it,
+and the guest kernel's own interrupt work runs above every task: a SCHED_FIFO
+loop at the highest priority, pinned to its own core, then stops. On the
+2-core virtual machines the project is measured on, a pinned SCHED_FIFO
+thread at priority 90 spinning 1.5 ms of every 2 ms lost its core 2.9-9.8 ms
+at a time, five times in 40 s, while the kernel counted 60 ms of steal on that
+core (``bench/stalls.py``). The servo's late ticks in a ``vespro demo`` run
+are such stalls: ``perf sched`` shows the servo itself "running" for 2-4.6 ms
+around each (its computation 0.2 ms), and a priority-90 canary waking every
+millisecond on the servo's core was late by 1.2-3.5 ms at three of a run's
+five late ticks. No placement or priority inside the guest avoids them; the
+demo reports the steal of its run beside the servo's overruns (steal counts
+the host's share only, in 10 ms ticks: a run can show overruns and none).
 
 Linux counts steal per CPU in ``/proc/stat`` (the eighth value of each ``cpuN``
 line, in ``USER_HZ`` ticks, 10 ms); elsewhere there is nothing to read.
