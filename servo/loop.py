@@ -783,7 +783,7 @@ class Scheduler:
         try:
             wait_alive = getattr(robot, "wait_alive", None)
             if self.realtime and wait_alive is not None:
-                wait_alive(self.robot_wait_s)  # (not alive in time: the first tick sees it and stops)
+                wait_alive(self.robot_wait_s)  # (not up in time: the caller sees it, `servo run` stops)
             robot.read(q_meas)
             t_next = clock.now_ns()
             state.start(q_meas, t_next)
