@@ -113,8 +113,8 @@ def project_points(K: np.ndarray, T_camera_object: np.ndarray, P: np.ndarray) ->
 def projection_box(K: np.ndarray, T_camera_object: np.ndarray, P: np.ndarray, margin_px: float, width: int,
                    height: int) -> tuple[int, int, int, int] | None:
     """Pixel box ``(x0, y0, x1, y1)`` around the projection of points ``P`` (N, 3) with ``margin_px``
-    on every side, clipped to the image; None when a point is behind the camera or the box is
-    under 8 px either way.
+    on every side, clipped to the image; None when a point is behind the camera, a pixel is not
+    finite or beyond 1e15, or the box is under 8 px either way.
 
     Compiled (:func:`_projection_extent`, the tracker's edge fit asks every frame); where a
     point's pixel is NaN or beyond 1e15, as :func:`projection_box_numpy`.
@@ -174,6 +174,8 @@ def projection_box_numpy(K: np.ndarray, T_camera_object: np.ndarray, P: np.ndarr
     uv, z = project_points(K, T_camera_object, P)
     if np.any(z <= 1e-6):
         return None
+    if not np.all(np.abs(uv) < 1e15):
+        return None  # (a pixel that is not finite, or beyond an integer's range, has no box)
     x0, y0 = np.floor(uv.min(0) - margin_px).astype(int)
     x1, y1 = np.ceil(uv.max(0) + margin_px).astype(int)
     return _clip_box(x0, y0, x1, y1, width, height)

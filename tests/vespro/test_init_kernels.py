@@ -348,8 +348,9 @@ def face_widths_px_ref(T_camera_object, K, mf, edge_len_px):
     d1, d2 = uv[:, 1] - uv[:, 0], uv[:, 2] - uv[:, 0]
     area = np.bincount(mf.tri_face, 0.5 * np.abs(d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0]), F)
     longest = np.zeros(F)
-    for k in range(2):
-        np.maximum.at(longest, mf.edge_faces[:, k], edge_len_px)
+    with np.errstate(invalid="ignore"):  # (a NaN length, of a pose made to test it, propagates)
+        for k in range(2):
+            np.maximum.at(longest, mf.edge_faces[:, k], edge_len_px)
     return area / np.maximum(longest, 1e-9)
 
 
