@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .jit import njit
-from .numerics import dot3
+from .numerics import transform_point
 
 __all__ = ["CameraIntrinsics", "project_points", "distort_normalized", "undistort_pixels"]
 
@@ -167,14 +167,12 @@ def project_points(intr: CameraIntrinsics, T_camera_object: np.ndarray, P_object
 @njit
 def _project_pinhole(T, P, fx, fy, cx, cy):
     """:func:`project_points_numpy` without distortion, compiled: its operations in its order
-    (the rotation as OpenBLAS's gemm, :func:`vespro.numerics.dot3`), so the same bits."""
+    (the rotation as OpenBLAS's gemm, :func:`vespro.numerics.transform_point`), so the same bits."""
     N = P.shape[0]
     uv = np.empty((N, 2))
     z = np.empty(N)
     for i in range(N):
-        X0 = dot3(P[i, 0], P[i, 1], P[i, 2], T[0, 0], T[0, 1], T[0, 2]) + T[0, 3]
-        X1 = dot3(P[i, 0], P[i, 1], P[i, 2], T[1, 0], T[1, 1], T[1, 2]) + T[1, 3]
-        zi = dot3(P[i, 0], P[i, 1], P[i, 2], T[2, 0], T[2, 1], T[2, 2]) + T[2, 3]
+        X0, X1, zi = transform_point(T, P[i, 0], P[i, 1], P[i, 2])
         z[i] = zi
         x, y = X0 / zi, X1 / zi
         if zi <= 1e-9:

@@ -25,7 +25,7 @@ import cv2
 import numpy as np
 
 from .jit import njit
-from .numerics import dot3, front_face_mask
+from .numerics import front_face_mask, transform_point
 from .se3 import invert_transform
 
 __all__ = ["EdgeImage", "image_gradient", "image_noise", "sobel_noise_gain", "project_points", "projection_box",
@@ -135,15 +135,13 @@ def projection_box(K: np.ndarray, T_camera_object: np.ndarray, P: np.ndarray, ma
 def _projection_extent(fx, fy, cx, cy, T, P):
     """(a point at depth <= 1e-6, least u, least v, largest u, largest v) of the pinhole
     projection of ``P`` (N, 3) at ``T`` (4, 4): :func:`project_points`'s arithmetic (the
-    rotation as OpenBLAS's gemm, :func:`vespro.numerics.dot3`), so the same pixels. NaN
+    rotation as OpenBLAS's gemm, :func:`vespro.numerics.transform_point`), so the same pixels. NaN
     extents where a pixel is NaN (NumPy's min and max propagate it)."""
     u0 = v0 = np.inf
     u1 = v1 = -np.inf
     behind = False
     for i in range(P.shape[0]):
-        X0 = dot3(P[i, 0], P[i, 1], P[i, 2], T[0, 0], T[0, 1], T[0, 2]) + T[0, 3]
-        X1 = dot3(P[i, 0], P[i, 1], P[i, 2], T[1, 0], T[1, 1], T[1, 2]) + T[1, 3]
-        z = dot3(P[i, 0], P[i, 1], P[i, 2], T[2, 0], T[2, 1], T[2, 2]) + T[2, 3]
+        X0, X1, z = transform_point(T, P[i, 0], P[i, 1], P[i, 2])
         if z <= 1e-6:
             behind = True
         u = X0 / z * fx + cx

@@ -18,7 +18,7 @@ from numba.extending import intrinsic
 
 from .jit import njit
 
-__all__ = ["dot3", "dot4", "front_face_mask", "pairwise_sum"]
+__all__ = ["dot3", "dot4", "transform_point", "front_face_mask", "pairwise_sum"]
 
 
 def _fma_codegen(context, builder, sig, args):
@@ -46,6 +46,15 @@ def dot3(a0, a1, a2, b0, b1, b2):
     """A 3-term dot product as OpenBLAS's gemm forms one entry of a matrix product (from a
     zero accumulator: a zero sum is +0, never -0)."""
     return _fma(a2, b2, _fma(a1, b1, _fma0(a0, b0)))
+
+
+@njit
+def transform_point(T, p0, p1, p2):
+    """``T[:3, :3] @ p + T[:3, 3]`` of one point as NumPy's ``P @ R.T + t`` forms it (each
+    row as OpenBLAS's gemm, :func:`dot3`, then the translation): (x, y, z)."""
+    return (dot3(p0, p1, p2, T[0, 0], T[0, 1], T[0, 2]) + T[0, 3],
+            dot3(p0, p1, p2, T[1, 0], T[1, 1], T[1, 2]) + T[1, 3],
+            dot3(p0, p1, p2, T[2, 0], T[2, 1], T[2, 2]) + T[2, 3])
 
 
 @njit
