@@ -324,6 +324,40 @@ def test_image_noise_estimate_against_added_noise():
         assert abs(image_noise(_picture(rng, sigma)) - sigma) < 0.1 * sigma
 
 
+def test_image_noise_is_the_numpy_formulation_s_to_the_bit():
+    """The compiled noise estimate (the kernel on the sampled pixels alone, the median read off
+    the counts) against OpenCV's filter2D of the whole float32 image, sliced and its median
+    taken by NumPy: the same value on grey and colour images, smooth and noisy, even and odd
+    sizes, crops (non-contiguous views) and images too small to hold a sample (NaN there, as
+    NumPy's median of nothing)."""
+    import warnings
+
+    from vespro.imageedges import image_noise
+
+    kernel = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], np.float32)
+
+    def reference(img):
+        chans = [img] if img.ndim == 2 else [img[..., k] for k in range(img.shape[2])]
+        out = 0.0
+        for c in chans:
+            r = cv2.filter2D(c.astype(np.float32), -1, kernel)[1:-1:2, 1:-1:2]
+            out = max(out, float(np.median(np.abs(r))) / (0.6745 * 6.0))
+        return out
+
+    rng = np.random.default_rng(3)
+    cases = [_picture(rng, 0), _picture(rng, 3.0), _picture(rng, 3.0)[17:203, 31:290]]
+    for shape in [(480, 640), (171, 173), (3, 3), (4, 5), (60, 81, 3), (6, 6), (7, 2), (2, 9)]:
+        for blur in (0.0, 1.0, 3.0):
+            img = rng.integers(0, 256, shape).astype(np.uint8)
+            cases.append(cv2.GaussianBlur(img, (0, 0), blur) if blur else img)
+    cases.append(np.full((50, 50), 255, np.uint8) * (np.indices((50, 50)).sum(0) % 2).astype(np.uint8))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # (NumPy's median of an empty slice)
+        for img in cases:
+            a, b = reference(img), image_noise(img)
+            assert a == b or (np.isnan(a) and np.isnan(b)), (img.shape, a, b)
+
+
 def test_canny_thresholds_keep_weak_part_edges_and_rise_with_noise():
     """A face 20 grey levels off its dark background keeps its edge at the
     floors (the former fixed 40 / 100 lost it); on a noisy image the
