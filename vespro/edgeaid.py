@@ -177,7 +177,7 @@ class EdgeAid:
         (seed 610) 10-13 mm off where both give 0-0.7 mm. Dropping the edges
         of faces seen as strips under 2-6 px wide, or the samples within 1-3
         px of an edge's ends, removed more of the noise-free error but left
-        the noisy fits worse (fewer samples); not kept.
+        the noisy fits worse (fewer samples).
     edge_offset_px : float
         Std of an offset common to all samples of one edge (the image edge
         as a whole off the model's), added to the covariance (see
