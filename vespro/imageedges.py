@@ -70,14 +70,22 @@ def image_noise(img: np.ndarray) -> float:
     chans = [img] if img.ndim == 2 else [img[..., k] for k in range(img.shape[2])]
     out = 0.0
     for c in chans:
-        out = max(out, _laplace_diff_median(c) / (0.6745 * 6.0))
+        if c.dtype == np.uint8:
+            m = _laplace_diff_median(c)
+        else:  # (any other depth: the same estimate by OpenCV and NumPy)
+            r = cv2.filter2D(c.astype(np.float32), -1, _LAPLACE_DIFF)[1:-1:2, 1:-1:2]
+            m = float(np.median(np.abs(r)))
+        out = max(out, m / (0.6745 * 6.0))
     return out
+
+
+_LAPLACE_DIFF = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], np.float32)
 
 
 @njit
 def _laplace_diff_median(img):
-    """The median of ``|c|`` of :func:`image_noise` over every other pixel of every other row,
-    inside the border (NaN: no such pixel): the 3x3 kernel ``[[1, -2, 1], [-2, 4, -2],
+    """The median of ``|c|`` of :func:`image_noise` over every other pixel of every other row
+    of an 8-bit image, inside the border (NaN: no such pixel): the 3x3 kernel ``[[1, -2, 1], [-2, 4, -2],
     [1, -2, 1]]`` applied to those pixels alone, in integers, and the median read off their
     counts (each ``|c|`` an integer of at most 16 x 255). OpenCV's ``filter2D`` of the float32
     image gives the same integers exactly, and the median of integers (or the mean of the

@@ -351,6 +351,7 @@ def test_image_noise_is_the_numpy_formulation_s_to_the_bit():
             img = rng.integers(0, 256, shape).astype(np.uint8)
             cases.append(cv2.GaussianBlur(img, (0, 0), blur) if blur else img)
     cases.append(np.full((50, 50), 255, np.uint8) * (np.indices((50, 50)).sum(0) % 2).astype(np.uint8))
+    cases.append(rng.integers(0, 65536, (40, 50)).astype(np.uint16))  # another depth: the reference's own way
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # (NumPy's median of an empty slice)
         for img in cases:
