@@ -33,7 +33,7 @@ from typing import Callable
 import cv2
 import numpy as np
 
-from .bank import BankOptions, HypothesisBank
+from .bank import BankOptions, HypothesisBank, covariance_floor
 from .bsp import load_or_build_bsp
 from .edgeaid import EdgeAid, EdgeContrast
 from .ekf import PoseEKF, mahalanobis_2d
@@ -264,7 +264,10 @@ class TrackerConfig:
         seen edge on, a start 15.7% of the diameter off whose fits claimed a
         1.2-1.6 mm position std while 10-16 mm off along the line of sight was
         confirmed at 9.4% and reached 10.6%; with 0.6 it is dropped unconfirmed
-        and nothing is published. The confirmed track's fits keep
+        and nothing is published. Decision ``"rules"`` only: with the bank the
+        fits keep ``edge_offset_px`` from the first frame, and whether a start is
+        close enough is the decision's accuracy term (:mod:`vespro.bank`), which
+        reads the fits' covariance. The confirmed track's fits keep
         ``edge_offset_px`` (its accuracy is unchanged). Over 1320 one-camera
         trials (``bench/init.py``) 0.6 published 1248 against 1246 with 0, none
         wrong against one (1618), with more starts 6-8% off (54 trials with a
@@ -435,8 +438,9 @@ class TrackerConfig:
         above) or ``"bank"`` (:mod:`vespro.bank`: the initialiser's poses are
         hypotheses, each its own filter, weighed by the image likelihood of
         every frame, :mod:`vespro.likelihood`; the best is published while its
-        probability is at least ``1 - BankOptions.wrong_lock_rate``, and its
-        probability goes out with every frame, :attr:`TrackerOutput.probability`).
+        probability, times the probability that its filter puts the part within
+        ``BankOptions.pose_tolerance``, is at least ``1 - BankOptions.wrong_lock_rate``,
+        and that product goes out with every frame, :attr:`TrackerOutput.probability`).
     symmetry : str
         How the tracker picks among a symmetric part's equivalent poses when it
         chooses by itself (a start from the initialiser, a re-acquisition):
@@ -589,7 +593,8 @@ class TrackerOutput:
         Time per stage: visibility, selection, extraction, update.
     probability : float
         With ``TrackerConfig.decision`` ``"bank"``: the probability that the
-        estimate is the part's pose (:mod:`vespro.bank`); NaN otherwise.
+        estimate is the part's pose to within ``BankOptions.pose_tolerance``
+        (:mod:`vespro.bank`); NaN otherwise.
     """
 
     index: int
@@ -661,6 +666,7 @@ class Tracker:
         self._edge_ok = False  # this frame's edge fits support the filter (see confirm_edge_*)
         self._edge_found = 0.0  # least fraction of visible edge samples found by this frame's fits
         self._fit_gap = 0.0  # largest ADD / diameter of this frame's edge fits from the filter (confirm_max_fit_gap)
+        self._fit_info = None  # this frame's edge fits' summed information (6, 6), or None
         self._edge_veto = False  # this frame's edge fits found far less than this filter's first (veto_found_ratio)
         self._vetoes = 0  # vetoed frames since the start (or its confirmation by the initialiser)
         self._start_found: dict[str, float] = {}  # per camera, the found fraction of this filter's first edge fit
@@ -1067,6 +1073,7 @@ class Tracker:
         self._edge_found = 0.0
         self._edge_veto = False
         self._fit_gap = 0.0
+        self._fit_info = None  # the frame's edge fits' summed information (the bank's decision)
         cams = [ob.name for ob in obs if ob.has_image and ob.feature_ids.size]
         if c.edge_aid == "single" and len(cams) != 1:
             return
@@ -1080,8 +1087,8 @@ class Tracker:
             memory = self._contrast.get(name)
             if memory is None:
                 memory = self._contrast[name] = EdgeContrast(self.edge_aid.mf.sample_edge)
-            m = self.edge_aid.measure(name, img, T_wc, T, memory,
-                                      None if self.confirmed else max(c.edge_offset_px, c.start_edge_offset_px))
+            m = self.edge_aid.measure(name, img, T_wc, T, memory, None if self.confirmed or self.bank is not None
+                                      else max(c.edge_offset_px, c.start_edge_offset_px))
             if m is None:
                 continue
             gap = add(m.T_world_object, T, self.model.vertices) / self.model.diameter
@@ -1093,6 +1100,9 @@ class Tracker:
             self._fit_gap = max(self._fit_gap, gap)
             nis = self.ekf.update_pose(m.T_world_object, m.cov6)
             self.edge_updates += 1
+            if self.bank is not None:
+                info = np.linalg.inv(m.cov6)
+                self._fit_info = info if self._fit_info is None else self._fit_info + info
             if nis <= _CHI2_6_99:
                 memory.learn(m.fit.sample_contrast[0], m.edge_side)
             frac = m.fit.found_frac
@@ -1527,8 +1537,8 @@ class Tracker:
 
     def _bank_status(self, fs: FrameSet, obs: list, n_acc: int, mean_nis: float, stage: dict) -> TrackerOutput:
         """The bank's decision on a frame: every hypothesis weighed, the tracked one published
-        ``tracking`` while it is the most probable and its probability is at least
-        ``1 - wrong_lock_rate``; a published track whose probability falls is not published
+        ``tracking`` while it is the most probable and its probability times its filter's
+        accuracy (:meth:`HypothesisBank.accuracy`) is at least ``1 - wrong_lock_rate``; a published track whose probability falls is not published
         from that frame on (``lost``), and the initialiser looks again."""
         c = self.config
         bank = self.bank
@@ -1545,6 +1555,11 @@ class Tracker:
         bank.tidy(keep=main)
         stage["bank"] = time.perf_counter() - t
         p = bank.probability(main) if main is not None else 0.0
+        if p > 0.0:
+            # Whether the filter is at the part closely enough, under its covariance raised to
+            # the frame's own edge fits' where these are wider (see vespro.bank).
+            fit_cov = np.linalg.inv(self._fit_info) if self._fit_info is not None else None
+            p *= bank.accuracy(ekf.pose, covariance_floor(ekf.pose_covariance, fit_cov))
         stage_ms = {k: v * 1e3 for k, v in stage.items()}
         if main is not None and bank.best() is main and p >= 1.0 - bank.options.wrong_lock_rate:
             self.confirmed = True

@@ -138,18 +138,20 @@ def test_with_the_bank_a_camera_hidden_by_an_unknown_body_costs_a_pose_little(pa
     camera's evidence is a mixture with a blocked view (``BankOptions.p_visible``), so the
     right camera, which finds none of the part's edges, costs the right pose at most
     ``log(1 - p_visible)`` a frame: published within the first second and tracked to the end
-    (measured: from frame 6, every frame). Counting every camera as seeing (``p_visible`` 1),
-    the hidden camera refutes the right pose on every frame and it is never published."""
+    (measured: from frame 6, every frame). Counting every camera and every edge as seeing
+    (``p_visible`` and ``p_edge`` 1), the hidden camera refutes the right pose on every frame
+    and it is never published (with the edge mixture alone, a hidden camera's edges cost
+    ``log(1 - p_edge)`` each, which refutes it too little)."""
     from dataclasses import replace
 
     from vespro.tracker import TrackerConfig
 
     rec, T = _paddle_recording(paddle_dir, "fixed2", "cam_right")
 
-    def run(p_visible=None):
+    def run(every_view_seen=False):
         tr = make_tracker(rec, TrackerConfig(decision="bank"))
-        if p_visible is not None:
-            tr.bank.options = replace(tr.bank.options, p_visible=p_visible)
+        if every_view_seen:
+            tr.bank.options = replace(tr.bank.options, p_visible=1.0, p_edge=1.0)
         tr.initializer = make_initializer(rec.rig, tr.model, plain_faces=False)
         outs = track_recording(rec, tr)
         return [o for o in outs if o.status == "tracking"
@@ -159,5 +161,5 @@ def test_with_the_bank_a_camera_hidden_by_an_unknown_body_costs_a_pose_little(pa
     assert right and rec.t[right[0].index] < 1.0, [o.status for o in outs]
     assert len(right) >= len(outs) - 15
     assert all(o in right for o in outs if o.status == "tracking")  # nothing else published
-    right, _ = run(p_visible=1.0)
+    right, _ = run(every_view_seen=True)
     assert right == []
