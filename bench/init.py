@@ -65,6 +65,7 @@ import numpy as np  # noqa: E402
 
 from bench._table import print_table, stats_ms  # noqa: E402
 from vespro.init import make_initializer  # noqa: E402
+from vespro.sim.scene import WATCHED_VOLUME  # noqa: E402
 from vespro.library import object_mesh_path  # noqa: E402
 from vespro.likelihood import ImageLikelihood  # noqa: E402
 from vespro.metrics import add, add_sym  # noqa: E402
@@ -155,22 +156,27 @@ def parse_overrides(text: str) -> dict:
 
 
 def run_tracked(trial: Trial, track_frames: int, config_set: dict | None = None, edge_set: dict | None = None,
-                init_set: dict | None = None, likelihood_set: dict | None = None, on_frame=None):
+                init_set: dict | None = None, likelihood_set: dict | None = None, on_frame=None,
+                workspace: tuple | None = None):
     """One trial through the tracker: the initialiser as its hook; status and ADD per frame.
 
     ``config_set``: ``TrackerConfig`` fields to change; ``edge_set``: attributes
     of the tracker's ``EdgeAid`` to change; ``init_set``: ``InitOptions`` fields to
     change; ``likelihood_set``: ``LikelihoodOptions`` fields of the hypothesis bank's
     likelihood to change (all for A/B runs from the command line). ``on_frame(k, fs,
-    tracker, T_true)``, if given, is called after each frame is processed.
+    tracker, T_true)``, if given, is called after each frame is processed. ``workspace``: the
+    cell's working volume, given to the initialiser and the tracker as a user gives it.
     """
     model, syms, frames = trial.model, trial.syms, trial.frames
     rig, config, motion = trial.cell_setup()
     init_set = dict(init_set or {})
     if (config_set or {}).get("decision") == "bank":  # as --decision bank sets (vespro.options.init_options)
         init_set.setdefault("plain_faces", False)
+    if workspace is not None:
+        init_set.setdefault("workspace", workspace)
     gate = _Gated(make_initializer(rig, model, **init_set), trial.stride)
-    tracker = Tracker(rig, model, config=replace(TrackerConfig(), **(config_set or {})), initializer=gate)
+    tracker = Tracker(rig, model, config=replace(TrackerConfig(), **(config_set or {})), initializer=gate,
+                      workspace=workspace)
     for k, v in (edge_set or {}).items():
         if tracker.edge_aid is None or not hasattr(tracker.edge_aid, k):
             raise SystemExit(f"the tracker's edge aid has no attribute {k!r}")
@@ -285,6 +291,9 @@ def main(argv=None):
     ap.add_argument("--likelihood-set", default="", metavar="K=V,...",
                     help="with --track and decision=bank: LikelihoodOptions fields of the bank's likelihood, "
                          "e.g. region=True")
+    ap.add_argument("--workspace", action="store_true",
+                    help="with --track: the simulated cell's working volume (the watched stretch of conveyor, "
+                         "vespro.sim.scene.WATCHED_VOLUME) given to the initialiser and the tracker")
     ap.add_argument("--verbose", action="store_true")
     a = ap.parse_args(argv)
     config_set, edge_set = parse_overrides(a.set), parse_overrides(a.edge_aid)
@@ -292,6 +301,9 @@ def main(argv=None):
     if (config_set or edge_set or init_set or lk_set) and not a.track:
         raise SystemExit("--set, --edge-aid, --init-set and --likelihood-set apply to the tracked runs: "
                          "they need --track")
+    if a.workspace and not a.track:
+        raise SystemExit("--workspace applies to the tracked runs: it needs --track")
+    workspace = WATCHED_VOLUME if a.workspace else None
     if a.track:
         a.no_baseline = True
         a.track = max(a.track, a.frames)
@@ -308,7 +320,7 @@ def main(argv=None):
         for rk in a.rigs.split(","):
             trials = [Trial(obj, model, syms, rk, a.seed + i, a.frames, a.stride, a.hide) for i in range(a.trials)]
             if a.track:
-                res = [{"ours": run_tracked(t, a.track, config_set, edge_set, init_set, lk_set)} for t in trials]
+                res = [{"ours": run_tracked(t, a.track, config_set, edge_set, init_set, lk_set, workspace=workspace)} for t in trials]
             else:
                 res = [run_trial(t, not a.no_baseline) for t in trials]
             row = [obj, rk, a.trials]

@@ -44,9 +44,9 @@ STANDOFF = 0.15
 def cell_workspace() -> tuple:
     """The demo cell's working volume as its user states it (``--workspace``): the stretch of
     conveyor the cameras watch, from 10 cm under its belt's top to 30 cm over it; world, m."""
-    from vespro.sim.scene import BELT_CENTER_X, BELT_TOP_Z
+    from vespro.sim.scene import WATCHED_VOLUME
 
-    return (BELT_CENTER_X - 0.3, -0.7, BELT_TOP_Z - 0.1, BELT_CENTER_X + 0.3, 0.7, BELT_TOP_Z + 0.3)
+    return WATCHED_VOLUME
 
 
 @dataclass(frozen=True)
@@ -470,7 +470,7 @@ def run_demo_lockstep(cfg: DemoConfig, log=print) -> dict:
     cell_cfg = CellConfig(mesh, rig, effects=ImageEffects(noise_px=cfg.noise_px), mono=True)  # the cell's cameras are monochrome
     source = WorldSource(world_shm.name, cell_cfg, clock)
     model = load_model(mesh, name=cfg.object)
-    tracker = Tracker(rig, model, TrackerConfig(symmetry=cfg.symmetry))
+    tracker = Tracker(rig, model, TrackerConfig(symmetry=cfg.symmetry), workspace=cell_workspace())
     note = describe_symmetry(model.name, len(tracker.symmetries), cfg.symmetry, False, True)
     if note:
         log(f"demo: {note}")

@@ -42,6 +42,13 @@ lines' weighted log ratio with probability ``p_visible``, no evidence with
 the rest, so that a blocked camera costs a pose at most ``log(1 - p_visible)``
 a frame while the others decide.
 
+Which poses are possible at all is a prior: with a working volume
+(:mod:`vespro.workspace`, the stretch of conveyor or the bin the user
+states), the bank holds no pose whose centre lies outside it and drops a
+hypothesis whose filter leaves it. Without one, a pose anywhere in the
+cameras' view is possible, and a copy of the part's outline that the
+scene's straight edges draw in mid-air can be the best pose held.
+
 Equivalent poses of a symmetric part and poses within ``merge_frac`` of the
 diameter of each other (ADD over the part's symmetries) are one hypothesis:
 the first keeps its filter, the scores add as probabilities. Hypotheses whose
@@ -86,6 +93,7 @@ from scipy.special import gammainc
 from .ekf import PoseEKF
 from .likelihood import ImageLikelihood, PoseLikelihood
 from .metrics import add_sym
+from .workspace import box_centre, centres_inside
 
 __all__ = ["BankOptions", "Hypothesis", "HypothesisBank", "accuracy_probability", "covariance_floor",
            "displacement_metric"]
@@ -250,11 +258,17 @@ class HypothesisBank:
     make_filter : callable
         ``make_filter(T_world_object, cov6 or None, velocity (6,) or None) -> PoseEKF``.
     options : BankOptions
+    workspace : tuple of 6 float or None
+        The working volume the part's centre lies in (:mod:`vespro.workspace`), or None.
     """
 
     def __init__(self, vertices: np.ndarray, diameter: float, symmetries, likelihood: ImageLikelihood,
-                 make_filter: Callable[..., PoseEKF], options: BankOptions = BankOptions()):
+                 make_filter: Callable[..., PoseEKF], options: BankOptions = BankOptions(),
+                 workspace: tuple | None = None):
         self.vertices = np.asarray(vertices, float)
+        self.workspace = workspace
+        self.centre = box_centre(self.vertices)
+        self.outside = 0  # poses refused or hypotheses dropped for lying outside the working volume
         self.diameter = float(diameter)
         self.symmetries = list(symmetries)
         self.likelihood = likelihood
@@ -273,10 +287,19 @@ class HypothesisBank:
     def _same(self, T_a: np.ndarray, T_b: np.ndarray) -> bool:
         return add_sym(T_a, T_b, self.vertices, self.symmetries) < self.options.merge_frac * self.diameter
 
+    def inside(self, T_world_object: np.ndarray) -> bool:
+        """Whether the pose puts the part's centre in the working volume (always, without one)."""
+        T = np.asarray(T_world_object, float)
+        return bool(centres_inside(T[:3, :3], T[:3, 3], self.centre, self.workspace)[0])
+
     def propose(self, T_world_object: np.ndarray, t_ns: int, cov6: np.ndarray | None = None,
-                velocity: np.ndarray | None = None) -> Hypothesis:
-        """Add a pose (or find the hypothesis it is the same as); returns that hypothesis."""
+                velocity: np.ndarray | None = None) -> Hypothesis | None:
+        """Add a pose (or find the hypothesis it is the same as); returns that hypothesis, or None
+        for a pose outside the working volume."""
         self.proposed += 1
+        if not self.inside(T_world_object):
+            self.outside += 1
+            return None
         for h in self.hypotheses:
             if self._same(h.ekf.pose, T_world_object):
                 self.merged += 1
@@ -300,7 +323,12 @@ class HypothesisBank:
     def weigh(self, views) -> None:
         """One step of the forward recursion: every hypothesis's prior (``switch_rate`` of its
         probability passed to the null), then the frame's evidence (``views`` as for
-        :class:`ImageLikelihood`); the scores end as log posterior probabilities."""
+        :class:`ImageLikelihood`); the scores end as log posterior probabilities. A hypothesis
+        whose filter left the working volume is dropped first."""
+        if self.workspace is not None:
+            kept = [h for h in self.hypotheses if self.inside(h.ekf.pose)]
+            self.outside += len(self.hypotheses) - len(kept)
+            self.hypotheses = kept
         if not self.hypotheses:
             self.null_score = 0.0
             return

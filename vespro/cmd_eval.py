@@ -69,7 +69,7 @@ def run(args) -> int:
     from .errors import warn
     from .evaluate import overlay_video, plot_errors, pnp_baseline, score
     from .groundtruth import truth_per_frame
-    from .options import initializer_for, say_symmetry, tracker_config
+    from .options import initializer_for, say_symmetry, tracker_config, workspace_of
     from .recording_report import open_recording, report_images
     from .track import make_tracker, parse_pose, track_recording, write_track
 
@@ -86,7 +86,7 @@ def run(args) -> int:
     except ValueError as e:
         print(f"vespro eval: {e}", file=sys.stderr)
         return 2
-    tracker = make_tracker(rec, tracker_config(args), unit=args.model_unit)
+    tracker = make_tracker(rec, tracker_config(args), unit=args.model_unit, workspace=workspace_of(args))
     if init_pose is None:
         tracker.initializer = initializer_for(args, rec, tracker.model)
         if tracker.initializer is None:

@@ -125,7 +125,7 @@ def run(args) -> int:
     from .wire import HelloMsg
 
     from .frames import FrameSet
-    from .options import say_symmetry, tracker_config
+    from .options import say_symmetry, tracker_config, workspace_of
     from .server_record import save_run
 
     camera_rate = args.rate
@@ -192,7 +192,7 @@ def run(args) -> int:
         print(f"vespro serve: {e}", file=sys.stderr)
         return 2
 
-    tracker = Tracker(source.rig, model, tracker_config(args))
+    tracker = Tracker(source.rig, model, tracker_config(args), workspace=workspace_of(args))
     factory = None
     if args.init_pose:
         T0 = parse_pose(args.init_pose)

@@ -6,7 +6,8 @@ import argparse
 import sys
 from pathlib import Path
 
-from .options import add_model_unit_option, add_tracker_options, initializer_for, say_symmetry, tracker_config
+from .options import (add_model_unit_option, add_tracker_options, initializer_for, say_symmetry, tracker_config,
+                      workspace_of)
 from .recording_report import INPUT_HELP, open_recording, report_images
 
 
@@ -43,7 +44,7 @@ def run(args) -> int:
         except ValueError as e:
             print(f"vespro track: {e}", file=sys.stderr)
             return 2
-    tracker = make_tracker(rec, tracker_config(args), unit=args.model_unit)
+    tracker = make_tracker(rec, tracker_config(args), unit=args.model_unit, workspace=workspace_of(args))
     tracker.initializer = initializer_for(args, rec, tracker.model)
     if init_pose is None and tracker.initializer is None:
         print("vespro track: an initial pose is needed: pass --init-pose x,y,z,qw,qx,qy,qz "

@@ -40,7 +40,7 @@ def add_tracker_options(p: argparse.ArgumentParser) -> None:
                         "there: the initialiser then takes every part as textured)")
     p.add_argument("--workspace", metavar="x0,y0,z0,x1,y1,z1",
                    help="the cell's working volume, world frame, m (the part's centre lies in it: on the conveyor, "
-                        "in the bin): the start's search considers no pose outside it")
+                        "in the bin): the start's search considers no pose outside it, nor does the bank hold one")
     add_symmetry_option(p)
 
 
@@ -59,11 +59,17 @@ def say_symmetry(prog: str, tracker, given: bool, reacquires: bool) -> None:
         print(f"{prog}: {line}", file=sys.stderr, flush=True)
 
 
-def tracker_config(args):
-    from .tracker import TrackerConfig
+def workspace_of(args) -> tuple | None:
+    """``--workspace`` as six floats, or None; bad text is one line (:class:`vespro.errors.InputError`)."""
     from .workspace import parse_workspace
 
-    parse_workspace(getattr(args, "workspace", None))  # a bad one is refused whether or not a search runs
+    return parse_workspace(getattr(args, "workspace", None))
+
+
+def tracker_config(args):
+    from .tracker import TrackerConfig
+
+    workspace_of(args)  # a bad one is refused whether or not a search runs
     return TrackerConfig(features_per_camera=args.features, selection=args.selection, sigma_px=args.sigma_px,
                          decision=getattr(args, "decision", "rules"), symmetry=args.symmetry)
 
@@ -71,10 +77,8 @@ def tracker_config(args):
 def init_options(args) -> dict:
     """``InitOptions`` fields the command line sets (``--workspace``; ``--textured``; ``--decision bank``: the bank's
     likelihood takes texture inside the faces as clutter, so the plain-face checks stay off)."""
-    from .workspace import parse_workspace
-
     return {"plain_faces": not (getattr(args, "textured", False) or getattr(args, "decision", "rules") == "bank"),
-            "workspace": parse_workspace(getattr(args, "workspace", None))}
+            "workspace": workspace_of(args)}
 
 
 def initializer_for(args, rec, model):

@@ -53,10 +53,11 @@ def parse_pose(text: str) -> np.ndarray:
 
 
 def make_tracker(rec: Recording, config: TrackerConfig = TrackerConfig(), initializer=None,
-                 unit: str = "m") -> Tracker:
-    """A tracker for a recording's rig and model (the model file drawn in ``unit``)."""
+                 unit: str = "m", workspace: tuple | None = None) -> Tracker:
+    """A tracker for a recording's rig and model (the model file drawn in ``unit``; ``workspace``:
+    the cell's working volume, :mod:`vespro.workspace`)."""
     model = load_model(rec.model_path, unit=unit, name=rec.object_name)
-    return Tracker(rec.rig, model, config, initializer=initializer)
+    return Tracker(rec.rig, model, config, initializer=initializer, workspace=workspace)
 
 
 def track_recording(rec: Recording, tracker: Tracker, init_pose: np.ndarray | None = None,

@@ -54,6 +54,7 @@ from .startpose import InitResult
 from .symmetry import RULES as SYMMETRY_RULES
 from .symmetry import choose as choose_equivalent
 from .visibility import SceneBody, VisibilityScene
+from .workspace import check_workspace
 
 __all__ = ["TrackerConfig", "CameraObservation", "TrackerOutput", "InitResult", "Tracker"]
 
@@ -645,10 +646,14 @@ class Tracker:
         it: handed the filter's pose by ``initializer.await_confirmation(T,
         t_ns)`` where it has one); None means "not yet".
     bsp_cache_dir : path, optional
+    workspace : tuple of 6 float, optional
+        The cell's working volume (:mod:`vespro.workspace`): with the bank deciding, no pose
+        whose centre lies outside it is held (the initialiser takes its own).
     """
 
     def __init__(self, rig: Rig, model: Model, config: TrackerConfig = TrackerConfig(),
-                 initializer: Callable[[FrameSet], InitResult | None] | None = None, bsp_cache_dir=None):
+                 initializer: Callable[[FrameSet], InitResult | None] | None = None, bsp_cache_dir=None,
+                 workspace: tuple | None = None):
         self.rig = rig
         self.model = model
         self.config = config
@@ -705,7 +710,8 @@ class Tracker:
         if config.decision == "bank":
             mf = self.edge_aid.mf if self.edge_aid is not None else model_features(model)
             self.bank = HypothesisBank(model.vertices, model.diameter, self.symmetries, ImageLikelihood(mf, self.tree),
-                                       self._new_filter, BankOptions())
+                                       self._new_filter, BankOptions(),
+                                       None if workspace is None else check_workspace(workspace))
             self.redetector = Redetector(rig, mf, self.tree,
                                          undistort=self.edge_aid.undistort if self.edge_aid is not None else None)
             self._bank_report = None  # the initialiser's last report seen (its candidates are proposed)
@@ -1552,6 +1558,8 @@ class Tracker:
                 bank.remove(main)  # the filter has diverged
                 main = None
         bank.weigh(self.bank_views(fs))
+        if main is not None and main not in bank.hypotheses:
+            main = None  # its filter left the working volume
         bank.tidy(keep=main)
         stage["bank"] = time.perf_counter() - t
         p = bank.probability(main) if main is not None else 0.0

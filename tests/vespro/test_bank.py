@@ -315,3 +315,27 @@ def test_the_accuracy_probability_matches_sampled_pose_errors():
         assert accuracy_probability(T, C, V, float(np.percentile(rms, 10))) <= 0.1 + 0.03
     assert accuracy_probability(T, np.zeros((6, 6)), V, 1e-3) == 1.0
     assert accuracy_probability(T, np.full((6, 6), np.nan), V, 1e-3) == 0.0
+
+
+def test_the_working_volume_is_the_prior_over_poses():
+    """With a working volume the bank holds no pose whose centre lies outside it (a proposal
+    there is refused and counted) and drops a hypothesis whose filter leaves it on the next
+    weighing; the part's centre, not its origin, is what must lie inside."""
+    model = box_model([0.2, 0.1, 0.05], center=(0.03, 0.0, 0.0))  # centre 3 cm from the origin
+    lk = _ScriptedLikelihood()
+    opt = BankOptions(evidence_weight=1.0, p_edge=1.0)
+    vol = (-0.05, -0.2, 0.3, 0.05, 0.2, 0.7)  # x in [-0.05, 0.05]
+    bank = HypothesisBank(model.vertices, model.diameter, discrete_symmetries(model.vertices), lk, _filter, opt, vol)
+    assert bank.propose(_at(0.2), 0) is None and bank.outside == 1
+    assert bank.propose(_at(0.04), 0) is None  # its origin inside, its centre (0.07) not
+    h = bank.propose(_at(-0.06), 0)  # its origin outside, its centre (-0.03) inside
+    assert h is not None and bank.hypotheses == [h]
+    bank.weigh([])
+    assert bank.hypotheses == [h]
+    x = h.ekf.x.copy()
+    x[0] = 0.3
+    h.ekf.x = x  # its filter slid out of the volume
+    bank.weigh([])
+    assert bank.hypotheses == [] and bank.outside == 3
+    free = HypothesisBank(model.vertices, model.diameter, discrete_symmetries(model.vertices), lk, _filter, opt)
+    assert free.propose(_at(0.2), 0) is not None

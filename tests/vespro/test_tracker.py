@@ -198,6 +198,14 @@ def test_textured_parts_are_told_on_the_command_line(recs):
     ini = initializer_for(p.parse_args(["--workspace", "0,-1,0,2,1,1.5"]), rec, model)
     assert ini.setup.options.workspace == (0.0, -1.0, 0.0, 2.0, 1.0, 1.5)
     assert tracker_config(p.parse_args(["--decision", "bank"])).decision == "bank"
+    # the working volume reaches the bank too (the prior over the poses it holds)
+    from vespro.options import workspace_of
+    from vespro.track import make_tracker
+
+    args = p.parse_args(["--decision", "bank", "--workspace", "0,-1,0,2,1,1.5"])
+    tr = make_tracker(rec, tracker_config(args), workspace=workspace_of(args))
+    assert tr.bank.workspace == (0.0, -1.0, 0.0, 2.0, 1.0, 1.5)
+    assert make_tracker(rec, tracker_config(p.parse_args(["--decision", "bank"]))).bank.workspace is None
 
 
 def test_single_camera_does_not_drift_in_depth(tmp_path):

@@ -31,7 +31,7 @@ from ..camera import CameraIntrinsics
 from ..rig import Rig, RigCamera
 from ..se3 import quat_from_matrix
 
-__all__ = ["MODELS_DIR", "CELL_XML", "T_CAMERA_GL", "render_intrinsics", "SceneSpec", "build_cell"]
+__all__ = ["MODELS_DIR", "CELL_XML", "T_CAMERA_GL", "WATCHED_VOLUME", "render_intrinsics", "SceneSpec", "build_cell"]
 
 MODELS_DIR = Path(__file__).resolve().parents[2] / "models"
 CELL_XML = MODELS_DIR / "cell.xml"
@@ -44,6 +44,11 @@ PARK_POS = np.array([0.0, 0.0, -5.0])
 
 BELT_TOP_Z = 0.50
 BELT_CENTER_X = 0.90
+
+#: The working volume of the simulated cell (:mod:`vespro.workspace`), as its user would state it:
+#: the stretch of conveyor the cameras watch, from 10 cm under its belt's top to 30 cm over it;
+#: world, m.
+WATCHED_VOLUME = (BELT_CENTER_X - 0.3, -0.7, BELT_TOP_Z - 0.1, BELT_CENTER_X + 0.3, 0.7, BELT_TOP_Z + 0.3)
 WORK_POINT = np.array([0.90, 0.0, 0.55])
 
 
