@@ -64,7 +64,7 @@ from dataclasses import dataclass, replace  # noqa: E402
 import numpy as np  # noqa: E402
 
 from bench._table import print_table, stats_ms  # noqa: E402
-from vespro.init import make_initializer  # noqa: E402
+from vespro.init import decision_options, make_initializer  # noqa: E402
 from vespro.sim.scene import WATCHED_VOLUME  # noqa: E402
 from vespro.library import object_mesh_path  # noqa: E402
 from vespro.likelihood import ImageLikelihood  # noqa: E402
@@ -169,9 +169,7 @@ def run_tracked(trial: Trial, track_frames: int, config_set: dict | None = None,
     """
     model, syms, frames = trial.model, trial.syms, trial.frames
     rig, config, motion = trial.cell_setup()
-    init_set = dict(init_set or {})
-    if (config_set or {}).get("decision") == "bank":  # as --decision bank sets (vespro.options.init_options)
-        init_set.setdefault("plain_faces", False)
+    init_set = {**decision_options((config_set or {}).get("decision", "rules")), **(init_set or {})}
     if workspace is not None:
         init_set.setdefault("workspace", workspace)
     gate = _Gated(make_initializer(rig, model, **init_set), trial.stride)

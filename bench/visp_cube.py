@@ -33,7 +33,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from vespro.camera import CameraIntrinsics  # noqa: E402
 from vespro.frames import FrameSet  # noqa: E402
 from vespro.imageedges import project_points  # noqa: E402
-from vespro.init import make_initializer  # noqa: E402
+from vespro.init import decision_options, make_initializer  # noqa: E402
 from vespro.metrics import add_sym, discrete_symmetries  # noqa: E402
 from vespro.model import box_model  # noqa: E402
 from vespro.rig import Rig, RigCamera  # noqa: E402
@@ -57,7 +57,7 @@ def run(decision: str, n: int, overlay: Path | None, textured: bool = False) -> 
     model = box_model([0.084] * 3, center=(-0.042, 0.042, 0.042), name="cube")
     img0 = cv2.imread(str(DATA / "cube" / "image0000.pgm"), cv2.IMREAD_GRAYSCALE)
     rig = Rig((RigCamera("cam", CameraIntrinsics(img0.shape[1], img0.shape[0], K), T_world_camera=np.eye(4)),))
-    tr = Tracker(rig, model, TrackerConfig(decision=decision), initializer=make_initializer(rig, model, plain_faces=not (textured or decision == "bank")))
+    tr = Tracker(rig, model, TrackerConfig(decision=decision), initializer=make_initializer(rig, model, **decision_options(decision, textured)))
     syms = discrete_symmetries(model.vertices)
     out = dict(first=None, tracked=0, add0=float("nan"), ms=[])
     for k in range(n):

@@ -554,7 +554,7 @@ def track_scenario(sc: dict, cache_dir: str | Path, log=print, overrides: dict |
     make_initializer = None
     if sc["init"] == "auto":  # checked before simulating anything
         try:
-            from .init import make_initializer
+            from .init import decision_options, make_initializer
         except ImportError:
             raise RuntimeError("init: auto needs vespro.init (automatic initialisation), which is not available") from None
     rec_path = ensure_recording(sc, cache_dir, log=log)
@@ -567,9 +567,8 @@ def track_scenario(sc: dict, cache_dir: str | Path, log=print, overrides: dict |
     if sc["init"] == "gt":
         init_pose = T_true[0]  # evaluator-only: scores tracking, not initialisation
     else:
-        # With the bank, texture inside a face is clutter to the likelihood: the plain-face checks
-        # stay off, as ``--decision bank`` sets them (vespro.options.init_options).
-        tracker.initializer = make_initializer(rec.rig, tracker.model, plain_faces=config.decision != "bank")
+        # The decision's initialiser settings, as ``--decision`` sets them (vespro.init.decision_options).
+        tracker.initializer = make_initializer(rec.rig, tracker.model, **decision_options(config.decision))
     outs = track_recording(rec, tracker, init_pose)
     return {"rec_path": rec_path, "rec": rec, "T_true": T_true, "tracker": tracker, "config": config, "outs": outs}
 

@@ -71,11 +71,11 @@ def _frame_sets(part: str, rig_name: str, n: int, mono: bool):
 
 
 def _track(rig, model, frame_sets, selection: str, decision: str = "rules") -> int:
-    from .init import make_initializer
+    from .init import decision_options, make_initializer
     from .tracker import Tracker, TrackerConfig
 
     tracker = Tracker(rig, model, TrackerConfig(selection=selection, decision=decision),
-                      initializer=make_initializer(rig, model, plain_faces=decision != "bank"))
+                      initializer=make_initializer(rig, model, **decision_options(decision)))
     n = sum(tracker.process(fs).status == "tracking" for fs in frame_sets)
     if tracker.bank is not None:  # the likelihood's optional region term (LikelihoodOptions.region)
         import numpy as np

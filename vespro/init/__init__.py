@@ -8,8 +8,8 @@ imports those helpers in turn.
 
 import importlib
 
-__all__ = ["InitOptions", "InitReport", "InitResult", "InitSetup", "Initializer", "initialize", "make_initializer",
-           "make_setup"]
+__all__ = ["InitOptions", "InitReport", "InitResult", "InitSetup", "Initializer", "decision_options", "initialize",
+           "make_initializer", "make_setup"]
 
 
 def __getattr__(name: str):
