@@ -76,8 +76,7 @@ def tracker_config(args):
 
 def init_options(args) -> dict:
     """``InitOptions`` fields the command line sets (``--workspace``; ``--textured``; ``--decision bank``: the bank's
-    likelihood takes texture inside the faces as clutter, so the plain-face checks stay off, and the bank decides
-    which of the initialiser's candidates is the part's pose, so it proposes them undecided)."""
+    likelihood takes texture inside the faces as clutter, so the plain-face checks stay off)."""
     from .init import decision_options
 
     return {**decision_options(getattr(args, "decision", "rules"), getattr(args, "textured", False)),

@@ -179,8 +179,7 @@ def test_textured_parts_are_told_on_the_command_line(recs):
     """``--textured`` (``vespro track``, ``serve``, ``eval``) turns off the plain-face rules of
     the initialiser (``InitOptions.plain_faces``): with one camera a pose whose faces cover
     image edges is otherwise refused, and a part with markings would never start. With
-    ``--decision bank`` they are off too (the bank's likelihood takes texture as clutter), and
-    the initialiser proposes its candidates undecided (``decide``: the bank decides)."""
+    ``--decision bank`` they are off too (the bank's likelihood takes texture as clutter)."""
     import argparse
 
     from vespro.options import add_tracker_options, init_options, initializer_for, tracker_config
@@ -193,7 +192,7 @@ def test_textured_parts_are_told_on_the_command_line(recs):
     model = load_model(rec.model_path, name=rec.object_name)
     for argv, plain in (([], True), (["--textured"], False), (["--decision", "bank"], False)):
         args = p.parse_args(argv)
-        assert init_options(args) == {"plain_faces": plain, "workspace": None, "decide": "bank" not in argv}
+        assert init_options(args) == {"plain_faces": plain, "workspace": None}
         ini = initializer_for(args, rec, model)
         assert ini is not None and ini.setup.options.plain_faces is plain
     ini = initializer_for(p.parse_args(["--workspace", "0,-1,0,2,1,1.5"]), rec, model)

@@ -530,13 +530,6 @@ class InitOptions:
         (:mod:`vespro.workspace`): no hypothesis puts the part's centre outside it
         (on the demo's conveyor 85% of a call's P3P hypotheses do, and the call
         costs a quarter less); None: anywhere in view.
-    decide : bool
-        The initialiser decides whether its best candidate is the part's pose
-        (the checks, rivals, probe and provisional starts above). False where
-        the hypothesis bank decides (``--decision bank``): a search with a
-        candidate answers its best (ranked by the image edge length it
-        explains, then by agreement) and reports the others, and the bank
-        weighs them all on the frames that follow.
     """
 
     edges: EdgeOptions = field(default_factory=EdgeOptions)
@@ -614,7 +607,6 @@ class InitOptions:
     held_rival: bool = True
     confirm_own_refinement: bool = True
     workspace: tuple | None = None
-    decide: bool = True
 
     def __post_init__(self):
         if self.workspace is not None:
@@ -1236,10 +1228,7 @@ def _verified(setup: InitSetup, views, cand: np.ndarray, attempt: int, pend: _Pe
     # Candidates that pass every check first, then by the image edge length
     # they explain (a smaller, farther copy fitted to part of the part
     # explains less), then by agreement.
-    if opt.decide:
-        refined.sort(key=lambda r: (not _verdict(r[1], opt)[0], -r[1].inlier_px, -r[1].inlier_frac))
-    else:
-        refined.sort(key=lambda r: (-r[1].inlier_px, -r[1].inlier_frac))
+    refined.sort(key=lambda r: (not _verdict(r[1], opt)[0], -r[1].inlier_px, -r[1].inlier_frac))
     return refined, again
 
 
@@ -1249,9 +1238,6 @@ def _decided(call: _Call, refined: list, again: list, pend: _Pending | None, nh:
     setup, views = call.setup, call.views
     opt, mf = setup.options, setup.mf
     T_best, chk = refined[0]
-    if not opt.decide:  # the bank decides: the best candidate is proposed, the others beside it
-        res, rep = call.found(T_best, chk, "search", nh)
-        return res, replace(rep, candidates=tuple(refined))
     ok, plain, why = _verdict(chk, opt)
     rivals = ()
     # The pending pose found again and still first: its own call looked for
@@ -1474,11 +1460,9 @@ class Initializer:
 
 def decision_options(decision: str, textured: bool = False) -> dict:
     """The :class:`InitOptions` fields the tracker's decision sets: with the bank (``"bank"``) the
-    likelihood takes texture inside the faces as clutter, so the plain-face checks are off, and
-    the bank decides among the candidates, so the initialiser proposes them undecided
-    (``decide``); with the rules, the faces are plain unless ``textured``."""
-    bank = decision == "bank"
-    return {"plain_faces": not (textured or bank), "decide": not bank}
+    likelihood takes texture inside the faces as clutter, so the plain-face checks are off; with
+    the rules, the faces are plain unless ``textured``."""
+    return {"plain_faces": not (textured or decision == "bank")}
 
 
 def make_initializer(rig: Rig, model: Model, options: InitOptions | None = None, **overrides) -> Initializer:
