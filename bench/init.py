@@ -318,7 +318,8 @@ def main(argv=None):
         for rk in a.rigs.split(","):
             trials = [Trial(obj, model, syms, rk, a.seed + i, a.frames, a.stride, a.hide) for i in range(a.trials)]
             if a.track:
-                res = [{"ours": run_tracked(t, a.track, config_set, edge_set, init_set, lk_set, workspace=workspace)} for t in trials]
+                res = [{"ours": run_tracked(t, a.track, config_set, edge_set, init_set, lk_set, workspace=workspace)}
+                       for t in trials]
             else:
                 res = [run_trial(t, not a.no_baseline) for t in trials]
             row = [obj, rk, a.trials]

@@ -1544,8 +1544,9 @@ class Tracker:
     def _bank_status(self, fs: FrameSet, obs: list, n_acc: int, mean_nis: float, stage: dict) -> TrackerOutput:
         """The bank's decision on a frame: every hypothesis weighed, the tracked one published
         ``tracking`` while it is the most probable and its probability times its filter's
-        accuracy (:meth:`HypothesisBank.accuracy`) is at least ``1 - wrong_lock_rate``; a published track whose probability falls is not published
-        from that frame on (``lost``), and the initialiser looks again."""
+        accuracy (:meth:`HypothesisBank.accuracy`) is at least ``1 - wrong_lock_rate``; a
+        published track whose probability falls is not published from that frame on
+        (``lost``), and the initialiser looks again."""
         c = self.config
         bank = self.bank
         ekf = self.ekf
