@@ -52,3 +52,20 @@ def test_the_search_keeps_to_the_working_volume():
     poses = ([res.T_world_object] if res is not None else []) + [T for T, *_ in ini.last_report.candidates]
     c = box_centre(model.vertices)
     assert all(centres_inside(T[:3, :3], T[:3, 3], c, beside)[0] for T in poses)
+
+
+def test_a_search_whose_candidates_all_left_the_volume_answers_none(monkeypatch):
+    """Refinement can carry every candidate out of the working volume (each hypothesis started
+    inside it): the call then answers none, with its reason, instead of deciding among nothing."""
+    import vespro.init.initializer as ini_mod
+
+    rig, model, frames = trial_frames("box", 0, 1, 2)
+    fs, T_true = frames[0]
+    inside = tuple(np.r_[T_true[:3, 3] - 0.3, T_true[:3, 3] + 0.3])
+    T_out = T_true.copy()
+    T_out[:3, 3] += [1.0, 0.0, 0.0]  # where a refinement went, a metre off
+    setup = ini_mod.make_setup(rig, model, ini_mod.InitOptions(workspace=inside))
+    monkeypatch.setattr(ini_mod, "_hypotheses", lambda setup, views, attempt: (np.array([T_true]), 1))
+    monkeypatch.setattr(ini_mod, "_verified", lambda *a, **k: ([(T_out, None)], [T_out]))
+    res, rep = ini_mod.initialize(setup, fs)
+    assert res is None and rep.reason == "no candidate in the working volume"
