@@ -93,7 +93,8 @@ from scipy.special import gammainc
 from .ekf import PoseEKF
 from .likelihood import ImageLikelihood, PoseLikelihood
 from .metrics import add_sym
-from .workspace import box_centre, centres_inside
+from .se3 import skew
+from .workspace import box_centre, centres_inside, check_workspace
 
 __all__ = ["BankOptions", "Hypothesis", "HypothesisBank", "accuracy_probability", "covariance_floor",
            "displacement_metric"]
@@ -113,12 +114,15 @@ def displacement_metric(T_world_object: np.ndarray, vertices: np.ndarray) -> np.
     """A (6, 6) with ``dx' A dx`` the mean squared displacement of the vertices under a pose error
     ``dx = [dp, dtheta]`` (the filter's: ``p + dp``, ``Exp(dtheta) R``; world frame)."""
     a = np.asarray(vertices, float) @ np.asarray(T_world_object, float)[:3, :3].T  # R v, world
-    # Each vertex moves by dp + dtheta x (R v) = dp - [R v]x dtheta.
-    S = np.zeros((len(a), 3, 3))
-    S[:, 0, 1], S[:, 0, 2], S[:, 1, 2] = -a[:, 2], a[:, 1], -a[:, 0]
-    S[:, 1, 0], S[:, 2, 0], S[:, 2, 1] = a[:, 2], -a[:, 1], a[:, 0]
-    J = np.concatenate([np.broadcast_to(np.eye(3), S.shape), -S], axis=2).reshape(-1, 6)
-    return J.T @ J / len(a)
+    # Each vertex moves by J dx = dp - [a]x dtheta; summed over the vertices, J' J is
+    # [[n I, -[sum a]x], [[sum a]x, sum |a|^2 I - a a']].
+    n = len(a)
+    s = skew(a.sum(axis=0))
+    M = np.empty((6, 6))
+    M[:3, :3] = n * np.eye(3)
+    M[:3, 3:], M[3:, :3] = -s, s
+    M[3:, 3:] = float((a * a).sum()) * np.eye(3) - a.T @ a
+    return M / n
 
 
 def accuracy_probability(T_world_object: np.ndarray, cov6: np.ndarray, vertices: np.ndarray,
@@ -266,7 +270,7 @@ class HypothesisBank:
                  make_filter: Callable[..., PoseEKF], options: BankOptions = BankOptions(),
                  workspace: tuple | None = None):
         self.vertices = np.asarray(vertices, float)
-        self.workspace = workspace
+        self.workspace = None if workspace is None else check_workspace(workspace)
         self.centre = box_centre(self.vertices)
         self.outside = 0  # poses refused or hypotheses dropped for lying outside the working volume
         self.diameter = float(diameter)

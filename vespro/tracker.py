@@ -54,7 +54,6 @@ from .startpose import InitResult
 from .symmetry import RULES as SYMMETRY_RULES
 from .symmetry import choose as choose_equivalent
 from .visibility import SceneBody, VisibilityScene
-from .workspace import check_workspace
 
 __all__ = ["TrackerConfig", "CameraObservation", "TrackerOutput", "InitResult", "Tracker"]
 
@@ -710,8 +709,7 @@ class Tracker:
         if config.decision == "bank":
             mf = self.edge_aid.mf if self.edge_aid is not None else model_features(model)
             self.bank = HypothesisBank(model.vertices, model.diameter, self.symmetries, ImageLikelihood(mf, self.tree),
-                                       self._new_filter, BankOptions(),
-                                       None if workspace is None else check_workspace(workspace))
+                                       self._new_filter, BankOptions(), workspace)
             self.redetector = Redetector(rig, mf, self.tree,
                                          undistort=self.edge_aid.undistort if self.edge_aid is not None else None)
             self._bank_report = None  # the initialiser's last report seen (its candidates are proposed)
